@@ -1,0 +1,3 @@
+from mowerhw.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,50 @@
+"""Helpers shared by the command modules."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from mowerhw.config import EX_CONFIG, Config, ConfigError, default_config, load_config
+
+
+def add_config_argument(parser: argparse.ArgumentParser, required: bool = False) -> None:
+    parser.add_argument(
+        "--config",
+        type=Path,
+        required=required,
+        metavar="FILE",
+        help="runtime config YAML (default: built-in defaults with the shipped calibration)",
+    )
+
+
+def load_config_or_exit(path: Path | None) -> Config:
+    """The validated config, or print every problem and exit 78 (EX_CONFIG)."""
+    try:
+        return load_config(path) if path is not None else default_config()
+    except ConfigError as exc:
+        report_config_error(exc)
+        raise SystemExit(EX_CONFIG) from None
+
+
+def report_config_error(exc: ConfigError) -> None:
+    print(f"mowerhw: invalid configuration\n{exc}", file=sys.stderr)
+
+
+def print_json(obj: Any) -> None:
+    print(json.dumps(obj, indent=2, sort_keys=False, default=_json_default))
+
+
+def _json_default(value: Any) -> Any:
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

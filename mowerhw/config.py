@@ -1,0 +1,495 @@
+"""One configuration schema for the whole runtime (DESIGN.md §2), validated at load.
+
+The schema *is* the frozen dataclasses below: each section is one hardware part or one
+estimator (Klipper-style: one section per module), each field carries its default, its rules
+and a one-line doc. ``load_config`` walks the YAML against them and collects every problem as
+``key: value … what is allowed``; a bad file raises :class:`ConfigError`, which every command
+reports on one line per problem and exits with ``EX_CONFIG`` (78), the status systemd is told
+not to restart on (``RestartPreventExitStatus=78``).
+
+Relative paths in a file are resolved against the directory of that file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+EX_CONFIG = 78  # sysexits.h: configuration error
+
+VN100_BAUDRATES = (9600, 19200, 38400, 57600, 115200, 128000, 230400, 460800, 921600)
+VN100_RATES_HZ = (1, 2, 4, 5, 8, 10, 16, 20, 25, 40, 50, 80, 100, 160, 200, 400, 800)
+CAN_INTERFACES = (
+    "socketcan",
+    "virtual",
+    "udp_multicast",
+    "slcan",
+    "pcan",
+    "kvaser",
+    "vector",
+    "gs_usb",
+    "socketcand",
+    "serial",
+    "ixxat",
+    "nican",
+    "neovi",
+    "cantact",
+    "seeedstudio",
+)
+CAN_BITRATES = (125000, 250000, 500000, 1000000)
+
+
+class ConfigError(ValueError):
+    """Invalid configuration. ``problems`` lists one message per bad key."""
+
+    def __init__(self, problems: list[str], source: str | None = None) -> None:
+        self.problems = problems
+        self.source = source
+        prefix = f"{source}: " if source else ""
+        super().__init__("\n".join(prefix + p for p in problems))
+
+
+def opt(default: Any, doc: str = "", **rules: Any) -> Any:
+    """A config field: default, one-line doc, validation rules.
+
+    Rules: ``choices`` (tuple), ``ge``/``gt``/``le``/``lt`` (numeric bounds), ``unit_norm``
+    (a quaternion), ``exists`` (a path that must exist), ``nonempty`` (strings).
+    """
+    meta = {"doc": doc, **rules}
+    if isinstance(default, list | dict):
+        return field(default_factory=lambda: type(default)(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def section(cls: type, doc: str = "") -> Any:
+    return field(default_factory=cls, metadata={"doc": doc})
+
+
+Quat = tuple[float, float, float, float]
+
+
+# --------------------------------------------------------------------------- device sections
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    """VectorNav VN-100 on a serial port (``drivers.vn100``)."""
+
+    driver: str = opt(
+        "vn100",
+        "vn100 (real serial device) or mock (simulated on a pty)",
+        choices=("vn100", "mock"),
+    )
+    port: str = opt("/dev/ttyUSB0", "serial device path", nonempty=True)
+    baudrate: int = opt(921600, "baud rate to switch the sensor to", choices=VN100_BAUDRATES)
+    initial_baudrate: int = opt(
+        115200, "baud rate the sensor is at on power-up", choices=VN100_BAUDRATES
+    )
+    output: str = opt("binary", "async output format", choices=("binary", "ascii"))
+    rate_hz: int = opt(
+        100, "IMU output rate (800 Hz divided by a whole number)", choices=VN100_RATES_HZ
+    )
+    stale_after_s: float = opt(0.1, "halt when no IMU sample for this long", gt=0.0, le=5.0)
+    low_latency: bool = opt(True, "request Linux serial low-latency mode (USB adapters)")
+    reconnect_max_backoff_s: float = opt(5.0, "longest wait between reconnect tries", gt=0, le=60)
+    q_bi: Quat = opt(
+        (0.0, 1.0, 0.0, 0.0),
+        "IMU frame in the body frame, (w, x, y, z); VN-100 z-down mounted: (0, 1, 0, 0)",
+        unit_norm=True,
+    )
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """The CAN bus (python-can) shared by ground speed and permit/halt."""
+
+    interface: str = opt("socketcan", "python-can interface", choices=CAN_INTERFACES)
+    channel: str = opt("can0", "python-can channel (socketcan: interface name)", nonempty=True)
+    bitrate: int = opt(250000, "bit rate (ISO 11783: 250000)", choices=CAN_BITRATES)
+    source_address: int = opt(0x90, "this ECU's ISO 11783 source address", ge=0, le=253)
+
+
+@dataclass(frozen=True)
+class SpeedConfig:
+    """Ground speed from ISO 11783 GBSD (PGN 65097) / WBSD (PGN 65096)."""
+
+    source: str = opt("ground", "which message to use", choices=("ground", "wheel", "any"))
+    sensor_address: int | None = opt(
+        None, "accept only this source address (null: any)", ge=0, le=253
+    )
+    stale_after_s: float = opt(0.3, "halt when no valid speed for this long", gt=0.0, le=5.0)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Omnidirectional camera through V4L2 (``drivers.camera_v4l2``)."""
+
+    driver: str = opt(
+        "v4l2", "v4l2 (real device) or mock (rendered frames)", choices=("v4l2", "mock")
+    )
+    device: str = opt("/dev/video0", "V4L2 device path", nonempty=True)
+    width: int = opt(1540, "frame width (px)", ge=16, le=8192)
+    height: int = opt(1540, "frame height (px)", ge=16, le=8192)
+    fps: float = opt(4.0, "frame rate", gt=0.0, le=120.0)
+    pixel_format: str = opt("GREY", "V4L2 FOURCC", choices=("GREY", "YUYV", "MJPG", "BGR3"))
+    calibration: Path = opt(
+        Path("camera/paper-table1.yaml"), "Kalibr camchain YAML (omni + radtan)", exists=True
+    )
+    q_bc: Quat = opt(
+        (0.0, 1.0, 0.0, 0.0),
+        "camera (Mei) frame in the body frame, (w, x, y, z); mirror up, image centre at nadir",
+        unit_norm=True,
+    )
+    stale_after_s: float = opt(1.0, "halt when no frame for this long", gt=0.0, le=30.0)
+    pixel_sigma: float = opt(1.0, "feature position noise (px, 1σ)", gt=0.0, le=20.0)
+
+
+@dataclass(frozen=True)
+class PermitConfig:
+    """Mowing permit / halt on CAN (ISO 11783 ISB + heartbeat + status; DESIGN.md §7)."""
+
+    period_s: float = opt(0.1, "ISB and status repeat period", ge=0.01, le=0.1)
+    heartbeat_period_s: float = opt(0.1, "ISO 11783 heartbeat period", ge=0.01, le=0.1)
+    status_pgn: int = opt(0xFF10, "PGN of the status frame (Proprietary B)", ge=0xFF00, le=0xFFFF)
+
+
+# ------------------------------------------------------------------------ estimator sections
+
+
+@dataclass(frozen=True)
+class TeachConfig:
+    """Teach phase: landmark observers (eqs 2–8) and robot-centric EKF (eqs 14–20)."""
+
+    gamma1: float = opt(-2.0, "observer contraction rate for depth, γ₁ (eq. 7), 1/s", lt=0.0)
+    gamma2: float = opt(-6.0, "observer contraction rate for direction, γ₂ (eq. 7), 1/s", lt=0.0)
+    d_min_m: float = opt(0.5, "lower bound on landmark distance (Assumption 1)", gt=0.0)
+    d_init_m: float = opt(5.0, "initial depth of a new landmark", gt=0.0)
+    min_parallax_deg: float = opt(
+        3.0, "skip depth pseudo-measurements below this parallax", gt=0.0, lt=90.0
+    )
+    min_baseline_m: float = opt(0.3, "skip depth pseudo-measurements below this baseline", gt=0.0)
+    keyframe_baseline_m: float = opt(4.0, "start a new keyframe after this distance", gt=0.0)
+    standstill_s: float = opt(2.0, "initial standstill used to calibrate the gyro bias", ge=0.0)
+    bearing_sigma_rad: float = opt(0.006, "bearing noise (1σ) for the EKF", gt=0.0, lt=0.5)
+    gyro_noise: float = opt(0.002, "gyro white noise density, rad/s/√Hz", gt=0.0)
+    speed_noise: float = opt(0.02, "ground speed noise density, m/s/√Hz", gt=0.0)
+    boundary_simplify_m: float = opt(0.02, "Douglas–Peucker tolerance of the boundary", ge=0.0)
+    min_area_m2: float = opt(4.0, "smallest lawn accepted as a boundary", gt=0.0)
+    loop_closure: bool = opt(True, "close the loop at the start and distribute the error")
+
+
+@dataclass(frozen=True)
+class MowConfig:
+    """Mow phase: world-centric EKF localizer (eqs 21–23)."""
+
+    gyro_noise: float = opt(0.002, "gyro white noise density, rad/s/√Hz", gt=0.0)
+    gyro_bias_walk: float = opt(2e-5, "gyro bias random walk, rad/s²/√Hz", ge=0.0)
+    speed_noise: float = opt(0.02, "ground speed noise density, m/s/√Hz", gt=0.0)
+    lateral_noise: float = opt(0.01, "non-holonomic slip (lateral/vertical), m/s/√Hz", gt=0.0)
+    bearing_sigma_rad: float = opt(0.006, "bearing noise (1σ)", gt=0.0, lt=0.5)
+    gate_probability: float = opt(0.999, "χ² gate of each landmark bearing", gt=0.5, lt=1.0)
+    history_s: float = opt(2.0, "IMU history kept to apply late frames", gt=0.0, le=30.0)
+    lockout_s: float = opt(3.0, "re-initialise after rejecting everything for this long", gt=0.0)
+
+
+@dataclass(frozen=True)
+class ContainmentConfig:
+    """Containment decision (DESIGN.md §5 table)."""
+
+    margin_m: float = opt(0.4, "NEAR_EDGE band width (the paper's 0.4 m turn threshold)", ge=0.0)
+    k_sigma: float = opt(3.0, "how many σ of position uncertainty to keep from the edge", ge=0.0)
+    sigma_max_m: float = opt(0.3, "above this σ the position is UNKNOWN (halt)", gt=0.0)
+    soft_persist: int = opt(3, "consecutive samples a soft OUTSIDE must last to halt", ge=1, le=100)
+    hard_margin_m: float = opt(0.1, "beyond this far outside (minus kσ) halt at once", ge=0.0)
+
+
+# -------------------------------------------------------------------------- runtime sections
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """The lawn map (boundary, keep-out zones, landmarks)."""
+
+    path: Path = opt(Path("/var/lib/mowerhw/lawn.json"), "map file written by teach, read by mow")
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    """The daemon."""
+
+    mode: str = opt("idle", "start-up mode", choices=("idle", "teach", "mow"))
+    control_socket: Path = opt(Path("/run/mowerhw/control.sock"), "control socket path")
+    log_level: str = opt("INFO", "log level", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole runtime configuration."""
+
+    imu: ImuConfig = section(ImuConfig, "VN-100 IMU")
+    can: CanConfig = section(CanConfig, "CAN bus")
+    speed: SpeedConfig = section(SpeedConfig, "ground speed")
+    camera: CameraConfig = section(CameraConfig, "omnidirectional camera")
+    permit: PermitConfig = section(PermitConfig, "permit / halt output")
+    teach: TeachConfig = section(TeachConfig, "teach-phase estimators")
+    mow: MowConfig = section(MowConfig, "mow-phase localizer")
+    containment: ContainmentConfig = section(ContainmentConfig, "containment decision")
+    map: MapConfig = section(MapConfig, "lawn map")
+    runtime: RuntimeConfig = section(RuntimeConfig, "daemon")
+    source: Path | None = field(default=None, compare=False, metadata={"internal": True})
+
+
+# ------------------------------------------------------------------------------ validation
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, float) and value.is_integer():
+        return str(int(value)) if abs(value) < 1e15 else repr(value)
+    return str(value) if not isinstance(value, list | dict) else repr(value)
+
+
+def _check_scalar(tp: Any, value: Any, key: str, meta: dict, base: Path | None) -> Any:
+    """Convert and check one scalar; raise ValueError(message) on a bad value."""
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"{key}: {_fmt(value)} is not true or false")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                value = int(value)
+            else:
+                raise ValueError(f"{key}: {_fmt(value)} is not a whole number")
+    elif tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ValueError(f"{key}: {_fmt(value)} is not a number")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ValueError(f"{key}: {_fmt(value)} is not a finite number")
+    elif tp is str:
+        if not isinstance(value, str):
+            raise ValueError(f"{key}: {_fmt(value)} is not a string")
+        if meta.get("nonempty") and not value.strip():
+            raise ValueError(f"{key}: must not be empty")
+    elif tp is Path:
+        if not isinstance(value, str | Path) or not str(value).strip():
+            raise ValueError(f"{key}: {_fmt(value)} is not a path")
+        value = Path(value).expanduser()
+        if base is not None and not value.is_absolute():
+            value = base / value
+        if meta.get("exists") and not value.exists():
+            raise ValueError(f"{key}: {str(value)!r} does not exist")
+    choices = meta.get("choices")
+    if choices is not None and value not in choices:
+        allowed = ", ".join(str(c) for c in choices)
+        raise ValueError(f"{key}: {_fmt(value)} is not one of {allowed}")
+    for rule, ok, words in (
+        ("ge", lambda v, b: v >= b, "at least"),
+        ("gt", lambda v, b: v > b, "greater than"),
+        ("le", lambda v, b: v <= b, "at most"),
+        ("lt", lambda v, b: v < b, "less than"),
+    ):
+        if rule in meta and not ok(value, meta[rule]):
+            raise ValueError(
+                f"{key}: {_fmt(value)} is out of range: must be {words} {_fmt(meta[rule])}"
+            )
+    return value
+
+
+def _check_value(tp: Any, value: Any, key: str, meta: dict, base: Path | None) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _check_value(args[0], value, key, meta, base)
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, list | tuple) or len(value) != len(args):
+            raise ValueError(f"{key}: {_fmt(value)} must be a list of {len(args)} numbers")
+        items = tuple(
+            _check_scalar(a, v, f"{key}[{i}]", {}, base)
+            for i, (a, v) in enumerate(zip(args, value, strict=True))
+        )
+        if meta.get("unit_norm"):
+            norm = math.sqrt(sum(v * v for v in items))
+            if abs(norm - 1.0) > 1e-3:
+                raise ValueError(
+                    f"{key}: {list(items)} is not a unit quaternion (w, x, y, z): norm {norm:.4f}"
+                )
+            items = tuple(v / norm for v in items)
+        return items
+    return _check_scalar(tp, value, key, meta, base)
+
+
+def _build(cls: type, raw: Any, prefix: str, base: Path | None, problems: list[str]) -> Any:
+    where = prefix or "top level"
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        problems.append(f"{where}: expected a mapping of keys, got {_fmt(raw)}")
+        return cls()
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
+    values: dict[str, Any] = {}
+    for key, value in raw.items():
+        name = str(key)
+        full = f"{prefix}.{name}" if prefix else name
+        if name not in fields:
+            close = difflib.get_close_matches(name, list(fields), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            allowed = ", ".join(fields)
+            problems.append(f"{full}: unknown key{hint}; allowed keys: {allowed}")
+            continue
+        tp = hints[name]
+        if dataclasses.is_dataclass(tp):
+            values[name] = _build(tp, value, full, base, problems)
+            continue
+        try:
+            values[name] = _check_value(tp, value, full, dict(fields[name].metadata), base)
+        except ValueError as exc:
+            problems.append(str(exc))
+    for name, f in fields.items():
+        if name in values:
+            continue
+        if dataclasses.is_dataclass(hints[name]):  # an absent section: all its defaults
+            values[name] = _build(
+                hints[name], {}, f"{prefix}.{name}" if prefix else name, base, problems
+            )
+            continue
+        # Defaults of relative paths resolve against the config file too.
+        if hints[name] is not Path or base is None:
+            continue
+        default = f.default
+        if isinstance(default, Path) and not default.is_absolute():
+            try:
+                values[name] = _check_value(
+                    Path, str(default), f"{prefix}.{name}", dict(f.metadata), base
+                )
+            except ValueError as exc:
+                problems.append(str(exc))
+    return cls(**values)
+
+
+def config_from_dict(raw: Any, base_dir: Path | None = None, source: str | None = None) -> Config:
+    """Validate a parsed YAML document; raise :class:`ConfigError` naming every bad key."""
+    problems: list[str] = []
+    cfg = _build(Config, raw, "", base_dir, problems)
+    if not problems:
+        problems.extend(_cross_checks(cfg))
+    if problems:
+        raise ConfigError(problems, source)
+    return dataclasses.replace(cfg, source=Path(source) if source else None)
+
+
+def _cross_checks(cfg: Config) -> list[str]:
+    """Rules between keys, and files the config points at."""
+    problems = []
+    if (
+        cfg.imu.driver == "vn100"
+        and cfg.imu.output == "ascii"
+        and cfg.imu.rate_hz >= 100
+        and cfg.imu.baudrate <= 115200
+    ):
+        problems.append(
+            f"imu.baudrate: {cfg.imu.baudrate} is too slow for {cfg.imu.rate_hz} Hz ASCII output "
+            "(DESIGN.md §7); use 230400 or more, or imu.output: binary"
+        )
+    cal = cfg.camera.calibration
+    if cal.exists():
+        from mowerhw.camera import CameraCalibrationError, load_camchain
+
+        try:
+            cam = load_camchain(cal)
+        except CameraCalibrationError as exc:
+            problems.append(f"camera.calibration: {exc}")
+        else:
+            if (cam.width, cam.height) != (cfg.camera.width, cfg.camera.height):
+                problems.append(
+                    f"camera.width/height: {cfg.camera.width}x{cfg.camera.height} does not match "
+                    f"the calibration's resolution {cam.width}x{cam.height} ({cal})"
+                )
+    return problems
+
+
+def load_config(path: str | Path) -> Config:
+    """Load and validate a YAML config file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(["file not found"], str(path)) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError([f"cannot read the file: {exc}"], str(path)) from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError([f"not valid YAML{where}: {problem}"], str(path)) from None
+    return config_from_dict(raw, base_dir=path.resolve().parent, source=str(path))
+
+
+def default_config(base_dir: Path | None = None) -> Config:
+    """All defaults; relative paths resolved against ``base_dir`` (default: shipped configs)."""
+    return config_from_dict({}, base_dir=base_dir or shipped_configs_dir())
+
+
+def shipped_configs_dir() -> Path:
+    """The ``configs/`` folder of the source tree (or of an installed share location)."""
+    here = Path(__file__).resolve().parent.parent / "configs"
+    return here
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain data (for YAML/JSON dumps and recordings)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cfg):
+        if f.metadata.get("internal"):
+            continue
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            out[f.name] = config_to_dict(value)
+        elif isinstance(value, Path):
+            out[f.name] = str(value)
+        elif isinstance(value, tuple):
+            out[f.name] = list(value)
+        else:
+            out[f.name] = value
+    return out
+
+
+def describe_schema(cls: type = Config, prefix: str = "") -> list[str]:
+    """Human-readable list of every key with its default and doc (``mowerhw config schema``)."""
+    lines = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if f.metadata.get("internal"):
+            continue
+        key = f"{prefix}.{f.name}" if prefix else f.name
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp):
+            lines.append(f"{key}:  # {f.metadata.get('doc', '')}")
+            lines.extend(describe_schema(tp, key))
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        rules = {k: v for k, v in f.metadata.items() if k != "doc"}
+        extra = ""
+        if "choices" in rules:
+            extra = " [one of " + ", ".join(str(c) for c in rules["choices"]) + "]"
+        lines.append(
+            f"  {key} = {_fmt(default) if default is not None else 'null'}  "
+            f"# {f.metadata.get('doc', '')}{extra}"
+        )
+    return lines

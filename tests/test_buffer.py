@@ -1,0 +1,141 @@
+"""The time-ordered sensor buffer (DESIGN.md §8)."""
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from mowerhw.buffer import SensorBuffer, StreamBuffer
+from mowerhw.samples import BearingObservation, ImuSample, SpeedSample, Stream
+
+
+def imu(t):
+    return ImuSample(t=t, gyro=[0.0, 0.0, 0.1])
+
+
+def speed(t, v=0.5, valid=True):
+    return SpeedSample(t=t, speed_mps=v if valid else float("nan"), valid=valid)
+
+
+def test_streams_are_merged_in_time_order_and_out_of_order_is_counted():
+    buf = SensorBuffer()
+    buf.push(Stream.IMU, imu(0.00))
+    buf.push(Stream.IMU, imu(0.02))
+    buf.push(Stream.SPEED, speed(0.015))
+    buf.push(Stream.IMU, imu(0.01))  # late
+    obs = BearingObservation(t=0.005, ids=[1, 2], bearings=[[1, 0, 0], [0, 1, 0]])
+    buf.push(Stream.BEARINGS, obs)  # a late frame
+    out = buf.pop_ready()
+    assert [s.t for _, s in out] == [0.0, 0.005, 0.01, 0.015, 0.02]
+    assert [name for name, _ in out] == ["imu", "bearings", "imu", "speed", "imu"]
+    assert buf.stats()["imu"]["out_of_order"] == 1
+    assert buf.stream(Stream.IMU).times().tolist() == [0.0, 0.01, 0.02]
+
+
+def test_pop_ready_until_a_watermark():
+    buf = SensorBuffer()
+    for k in range(10):
+        buf.push(Stream.IMU, imu(k * 0.01))
+    first = buf.pop_ready(until=0.045)
+    assert len(first) == 5 and buf.pending() == 5
+    assert [s.t for _, s in buf.pop_ready()] == pytest.approx([0.05, 0.06, 0.07, 0.08, 0.09])
+
+
+def test_history_is_bounded_and_drops_are_counted():
+    buf = SensorBuffer(capacity={Stream.IMU: 100})
+    for k in range(250):
+        buf.push(Stream.IMU, imu(k * 0.01))
+    hist = buf.stream(Stream.IMU)
+    assert len(hist) == 100
+    assert hist.stats.dropped_full == 150
+    assert hist.oldest().t == pytest.approx(1.5)
+    assert hist.latest().t == pytest.approx(2.49)
+
+
+def test_pending_queue_is_bounded_when_the_consumer_stalls():
+    buf = SensorBuffer(pending_capacity=50)
+    for k in range(80):
+        buf.push(Stream.IMU, imu(k * 0.01))
+    assert buf.pending() == 50
+    assert buf.stats()["imu"]["dropped_pending"] == 30
+    assert buf.pop_ready()[0][1].t == pytest.approx(0.30)  # the oldest were dropped
+
+
+def test_range_and_at_or_before():
+    s = StreamBuffer("imu", 1000)
+    for k in range(100):
+        s.push(imu(k * 0.01))
+    got = s.range(0.1, 0.2)
+    assert [round(x.t, 2) for x in got] == [round(0.1 + 0.01 * i, 2) for i in range(11)]
+    assert s.at_or_before(0.555).t == pytest.approx(0.55)
+    assert s.at_or_before(-1.0) is None
+    assert s.range(5.0, 6.0) == []
+
+
+def test_non_finite_timestamps_are_rejected_and_counted():
+    buf = SensorBuffer()
+    assert not buf.push(Stream.IMU, ImuSample(t=float("nan"), gyro=[0, 0, 0]))
+    assert buf.stats()["imu"]["rejected"] == 1
+    assert buf.pending() == 0
+
+
+def test_speed_interpolated_to_imu_times():
+    buf = SensorBuffer()
+    for k in range(11):
+        buf.push(Stream.SPEED, speed(0.1 * k, v=0.05 * k))  # 0 → 0.5 m/s over 1 s
+    t = np.arange(0.0, 1.0, 0.01)
+    v, ok = buf.interpolate_speed(t)
+    assert ok.all()
+    assert np.allclose(v, 0.5 * t, atol=1e-12)
+
+
+def test_speed_is_held_briefly_after_the_newest_sample_then_invalid():
+    buf = SensorBuffer()
+    buf.push(Stream.SPEED, speed(1.0, 0.4))
+    v, ok = buf.interpolate_speed([0.9, 1.0, 1.2, 1.29, 1.31])
+    assert ok.tolist() == [False, True, True, True, False]
+    assert np.allclose(v[1:4], 0.4)
+
+
+def test_invalid_speed_and_long_gaps_are_not_interpolated():
+    buf = SensorBuffer()
+    buf.push(Stream.SPEED, speed(0.0, 0.3))
+    buf.push(Stream.SPEED, speed(0.1, valid=False))  # error / not available
+    buf.push(Stream.SPEED, speed(0.2, 0.3))
+    buf.push(Stream.SPEED, speed(1.0, 0.3))  # 0.8 s gap
+    v, ok = buf.interpolate_speed([0.05, 0.15, 0.2, 0.45, 0.6])
+    # next to the invalid sample: nothing; before the long gap: held for 0.3 s, then nothing
+    assert ok.tolist() == [False, False, True, True, False]
+    assert np.isnan(v[[0, 1, 4]]).all()
+    assert np.allclose(v[[2, 3]], 0.3)
+
+
+@given(
+    st.lists(
+        st.tuples(st.sampled_from(["imu", "speed", "bearings"]), st.floats(0, 100)),
+        max_size=300,
+    ),
+    st.integers(1, 50),
+)
+def test_any_arrival_order_gives_sorted_bounded_streams(pushes, capacity):
+    buf = SensorBuffer(capacity={"imu": capacity, "speed": capacity, "bearings": capacity})
+    for stream, t in pushes:
+        buf.push(stream, imu(t))
+    out = [s.t for _, s in buf.pop_ready()]
+    assert out == sorted(out) and len(out) == len(pushes)
+    for name, hist in buf.streams.items():
+        times = hist.times()
+        assert np.all(np.diff(times) >= 0)
+        assert len(hist) <= capacity
+        stats = hist.stats
+        assert stats.pushed == sum(1 for s, _ in pushes if s == name)
+        assert len(hist) + stats.dropped_full == stats.pushed
+
+
+def test_observation_shapes_are_checked():
+    with pytest.raises(ValueError, match="2 landmark ids but 1 bearings"):
+        BearingObservation(t=0.0, ids=[1, 2], bearings=[[1, 0, 0]])
+    with pytest.raises(ValueError, match="3 components"):
+        ImuSample(t=0.0, gyro=[1, 2])
+    with pytest.raises(ValueError, match="finite speed"):
+        SpeedSample(t=0.0, speed_mps=float("nan"), valid=True)

@@ -1,0 +1,62 @@
+"""The command line as a user meets it."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from mowerhw import __version__
+from mowerhw.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "mowerhw", *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+
+
+def test_version_and_help():
+    res = run("--version")
+    assert res.returncode == 0 and res.stdout.strip() == f"mowerhw {__version__}"
+    res = run("--help")
+    assert res.returncode == 0
+    for word in ("config", "camera", "demo", "examples:"):
+        assert word in res.stdout
+
+
+def test_no_command_prints_help_and_exits_2(capsys):
+    assert main([]) == 2
+    assert "usage: mowerhw" in capsys.readouterr().out
+
+
+def test_demo_json_reports_measured_figures():
+    res = run("demo", "--json")
+    assert res.returncode == 0, res.stderr
+    report = json.loads(res.stdout)
+    assert report["camera"]["model_check"]["project_vs_opencv_px_max"] < 1e-6
+    assert report["camera"]["bearing_roundtrip_deg_max"] < 1e-6
+    assert report["clocksync"]["mapped_error_ms_p99"] < 0.5
+    assert report["buffer"]["time_ordered"] is True
+
+
+def test_camera_info_json():
+    res = run("camera", "info", "--json")
+    assert res.returncode == 0, res.stderr
+    report = json.loads(res.stdout)
+    fov = report["field_of_view"]
+    assert fov["elevation_min_deg"] < -40 and fov["elevation_max_deg"] > 30
+    assert report["model_check"]["roundtrip_px_max"] < 1e-6
+
+
+def test_camera_info_bad_calibration_exits_78(tmp_path):
+    bad = tmp_path / "cam.yaml"
+    bad.write_text("cam0:\n  camera_model: pinhole\n")
+    res = run("camera", "info", "--calibration", str(bad))
+    assert res.returncode == 78
+    assert "cam0.camera_model: 'pinhole' is not supported" in res.stdout + res.stderr
