@@ -11,8 +11,6 @@ from __future__ import annotations
 import json
 import time
 
-import numpy as np
-
 from mowerhw.camera import paper_table1_camera
 from mowerhw.camera_check import sample_valid_pixels
 

@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _camera_section(cfg: Any) -> dict[str, Any]:
     from mowerhw.camera import load_camchain
-    from mowerhw.camera_check import check_against_opencv, field_of_view
+    from mowerhw.camera_check import angle_between, check_against_opencv, field_of_view
     from mowerhw.geometry import quat_to_rotmat
 
     cam = load_camchain(cfg.camera.calibration)
@@ -35,7 +35,7 @@ def _camera_section(cfg: Any) -> dict[str, Any]:
     pix, visible = cam.visible(pts_b @ r_bc)  # body → camera: R_bcᵀ p (row form: p @ R_bc)
     back_b = cam.lift(pix[visible]) @ r_bc.T
     truth_b = pts_b[visible] / np.linalg.norm(pts_b[visible], axis=-1, keepdims=True)
-    err = np.degrees(np.arccos(np.clip(np.sum(back_b * truth_b, axis=-1), -1, 1)))
+    err = np.degrees(angle_between(back_b, truth_b))
     return {
         "calibration": str(cfg.camera.calibration),
         "landmarks_visible": f"{int(visible.sum())}/{len(az)}",
