@@ -7,7 +7,8 @@ and a one-line doc. ``load_config`` walks the YAML against them and collects eve
 reports on one line per problem and exits with ``EX_CONFIG`` (78), the status systemd is told
 not to restart on (``RestartPreventExitStatus=78``).
 
-Relative paths in a file are resolved against the directory of that file.
+Relative paths in a file are resolved against the directory of that file; relative defaults
+name files shipped in ``configs/``.
 """
 
 from __future__ import annotations
@@ -367,14 +368,12 @@ def _build(cls: type, raw: Any, prefix: str, base: Path | None, problems: list[s
                 hints[name], {}, f"{prefix}.{name}" if prefix else name, base, problems
             )
             continue
-        # Defaults of relative paths resolve against the config file too.
-        if hints[name] is not Path or base is None:
-            continue
+        # A relative default names a file shipped in configs/ (e.g. the Table I camera).
         default = f.default
-        if isinstance(default, Path) and not default.is_absolute():
+        if hints[name] is Path and isinstance(default, Path) and not default.is_absolute():
             try:
                 values[name] = _check_value(
-                    Path, str(default), f"{prefix}.{name}", dict(f.metadata), base
+                    Path, str(default), f"{prefix}.{name}", dict(f.metadata), shipped_configs_dir()
                 )
             except ValueError as exc:
                 problems.append(str(exc))
@@ -441,9 +440,9 @@ def load_config(path: str | Path) -> Config:
     return config_from_dict(raw, base_dir=path.resolve().parent, source=str(path))
 
 
-def default_config(base_dir: Path | None = None) -> Config:
-    """All defaults; relative paths resolved against ``base_dir`` (default: shipped configs)."""
-    return config_from_dict({}, base_dir=base_dir or shipped_configs_dir())
+def default_config() -> Config:
+    """All defaults (relative default paths name files shipped in ``configs/``)."""
+    return config_from_dict({})
 
 
 def shipped_configs_dir() -> Path:

@@ -140,9 +140,18 @@ def test_missing_file():
 
 
 def test_empty_file_means_defaults(tmp_path):
-    shutil.copytree(CONFIGS / "camera", tmp_path / "camera")
     (tmp_path / "empty.yaml").write_text("")
-    assert load_config(tmp_path / "empty.yaml").imu == default_config().imu
+    cfg = load_config(tmp_path / "empty.yaml")
+    assert cfg.imu == default_config().imu
+    # a relative default names the shipped file, wherever the config lives
+    assert cfg.camera.calibration == (CONFIGS / "camera" / "paper-table1.yaml").resolve()
+
+
+def test_explicit_relative_paths_are_relative_to_the_file(tmp_path):
+    (tmp_path / "cal").mkdir()
+    shutil.copy(CONFIGS / "camera" / "paper-table1.yaml", tmp_path / "cal" / "mine.yaml")
+    (tmp_path / "c.yaml").write_text("camera:\n  calibration: cal/mine.yaml\n")
+    assert load_config(tmp_path / "c.yaml").camera.calibration == tmp_path / "cal" / "mine.yaml"
 
 
 def test_schema_lists_every_section():
