@@ -177,14 +177,31 @@ class TeachConfig:
         3.0, "skip depth pseudo-measurements below this parallax", gt=0.0, lt=90.0
     )
     min_baseline_m: float = opt(0.3, "skip depth pseudo-measurements below this baseline", gt=0.0)
-    keyframe_baseline_m: float = opt(4.0, "start a new keyframe after this distance", gt=0.0)
+    keyframe_baseline_m: float = opt(
+        50.0,
+        "also start a new keyframe after this distance (keyframes otherwise change "
+        "when their landmarks leave the view)",
+        gt=0.0,
+    )
     standstill_s: float = opt(2.0, "initial standstill used to calibrate the gyro bias", ge=0.0)
-    bearing_sigma_rad: float = opt(0.006, "bearing noise (1σ) for the EKF", gt=0.0, lt=0.5)
-    gyro_noise: float = opt(0.002, "gyro white noise density, rad/s/√Hz", gt=0.0)
-    speed_noise: float = opt(0.02, "ground speed noise density, m/s/√Hz", gt=0.0)
+    bearing_sigma_rad: float = opt(0.008, "bearing noise (1σ per axis)", gt=0.0, lt=0.5)
+    gyro_noise: float = opt(1e-4, "gyro white noise density, rad/s/√Hz (VN-100: 6e-5)", gt=0.0)
+    gyro_bias_walk: float = opt(2e-6, "gyro bias random walk, rad/s²/√Hz", ge=0.0)
+    speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
+    lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
     boundary_simplify_m: float = opt(0.02, "Douglas–Peucker tolerance of the boundary", ge=0.0)
     min_area_m2: float = opt(4.0, "smallest lawn accepted as a boundary", gt=0.0)
     loop_closure: bool = opt(True, "close the loop at the start and distribute the error")
+    ekf_measurement: str = opt(
+        "epipolar",
+        "EKF measurement: epipolar (depth-free part of eq. 16) or bearing (eq. 16 as printed)",
+        choices=("epipolar", "bearing"),
+    )
+    depth_gain: str = opt(
+        "weighted",
+        "observer depth gain: weighted (eq. 7 capped by precision) or contraction (eq. 7 only)",
+        choices=("weighted", "contraction"),
+    )
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,8 @@ because they run at IMU rate on single quaternions, where scipy's object overhea
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
@@ -38,6 +40,11 @@ def as_quat(q: ArrayLike) -> FloatArray:
 def quat_normalize(q: ArrayLike) -> FloatArray:
     """Unit quaternion with a non-negative scalar part (the canonical sign)."""
     q = as_quat(q)
+    if q.ndim == 1:
+        w, x, y, z = q.tolist()
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        n = -n if w < 0.0 else n
+        return np.array([w / n, x / n, y / n, z / n])
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0.0, -q, q)
 
@@ -51,6 +58,17 @@ def quat_conjugate(q: ArrayLike) -> FloatArray:
 def quat_multiply(p: ArrayLike, q: ArrayLike) -> FloatArray:
     """Hamilton product ``p ⊗ q`` (so ``R(p ⊗ q) = R(p) R(q)``)."""
     p, q = as_quat(p), as_quat(q)
+    if p.ndim == 1 and q.ndim == 1:  # the hot single-quaternion case, without broadcasting
+        pw, px, py, pz = p.tolist()
+        qw, qx, qy, qz = q.tolist()
+        return np.array(
+            [
+                pw * qw - px * qx - py * qy - pz * qz,
+                pw * qx + px * qw + py * qz - pz * qy,
+                pw * qy - px * qz + py * qw + pz * qx,
+                pw * qz + px * qy - py * qx + pz * qw,
+            ]
+        )
     pw, px, py, pz = np.moveaxis(p, -1, 0)
     qw, qx, qy, qz = np.moveaxis(q, -1, 0)
     return np.stack(
@@ -67,7 +85,10 @@ def quat_multiply(p: ArrayLike, q: ArrayLike) -> FloatArray:
 def quat_to_rotmat(q: ArrayLike) -> FloatArray:
     """``R(q)`` for a unit quaternion, shape ``(..., 3, 3)``."""
     q = as_quat(q)
-    w, x, y, z = np.moveaxis(q, -1, 0)
+    if q.ndim == 1:
+        w, x, y, z = q.tolist()
+    else:
+        w, x, y, z = np.moveaxis(q, -1, 0)
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
@@ -76,11 +97,17 @@ def quat_to_rotmat(q: ArrayLike) -> FloatArray:
         [2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)],
         [2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)],
     ]
+    if q.ndim == 1:
+        return np.array(rows)
     return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def quat_rotate(q: ArrayLike, v: ArrayLike) -> FloatArray:
     """``R(q) v`` (broadcasting ``q`` (..., 4) against ``v`` (..., 3))."""
+    q = as_quat(q)
+    v = np.asarray(v, dtype=np.float64)
+    if q.ndim == 1 and v.ndim == 1:
+        return quat_to_rotmat(q) @ v
     return np.einsum("...ij,...j->...i", quat_to_rotmat(q), np.asarray(v, dtype=np.float64))
 
 
@@ -103,6 +130,9 @@ def quat_from_scipy(rot: Rotation) -> FloatArray:
 def skew(a: ArrayLike) -> FloatArray:
     """``[a]×`` with ``[a]× b = a × b``, shape ``(..., 3, 3)``."""
     a = np.asarray(a, dtype=np.float64)
+    if a.ndim == 1:
+        x, y, z = a.tolist()
+        return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     x, y, z = np.moveaxis(a, -1, 0)
     o = np.zeros_like(x)
     return np.stack(
@@ -113,6 +143,11 @@ def skew(a: ArrayLike) -> FloatArray:
 def quat_exp(phi: ArrayLike) -> FloatArray:
     """Exponential map: rotation vector ``φ`` (rad) → unit quaternion."""
     phi = np.asarray(phi, dtype=np.float64)
+    if phi.ndim == 1:
+        x, y, z = phi.tolist()
+        angle = math.sqrt(x * x + y * y + z * z)
+        k = 0.5 - angle * angle / 48.0 if angle < _SMALL_ANGLE else math.sin(0.5 * angle) / angle
+        return np.array([math.cos(0.5 * angle), k * x, k * y, k * z])
     angle = np.linalg.norm(phi, axis=-1, keepdims=True)
     half = 0.5 * angle
     small = angle < _SMALL_ANGLE
@@ -211,3 +246,14 @@ def quat_to_yaw(q: ArrayLike) -> FloatArray:
     """Heading (rad) of the body x axis projected on the world xy plane."""
     r = quat_to_rotmat(q)
     return np.arctan2(r[..., 1, 0], r[..., 0, 0])
+
+
+def tangent_basis(u: ArrayLike) -> FloatArray:
+    """(N, 3, 2): two orthonormal vectors ⊥ each unit vector of ``u`` (N, 3), right-handed
+    with it (``e1 × e2 = u``): the 2D residual space of a bearing."""
+    u = np.asarray(u, dtype=np.float64)
+    helper = np.where(np.abs(u[:, [0]]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(helper, u)
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    e2 = np.cross(u, e1)
+    return np.stack([e1, e2], axis=-1)

@@ -1,0 +1,345 @@
+"""Robot-centric EKF of the teach phase (paper §III, eqs 14–18; DESIGN.md §4).
+
+State: the pose of the current keyframe frame ``bj`` in the current body frame —
+``p = x^{bj}`` and ``q = q^{bj} = q_{b←bj}`` — plus the gyro bias ``b_g`` (the paper
+calibrates it once; we keep estimating the residual). The quaternion is handled as an error
+state (multiplicative): ``R(q) = exp([δθ]×) R(q̂)``, ``p = p̂ + δp``, ``b_g = b̂ + δb``; the
+9-vector ``(δp, δθ, δb)`` carries the covariance.
+
+Propagation (eq. 14): ``ẋ^{bj} = −[ω]× x^{bj} − v``, ``q̇^{bj} = ½ Ω(ω) q^{bj}`` with
+``ω = ω_m − b_g`` and ``v = (s, 0, 0)``; the mean is moved by the exact rigid motion of one
+IMU interval, the error by
+
+    δṗ = −[ω̂]× δp − [p̂]× (δb + n_g) + n_v
+    δθ̇ = −[ω̂]× δθ + δb + n_g
+    δḃ = n_b
+
+Update (eqs 16–18): for a landmark anchored at frame ``a`` (fixed pose in ``bj``), the
+predicted anchor bearing is ``h = ℓ/‖ℓ‖``, ``ℓ = R_jaᵀ (R(q)ᵀ (x_i − x^{bj}) − t_ja)``, with
+``x_i = d_i y_i`` from the observers; the measurement is the bearing taken at the anchor
+(eq. 16 with anchor = keyframe: ``R_ja = I``, ``t_ja = 0``). Residuals live in the tangent
+plane of the measured bearing; each landmark is χ²-gated before the batch update.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from mowerhw.geometry import (
+    IDENTITY_QUAT,
+    quat_conjugate,
+    quat_exp,
+    quat_multiply,
+    quat_normalize,
+    quat_to_rotmat,
+    skew,
+    tangent_basis,
+)
+
+FloatArray = NDArray[np.float64]
+
+P_, TH, BG = slice(0, 3), slice(3, 6), slice(6, 9)  # error-state blocks
+_I3 = np.eye(3)
+
+
+@dataclass(frozen=True)
+class BodyMotion:
+    """One IMU interval of rigid body motion for constant body rate ω and velocity v.
+
+    ``dq = exp(ω Δt)`` and ``c = R(dq)``: the new body axes in the old body frame;
+    ``disp = ∫ exp([ω]× τ) v dτ ≈ (I + ½ [ω Δt]×) v Δt``: the new origin in the old frame.
+    """
+
+    dq: FloatArray
+    c: FloatArray
+    disp: FloatArray
+    w: FloatArray
+    dt: float
+
+    @classmethod
+    def of(cls, w: FloatArray, v: FloatArray, dt: float) -> BodyMotion:
+        dq = quat_exp(w * dt)
+        (wx, wy, wz), (vx, vy, vz) = w.tolist(), v.tolist()
+        h = 0.5 * dt * dt
+        disp = np.array(
+            [
+                vx * dt + h * (wy * vz - wz * vy),
+                vy * dt + h * (wz * vx - wx * vz),
+                vz * dt + h * (wx * vy - wy * vx),
+            ]
+        )
+        return cls(dq, quat_to_rotmat(dq), disp, w, dt)
+
+
+@dataclass
+class EkfNoise:
+    """Continuous noise densities of the EKF's process model."""
+
+    gyro: float = 1e-4  # rad/s/√Hz
+    gyro_bias_walk: float = 2e-5  # rad/s²/√Hz
+    speed: float = 2e-3  # m/s/√Hz along x
+    lateral: float = 5e-3  # m/s/√Hz across (non-holonomic slip)
+
+
+@dataclass
+class UpdateStats:
+    frames: int = 0
+    used: int = 0
+    gated: int = 0
+    last_nis: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+
+class RobotCentricEKF:
+    """The keyframe's pose in the current body frame, plus the gyro bias (error-state EKF)."""
+
+    def __init__(self, noise: EkfNoise, gate_probability: float = 0.999) -> None:
+        self.noise = noise
+        self.p = np.zeros(3)  # x^{bj}
+        self.q = IDENTITY_QUAT.copy()  # q^{bj} = q_{b←bj}
+        self.bg = np.zeros(3)
+        self.P = np.zeros((9, 9))
+        self._phi = np.eye(9)
+        self._q = np.zeros((9, 9))
+        self._qv = np.diag([noise.speed**2, noise.lateral**2, noise.lateral**2])
+        self._qv_dt = self._qv
+        self._q_dt = -1.0
+        self.gate = float(chi2.ppf(gate_probability, df=2))
+        self.gate_1d = float(chi2.ppf(gate_probability, df=1))
+        self.stats = UpdateStats()
+
+    @property
+    def R(self) -> FloatArray:
+        """``R(q^{bj}) = R_{b←bj}``."""
+        return quat_to_rotmat(self.q)
+
+    def set_bias(self, bias: FloatArray, variance: float) -> None:
+        self.bg = np.asarray(bias, dtype=np.float64).copy()
+        self.P[BG, BG] = np.eye(3) * variance
+        self.P[BG, :6] = 0.0
+        self.P[:6, BG] = 0.0
+
+    def reset_keyframe(self) -> None:
+        """A new keyframe at the current body pose: ``x^{bj} = 0``, ``q^{bj} = 1``, exactly."""
+        self.p = np.zeros(3)
+        self.q = IDENTITY_QUAT.copy()
+        self.P[:6, :] = 0.0
+        self.P[:, :6] = 0.0
+
+    # -- eq. (14): propagation ------------------------------------------------------------------
+
+    def propagate(self, m: BodyMotion) -> None:
+        """Move the mean by one IMU interval of body motion (exact: ``x⁺ = Cᵀ (x − Δ)``,
+        ``q⁺ = exp(ω Δt)* ⊗ q``) and the covariance by the linearised error dynamics.
+
+        With ``W = [ω̂]×`` and ``S = [p̂]×``: ``F = [[−W, 0, −S], [0, −W, I], [0, 0, 0]]``,
+        ``F² = [[W², 0, W S], [0, W², −W], 0]``, ``Φ = I + F Δt + ½ F² Δt²``; the noise
+        ``G = [[I, −S, 0], [0, I, 0], [0, 0, I]]`` on (n_v, n_g, n_b) gives ``Q = G Q_c Gᵀ Δt``.
+        """
+        p_hat = self.p
+        dt = m.dt
+        self.p = m.c.T @ (p_hat - m.disp)
+        self.q = quat_normalize(quat_multiply(quat_conjugate(m.dq), self.q))
+        wdt = skew(m.w) * dt  # [ω̂]× Δt
+        s_ = skew(p_hat)
+        diag_block = _I3 - wdt + 0.5 * (wdt @ wdt)  # I − W Δt + ½ W² Δt²
+        phi = self._phi  # only these blocks change; the rest stays I / 0
+        phi[P_, P_] = diag_block
+        phi[TH, TH] = diag_block
+        phi[P_, BG] = (-s_ + 0.5 * (wdt @ s_)) * dt
+        phi[TH, BG] = (_I3 - 0.5 * wdt) * dt
+        qg_dt = self.noise.gyro**2 * dt
+        q = self._q  # Q Δt
+        if dt != self._q_dt:  # blocks that depend on Δt only
+            q[TH, TH] = _I3 * qg_dt
+            q[BG, BG] = _I3 * (self.noise.gyro_bias_walk**2 * dt)
+            self._qv_dt = self._qv * dt
+            self._q_dt = dt
+        q[P_, P_] = self._qv_dt + qg_dt * (s_ @ s_.T)
+        q[P_, TH] = -qg_dt * s_
+        q[TH, P_] = qg_dt * s_  # (Q_pθ)ᵀ = −q Sᵀ = q S
+        self.P = phi @ self.P @ phi.T + q  # symmetrised at every update (Joseph form)
+
+    # -- eqs (16)–(18): update --------------------------------------------------------------------
+
+    def predict_anchor_bearings(
+        self, x_b: FloatArray, r_ja: FloatArray, t_ja: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Predicted anchor bearings h (N, 3), their Jacobians wrt the error state (N, 3, 9)
+        and wrt the landmark position in the body frame (N, 3, 3)."""
+        r = self.R
+        rel = x_b - self.p  # x_i − x^{bj}
+        ell_j = rel @ r  # R(q)ᵀ (x_i − x^{bj}), row form
+        ell = np.einsum("nji,nj->ni", r_ja, ell_j - t_ja)  # R_jaᵀ (ℓ_j − t_ja)
+        norm = np.linalg.norm(ell, axis=-1)
+        h = ell / norm[:, None]
+        dh_dell = (np.eye(3)[None] - np.einsum("ni,nj->nij", h, h)) / norm[:, None, None]
+        a = np.einsum("nji,jk->nik", r_ja, r.T)  # R_jaᵀ R(q)ᵀ
+        dell = np.zeros((x_b.shape[0], 3, 9))
+        dell[:, :, P_] = -a
+        dell[:, :, TH] = np.einsum("nij,njk->nik", a, skew(rel))
+        return h, np.einsum("nij,njk->nik", dh_dell, dell), np.einsum("nij,njk->nik", dh_dell, a)
+
+    def update(
+        self,
+        x_b: FloatArray,
+        cov_x: FloatArray,
+        anchor_bearing: FloatArray,
+        anchor_var: FloatArray,
+        r_ja: FloatArray,
+        t_ja: FloatArray,
+        anchor_cov: FloatArray | None = None,
+        anchor_p: FloatArray | None = None,
+    ) -> NDArray[np.bool_]:
+        """One batch update with N landmarks; returns which passed the χ² gate.
+
+        ``anchor_cov`` (N, 6, 6) is the EKF covariance of (δp, δθ) when an anchor was taken
+        between keyframes (zero for anchors at the keyframe itself), ``anchor_p`` the EKF's
+        ``x^{bj}`` then; their uncertainty enters the measurement noise.
+        """
+        n = x_b.shape[0]
+        self.stats.frames += 1
+        if n == 0:
+            return np.zeros(0, dtype=bool)
+        h, hx, hl = self.predict_anchor_bearings(x_b, r_ja, t_ja)
+        basis = tangent_basis(anchor_bearing)  # (N, 3, 2)
+        bt = np.swapaxes(basis, 1, 2)  # (N, 2, 3)
+        res = np.einsum("nij,nj->ni", bt, anchor_bearing - h)  # (N, 2)
+        H = np.einsum("nij,njk->nik", bt, hx)  # (N, 2, 9)
+        L = np.einsum("nij,njk->nik", bt, hl)  # (N, 2, 3)
+        # measurement noise: anchor bearing + the observer's landmark uncertainty
+        R = anchor_var[:, None, None] * np.eye(2)[None] + np.einsum("nij,njk,nlk->nil", L, cov_x, L)
+        if anchor_cov is not None and anchor_p is not None:
+            R = R + self._anchor_noise(x_b, r_ja, t_ja, basis, anchor_cov, anchor_p)
+        S = np.einsum("nij,jk,nlk->nil", H, self.P, H) + R
+        nis = np.einsum("ni,nij,nj->n", res, np.linalg.inv(S), res)
+        ok = nis <= self.gate
+        self.stats.last_nis = nis
+        self.stats.gated += int((~ok).sum())
+        self.stats.used += int(ok.sum())
+        if not ok.any():
+            return ok
+        Hs = H[ok].reshape(-1, 9)
+        rs = res[ok].reshape(-1)
+        Rs = _block_diag(R[ok])
+        S_all = Hs @ self.P @ Hs.T + Rs
+        K = np.linalg.solve(S_all, Hs @ self.P).T  # P Hᵀ S⁻¹ (eq. 18)
+        dx = K @ rs
+        ikh = np.eye(9) - K @ Hs
+        self.P = ikh @ self.P @ ikh.T + K @ Rs @ K.T  # Joseph form
+        self.P = 0.5 * (self.P + self.P.T)
+        self.p = self.p + dx[P_]
+        self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
+        self.bg = self.bg + dx[BG]
+        return ok
+
+    def _anchor_noise(self, x_b, r_ja, t_ja, basis, anchor_cov, anchor_p) -> FloatArray:
+        """Noise from the anchor pose's own uncertainty (anchors taken between keyframes).
+
+        With the anchor's EKF error (δp_a, δθ_a): ``ℓ ≈ ℓ̂ + δp_a − [ℓ̂ − p̂_a]× δθ_a``.
+        """
+        ell_j = (x_b - self.p) @ self.R
+        ell = np.einsum("nji,nj->ni", r_ja, ell_j - t_ja)
+        norm = np.linalg.norm(ell, axis=-1)
+        h = ell / norm[:, None]
+        dh = (np.eye(3)[None] - np.einsum("ni,nj->nij", h, h)) / norm[:, None, None]
+        ja = np.zeros((x_b.shape[0], 3, 6))
+        ja[:, :, :3] = np.eye(3)
+        ja[:, :, 3:] = -skew(ell - anchor_p)
+        m = np.einsum("nji,njk,nkl->nil", basis, dh, ja)  # (N, 2, 6)
+        return np.einsum("nij,njk,nlk->nil", m, anchor_cov, m)
+
+    def update_epipolar(
+        self,
+        y_now: FloatArray,
+        y_var: float,
+        anchor_bearing: FloatArray,
+        anchor_var: FloatArray,
+        r_ja: FloatArray,
+        t_ja: FloatArray,
+        min_baseline_m: float,
+        min_angle_rad: float,
+    ) -> NDArray[np.bool_]:
+        """Batch update with the depth-free part of eq. (16): the epipolar constraint.
+
+        Eq. (16) predicts the anchor bearing ``h ∝ ℓ = b + d v`` with ``b`` the current body
+        origin and ``v`` the current bearing, both in the anchor frame. Whatever the depth d,
+        h lies in the plane of b and v; the residual's component along that plane's normal
+        ``n̂ = (b × v)/‖b × v‖`` is ``r = n̂ · u_a``, free of the landmark depth. Because the
+        observer's depth is itself triangulated from this EKF's pose (eq. 3), the in-plane
+        component would feed the EKF's own errors back to it; the normal one does not.
+        """
+        n = y_now.shape[0]
+        self.stats.frames += 1
+        if n == 0:
+            return np.zeros(0, dtype=bool)
+        r = self.R
+        a = np.einsum("nji,kj->nik", r_ja, r)  # R_jaᵀ R(q)ᵀ  (N, 3, 3)
+        c_j = -r.T @ self.p  # current body origin in the keyframe frame
+        b = np.einsum("nji,nj->ni", r_ja, c_j[None] - t_ja)
+        v = np.einsum("nij,nj->ni", a, y_now)
+        m = np.cross(b, v)
+        m_norm = np.linalg.norm(m, axis=-1)
+        base = np.linalg.norm(b, axis=-1)
+        sin_bv = m_norm / np.maximum(base, 1e-12)
+        usable = (base >= min_baseline_m) & (sin_bv >= np.sin(min_angle_rad))
+        sin_bu = np.linalg.norm(np.cross(b, anchor_bearing), axis=-1) / np.maximum(base, 1e-12)
+        usable &= sin_bu >= np.sin(min_angle_rad)
+        ok = np.zeros(n, dtype=bool)
+        if not usable.any():
+            return ok
+        idx = np.flatnonzero(usable)
+        m_hat = m[idx] / m_norm[idx, None]
+        u = anchor_bearing[idx]
+        res = np.einsum("ni,ni->n", m_hat, u)
+        g = (u - res[:, None] * m_hat) / m_norm[idx, None]  # ∂r/∂m
+        ai = a[idx]
+        db = np.zeros((idx.size, 3, 9))  # ∂b/∂δx
+        db[:, :, P_] = -ai
+        db[:, :, TH] = -np.einsum("nij,jk->nik", ai, skew(self.p))
+        dv = np.zeros((idx.size, 3, 9))  # ∂v/∂δx
+        dv[:, :, TH] = np.einsum("nij,njk->nik", ai, skew(y_now[idx]))
+        dm = -np.einsum("nij,njk->nik", skew(v[idx]), db) + np.einsum(
+            "nij,njk->nik", skew(b[idx]), dv
+        )
+        H = np.einsum("ni,nij->nj", g, dm)  # (K, 9)
+        # noise: the anchor bearing (σ_a) and the current bearing (σ_y) through the plane tilt
+        dr_dy = np.einsum("ni,nij,njk->nk", g, skew(b[idx]), ai)
+        dr_dy -= np.einsum("nk,nk->n", dr_dy, y_now[idx])[:, None] * y_now[idx]  # tangent part
+        rvar = anchor_var[idx] + y_var * np.einsum("nk,nk->n", dr_dy, dr_dy)
+        s_each = np.einsum("ni,ij,nj->n", H, self.P, H) + rvar
+        nis = res**2 / s_each
+        gate_1d = self.gate_1d
+        passed = nis <= gate_1d
+        ok[idx[passed]] = True
+        self.stats.last_nis = nis
+        self.stats.gated += int((~passed).sum())
+        self.stats.used += int(passed.sum())
+        if not passed.any():
+            return ok
+        # the constraint's measurement is 0: innovation = 0 − r(x̂)
+        Hs, rs, Rs = H[passed], -res[passed], np.diag(rvar[passed])
+        S_all = Hs @ self.P @ Hs.T + Rs
+        K = np.linalg.solve(S_all, Hs @ self.P).T
+        dx = K @ rs
+        ikh = np.eye(9) - K @ Hs
+        self.P = ikh @ self.P @ ikh.T + K @ Rs @ K.T
+        self.P = 0.5 * (self.P + self.P.T)
+        self.p = self.p + dx[P_]
+        self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
+        self.bg = self.bg + dx[BG]
+        return ok
+
+
+def _block_diag(blocks: FloatArray) -> FloatArray:
+    """(N, 2, 2) → (2N, 2N) block diagonal."""
+    n = blocks.shape[0]
+    out = np.zeros((2 * n, 2 * n))
+    idx = np.arange(n) * 2
+    for i in range(2):
+        for j in range(2):
+            out[idx + i, idx + j] = blocks[:, i, j]
+    return out

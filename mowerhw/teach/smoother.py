@@ -1,0 +1,390 @@
+"""Loop closure as a batch smoother over the whole teach drive (beyond the paper).
+
+The paper leaves loop closure to future work. When the mower is back at its start it sees
+the first landmarks again; the filter's end pose then disagrees with what those landmarks
+say. Distributing that disagreement well over the drive is a least-squares problem over
+
+* the body pose at every camera frame (``R_wb,k``, ``t_wb,k``; the first one is the world
+  frame and stays fixed),
+* every landmark's world position, and
+* the gyro bias, one value per segment of the drive (``bias_segment``), tied by
+  random-walk factors, with the standstill calibration as the prior of the first,
+
+with two kinds of factors:
+
+* **odometry** between consecutive frames: the gyro and ground speed preintegrated into a
+  relative rotation ``ΔR`` and translation ``Δp`` (body frame of the earlier frame), with
+  their covariance and first-order bias Jacobians (``ΔR(b) ≈ ΔR Exp(J_R δb)``,
+  ``Δp(b) ≈ Δp + J_p δb``);
+* **bearings**: ``u_ki ≈ normalize(R_kᵀ (L_i − t_k))``, residual in the tangent plane of the
+  measured bearing, Huber-weighted against outliers.
+
+Levenberg–Marquardt on the sparse normal equations (scipy.sparse), started from the filter.
+Pose updates are right perturbations ``R ← R Exp(φ)`` and ``t ← t + δt`` (world).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from numpy.typing import NDArray
+
+from mowerhw.geometry import rotmat_exp, rotmat_log, skew, tangent_basis
+
+FloatArray = NDArray[np.float64]
+
+
+def right_jacobian(phi: FloatArray) -> FloatArray:
+    """SO(3) right Jacobian ``Jr(φ)`` for (N, 3) rotation vectors: (N, 3, 3)."""
+    phi = np.atleast_2d(phi)
+    a = np.linalg.norm(phi, axis=-1)[:, None, None]
+    k = skew(phi)
+    small = a < 1e-6
+    a_s = np.where(small, 1.0, a)
+    c1 = np.where(small, 0.5, (1 - np.cos(a_s)) / a_s**2)
+    c2 = np.where(small, 1.0 / 6.0, (a_s - np.sin(a_s)) / a_s**3)
+    return np.eye(3)[None] - c1 * k + c2 * (k @ k)
+
+
+def right_jacobian_inv(phi: FloatArray) -> FloatArray:
+    """``Jr(φ)⁻¹`` for (N, 3) rotation vectors: (N, 3, 3)."""
+    phi = np.atleast_2d(phi)
+    a = np.linalg.norm(phi, axis=-1)[:, None, None]
+    k = skew(phi)
+    small = a < 1e-6
+    a_s = np.where(small, 1.0, a)
+    c = np.where(small, 1.0 / 12.0, 1 / a_s**2 - (1 + np.cos(a_s)) / (2 * a_s * np.sin(a_s)))
+    return np.eye(3)[None] + 0.5 * k + c * (k @ k)
+
+
+@dataclass
+class Preintegrated:
+    """Gyro + ground speed between two frames, in the body frame of the first."""
+
+    dR: FloatArray  # (3, 3)
+    dp: FloatArray  # (3,)
+    cov: FloatArray  # (6, 6) of (δθ, δp)
+    j_rb: FloatArray  # ∂(ΔR)/∂b as right-perturbation Jacobian (3, 3)
+    j_pb: FloatArray  # ∂(Δp)/∂b (3, 3)
+    dt: float
+
+
+def preintegrate_segments(
+    log: FloatArray,
+    bounds: NDArray[np.int64],
+    bias: FloatArray,
+    gyro_density: float,
+    speed_density: float,
+    lateral_density: float,
+) -> list[Preintegrated]:
+    """Preintegrate consecutive IMU segments ``log[bounds[k]:bounds[k+1]]`` at once.
+
+    ``log`` rows are IMU intervals (Δt, gyro x, y, z, forward speed); with bias ``bias``
+    each segment gives ``ΔR = Π Exp((ω_j − b) Δt_j)``, ``Δp = Σ ΔR_j v_j Δt_j``, the
+    covariance of (δθ, δp) from gyro and speed/slip noise densities, and the bias Jacobians.
+    All segments advance together, one IMU step at a time (padded with Δt = 0).
+    """
+    starts, ends = bounds[:-1], bounds[1:]
+    lengths = ends - starts
+    nseg, width = starts.size, max(int(lengths.max(initial=0)), 1)
+    idx = starts[:, None] + np.arange(width)[None, :]
+    valid = np.arange(width)[None, :] < lengths[:, None]
+    rows = np.where(valid, idx, 0)
+    dt = np.where(valid, log[rows, 0] if log.size else 0.0, 0.0)
+    w = (log[rows, 1:4] - bias) if log.size else np.zeros((nseg, width, 3))
+    w = np.where(valid[..., None], w, 0.0)
+    sp_ = np.where(valid, log[rows, 4] if log.size else 0.0, 0.0)
+    phi = w * dt[..., None]
+    steps = rotmat_exp(phi.reshape(-1, 3)).reshape(nseg, width, 3, 3)
+    jrs = right_jacobian(phi.reshape(-1, 3)).reshape(nseg, width, 3, 3)
+    qv = np.array([speed_density, lateral_density, lateral_density]) ** 2
+    dR = np.broadcast_to(np.eye(3), (nseg, 3, 3)).copy()
+    dp = np.zeros((nseg, 3))
+    cov = np.zeros((nseg, 6, 6))
+    j_rb = np.zeros((nseg, 3, 3))
+    j_pb = np.zeros((nseg, 3, 3))
+    for j in range(width):
+        d = dt[:, j]
+        live = d > 0
+        inv_dt = np.where(live, 1.0 / np.where(live, d, 1.0), 0.0)
+        v = np.zeros((nseg, 3))
+        v[:, 0] = sp_[:, j]
+        step, jr = steps[:, j], jrs[:, j]
+        dr_sv = dR @ skew(v)
+        a = np.broadcast_to(np.eye(6), (nseg, 6, 6)).copy()
+        a[:, :3, :3] = np.swapaxes(step, 1, 2)
+        a[:, 3:, :3] = -dr_sv * d[:, None, None]
+        b_g = -jr * d[:, None, None]
+        b_v = dR * d[:, None, None]
+        cov = a @ cov @ np.swapaxes(a, 1, 2)
+        cov[:, :3, :3] += b_g @ np.swapaxes(b_g, 1, 2) * (gyro_density**2 * inv_dt)[:, None, None]
+        cov[:, 3:, 3:] += (b_v * qv[None, None, :]) @ np.swapaxes(b_v, 1, 2) * inv_dt[:, None, None]
+        j_pb = j_pb - dr_sv @ j_rb * d[:, None, None]
+        j_rb = np.swapaxes(step, 1, 2) @ j_rb - jr * d[:, None, None]
+        dp = dp + np.einsum("nij,nj->ni", dR, v) * d[:, None]
+        dR = dR @ step
+    cov = cov + np.eye(6)[None] * 1e-12
+    total = dt.sum(axis=1)
+    return [
+        Preintegrated(dR[k], dp[k], cov[k], j_rb[k], j_pb[k], float(total[k])) for k in range(nseg)
+    ]
+
+
+@dataclass
+class SmootherProblem:
+    r_wb: FloatArray  # (K, 3, 3) initial poses; pose 0 is fixed
+    t_wb: FloatArray  # (K, 3)
+    odometry: list[Preintegrated]  # K − 1 factors, between k and k + 1
+    obs_frame: NDArray[np.int64]  # (M,)
+    obs_landmark: NDArray[np.int64]  # (M,) index into landmarks
+    obs_bearing: FloatArray  # (M, 3) body frame
+    obs_sigma: FloatArray  # (M,) rad
+    landmarks: FloatArray  # (N, 3) initial
+    bias0: FloatArray  # (3,) the bias the odometry was preintegrated with
+    bias_prior: FloatArray  # (3,)
+    bias_prior_cov: FloatArray  # (3, 3)
+    bias_segment: NDArray[np.int64] | None = None  # (K − 1,) bias segment of each factor
+    bias_walk_cov: FloatArray | None = None  # (S − 1, 3, 3) between consecutive segments
+
+
+@dataclass
+class SmootherResult:
+    r_wb: FloatArray
+    t_wb: FloatArray
+    landmarks: FloatArray
+    landmark_cov: FloatArray  # (N, 3, 3) marginal covariances
+    bias: FloatArray  # (S, 3) per bias segment
+    cost_initial: float
+    cost_final: float
+    iterations: int
+    outliers: int
+    bearing_rms_rad: float
+
+
+def _huber_weights(norm_res: FloatArray, k: float = 2.5) -> FloatArray:
+    return np.where(norm_res <= k, 1.0, k / np.maximum(norm_res, 1e-12))
+
+
+class _Layout:
+    def __init__(self, k: int, n: int, nseg: int) -> None:
+        self.k, self.n, self.nseg = k, n, nseg
+        self.pose0 = 0  # poses 1..K-1: 6 each
+        self.lm0 = 6 * (k - 1)
+        self.bias0 = self.lm0 + 3 * n
+        self.size = self.bias0 + 3 * nseg
+
+    def bias(self, s: NDArray[np.int64]) -> NDArray[np.int64]:
+        return self.bias0 + 3 * s
+
+    def pose(self, k: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Column of φ_k (then δt_k at +3); −1 for the fixed pose 0."""
+        return np.where(k > 0, 6 * (k - 1), -1)
+
+    def lm(self, i: NDArray[np.int64]) -> NDArray[np.int64]:
+        return self.lm0 + 3 * i
+
+
+def _scatter(rows_list, cols_list, vals_list, row0, col0, block) -> None:
+    """Queue a dense (B, r, c) block per item at rows row0[b] + i, cols col0[b] + j."""
+    _, r, c = block.shape
+    keep = col0 >= 0
+    if not keep.any():
+        return
+    ii = (row0[keep][:, None, None] + np.arange(r)[None, :, None]).repeat(c, axis=2)
+    jj = (col0[keep][:, None, None] + np.arange(c)[None, None, :]).repeat(r, axis=1)
+    rows_list.append(ii.ravel())
+    cols_list.append(jj.ravel())
+    vals_list.append(block[keep].ravel())
+
+
+def _whiten(cov: FloatArray) -> FloatArray:
+    """``W`` with ``Wᵀ W = cov⁻¹`` for (B, d, d) covariances."""
+    return np.linalg.cholesky(np.linalg.inv(cov)).swapaxes(-1, -2)
+
+
+def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
+    """Levenberg–Marquardt over poses, landmarks and gyro biases (see the module doc)."""
+    r_wb = problem.r_wb.copy()
+    t_wb = problem.t_wb.copy()
+    lms = problem.landmarks.copy()
+    k, n = r_wb.shape[0], lms.shape[0]
+    seg = (
+        problem.bias_segment
+        if problem.bias_segment is not None
+        else np.zeros(max(k - 1, 0), dtype=np.int64)
+    )
+    nseg = int(seg.max(initial=0)) + 1
+    bias = np.tile(problem.bias0, (nseg, 1))
+    lay = _Layout(k, n, nseg)
+    odo = problem.odometry
+    m_odo = len(odo)
+    if m_odo:
+        o_w = _whiten(np.stack([f.cov for f in odo]))
+        dR = np.stack([f.dR for f in odo])
+        dp = np.stack([f.dp for f in odo])
+        j_rb = np.stack([f.j_rb for f in odo])
+        j_pb = np.stack([f.j_pb for f in odo])
+    b_w = _whiten(problem.bias_prior_cov[None])[0]
+    walk_w = _whiten(problem.bias_walk_cov) if nseg > 1 else np.zeros((0, 3, 3))
+    basis = np.swapaxes(tangent_basis(problem.obs_bearing), 1, 2)  # (M, 2, 3)
+    fi, li = problem.obs_frame, problem.obs_landmark
+    i0 = np.arange(m_odo)
+
+    def residuals(r_wb, t_wb, lms, bias):
+        out = {}
+        if m_odo:
+            db = bias[seg] - problem.bias0  # (K−1, 3)
+            pred_r = dR @ rotmat_exp(np.einsum("nij,nj->ni", j_rb, db))
+            rk, rk1 = r_wb[i0], r_wb[i0 + 1]
+            r_th = rotmat_log(np.swapaxes(pred_r, 1, 2) @ np.swapaxes(rk, 1, 2) @ rk1)
+            r_th = np.atleast_2d(r_th)
+            r_p = np.einsum("nji,nj->ni", rk, t_wb[i0 + 1] - t_wb[i0]) - (
+                dp + np.einsum("nij,nj->ni", j_pb, db)
+            )
+            out["th"] = r_th
+            out["odo"] = np.einsum("nij,nj->ni", o_w, np.concatenate([r_th, r_p], axis=1))
+        else:
+            out["th"] = np.zeros((0, 3))
+            out["odo"] = np.zeros((0, 6))
+        ell = np.einsum("nji,nj->ni", r_wb[fi], lms[li] - t_wb[fi])
+        h = ell / np.linalg.norm(ell, axis=-1, keepdims=True)
+        out["ell"], out["h"] = ell, h
+        out["b"] = (
+            np.einsum("nij,nj->ni", basis, problem.obs_bearing - h) / problem.obs_sigma[:, None]
+        )
+        out["prior"] = b_w @ (bias[0] - problem.bias_prior)
+        out["walk"] = np.einsum("nij,nj->ni", walk_w, bias[1:] - bias[:-1])
+        return out
+
+    def cost_of(parts) -> float:
+        nb = np.linalg.norm(parts["b"], axis=1)
+        hub = np.where(nb <= 2.5, 0.5 * nb**2, 2.5 * nb - 0.5 * 2.5**2)  # Huber on bearings
+        quad = np.sum(parts["odo"] ** 2) + np.sum(parts["prior"] ** 2) + np.sum(parts["walk"] ** 2)
+        return float(0.5 * quad + np.sum(hub))
+
+    parts = residuals(r_wb, t_wb, lms, bias)
+    cost0 = cost = cost_of(parts)
+    lam = 1e-4
+    it = 0
+    a = None
+    for it in range(1, iterations + 1):  # noqa: B007
+        rows, cols, vals, res_all = [], [], [], []
+        row = 0
+        if m_odo:  # odometry blocks, 6 rows each
+            r_th = parts["th"]
+            jinv = right_jacobian_inv(r_th)
+            rk, rk1 = r_wb[i0], r_wb[i0 + 1]
+            blk_k = np.zeros((m_odo, 6, 6))
+            blk_k[:, :3, :3] = -jinv @ np.swapaxes(rk1, 1, 2) @ rk
+            blk_k[:, 3:, :3] = skew(np.einsum("nji,nj->ni", rk, t_wb[i0 + 1] - t_wb[i0]))
+            blk_k[:, 3:, 3:] = -np.swapaxes(rk, 1, 2)
+            blk_k1 = np.zeros((m_odo, 6, 6))
+            blk_k1[:, :3, :3] = jinv
+            blk_k1[:, 3:, 3:] = np.swapaxes(rk, 1, 2)
+            blk_b = np.zeros((m_odo, 6, 3))
+            blk_b[:, :3] = -jinv @ np.swapaxes(rotmat_exp(r_th), 1, 2) @ j_rb
+            blk_b[:, 3:] = -j_pb
+            r0 = row + 6 * i0
+            _scatter(rows, cols, vals, r0, lay.pose(i0), o_w @ blk_k)
+            _scatter(rows, cols, vals, r0, lay.pose(i0 + 1), o_w @ blk_k1)
+            _scatter(rows, cols, vals, r0, lay.bias(seg), o_w @ blk_b)
+            res_all.append(parts["odo"].ravel())
+            row += 6 * m_odo
+        # bearing blocks, 2 rows each, Huber through IRLS weights
+        m = fi.size
+        ell, h = parts["ell"], parts["h"]
+        wts = np.sqrt(_huber_weights(np.linalg.norm(parts["b"], axis=1)))
+        norm = np.linalg.norm(ell, axis=-1)
+        dh = (np.eye(3)[None] - np.einsum("ni,nj->nij", h, h)) / norm[:, None, None]
+        g = -np.einsum("nij,njk->nik", basis, dh) / problem.obs_sigma[:, None, None]
+        g = g * wts[:, None, None]
+        rt = np.swapaxes(r_wb[fi], 1, 2)
+        blk_pose = np.concatenate([g @ skew(ell), -g @ rt], axis=2)
+        r0 = row + 2 * np.arange(m)
+        _scatter(rows, cols, vals, r0, lay.pose(fi), blk_pose)
+        _scatter(rows, cols, vals, r0, lay.lm(li), g @ rt)
+        res_all.append((parts["b"] * wts[:, None]).ravel())
+        row += 2 * m
+        # bias prior and random walk
+        _scatter(rows, cols, vals, np.array([row]), lay.bias(np.array([0])), b_w[None])
+        res_all.append(parts["prior"])
+        row += 3
+        if nseg > 1:
+            sidx = np.arange(nseg - 1)
+            r0 = row + 3 * sidx
+            _scatter(rows, cols, vals, r0, lay.bias(sidx), -walk_w)
+            _scatter(rows, cols, vals, r0, lay.bias(sidx + 1), walk_w)
+            res_all.append(parts["walk"].ravel())
+            row += 3 * (nseg - 1)
+        jac = sp.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(row, lay.size),
+        )
+        res = np.concatenate(res_all)
+        a = (jac.T @ jac).tocsc()
+        grad = jac.T @ res
+        diag = a.diagonal()
+        improved, rel_drop = False, 0.0
+        for _ in range(8):
+            damp = sp.diags(lam * np.maximum(diag, 1e-9))
+            try:
+                step = -spla.spsolve(a + damp, grad)
+            except RuntimeError:
+                lam *= 10
+                continue
+            if not np.all(np.isfinite(step)):
+                lam *= 10
+                continue
+            cand = _apply(step, r_wb, t_wb, lms, bias, lay)
+            cparts = residuals(*cand)
+            ccost = cost_of(cparts)
+            if ccost < cost:
+                r_wb, t_wb, lms, bias = cand
+                parts, improved = cparts, True
+                rel_drop = (cost - ccost) / max(cost, 1e-12)
+                cost = ccost
+                lam = max(lam / 3, 1e-9)
+                break
+            lam *= 10
+        if not improved or rel_drop < 1e-7:
+            break
+    lm_cov = _landmark_covariances(a, lay, n) if (n and a is not None) else np.zeros((n, 3, 3))
+    nb = np.linalg.norm(parts["b"], axis=1)
+    ang_rms = float(np.sqrt(np.mean((nb * problem.obs_sigma) ** 2 / 2))) if nb.size else 0.0
+    return SmootherResult(
+        r_wb, t_wb, lms, lm_cov, bias, cost0, cost, it, int((nb > 5.0).sum()), ang_rms
+    )
+
+
+def _apply(step, r_wb, t_wb, lms, bias, lay: _Layout):
+    r_new = r_wb.copy()
+    t_new = t_wb.copy()
+    if lay.k > 1:
+        s = step[: lay.lm0].reshape(-1, 6)
+        r_new[1:] = r_wb[1:] @ rotmat_exp(s[:, :3])
+        t_new[1:] = t_wb[1:] + s[:, 3:]
+    l_new = lms + step[lay.lm0 : lay.bias0].reshape(-1, 3)
+    b_new = bias + step[lay.bias0 :].reshape(-1, 3)
+    return r_new, t_new, l_new, b_new
+
+
+def _landmark_covariances(a: sp.csc_matrix, lay: _Layout, n: int) -> FloatArray:
+    """Diagonal 3×3 blocks of the inverse information for every landmark (one factorisation)."""
+    try:
+        lu = spla.splu(a)
+    except RuntimeError:
+        return np.full((n, 3, 3), np.nan)
+    out = np.empty((n, 3, 3))
+    for start in range(0, n, 64):
+        idx = np.arange(start, min(start + 64, n))
+        rhs = np.zeros((lay.size, 3 * idx.size))
+        for c, i in enumerate(idx):
+            rhs[lay.lm(np.array([i]))[0] + np.arange(3), 3 * c + np.arange(3)] = 1.0
+        sol = lu.solve(rhs)
+        for c, i in enumerate(idx):
+            base = lay.lm(np.array([i]))[0]
+            out[i] = sol[base : base + 3, 3 * c : 3 * c + 3]
+    return 0.5 * (out + np.swapaxes(out, 1, 2))

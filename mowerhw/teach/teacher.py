@@ -1,0 +1,706 @@
+"""The teach phase as one pure object (the API of the teach issue).
+
+    teacher = Teacher(config)
+    teacher.imu(t, gyro_xyz); teacher.speed(t, v); teacher.bearings(t, ids, unit_xyz)
+    result = teacher.finish()
+
+It wires the pieces of paper §II–III together:
+
+1. **Standstill** (from the first sample until the ground speed leaves 0): the gyro is
+   averaged into its bias; bearings are averaged into keyframe 0's anchor bearings. The
+   world frame is the body frame at the first sample (DESIGN.md §3).
+2. **Driving**: at IMU rate the body motion moves the EKF (eq. 14) and every landmark
+   observer (eq. 2/4). At camera rate each seen landmark gets a direction update and, when
+   the geometry allows, a depth pseudo-measurement (eqs 3, 5, 7); then the robot-centric
+   EKF is updated with the landmarks anchored in the current keyframe (eqs 16–18).
+3. **Keyframes**: when too few landmarks anchored in the current keyframe remain in view
+   (or after ``keyframe_baseline_m``), the current pose becomes a new keyframe (eq. 19).
+4. **Outputs**: the world pose at every IMU sample and every landmark's world position
+   (eq. 20); at ``finish`` the loop is closed (the pose at the end measured against the
+   landmarks mapped from the first keyframe) and the error spread over the trajectory and
+   the landmarks; the ground track becomes the boundary.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mowerhw.config import Config, TeachConfig
+from mowerhw.geometry import (
+    IDENTITY_QUAT,
+    quat_conjugate,
+    quat_exp,
+    quat_multiply,
+    quat_rotate,
+    quat_to_rotmat,
+    rotmat_log,
+)
+from mowerhw.teach.boundary import boundary_from_path
+from mowerhw.teach.depth import depth_pseudo_measurement
+from mowerhw.teach.ekf import BodyMotion, EkfNoise, RobotCentricEKF
+from mowerhw.teach.keyframes import (
+    Keyframe,
+    compose,
+    landmark_world_covariance,
+    landmarks_in_world,
+    world_pose_covariance,
+)
+from mowerhw.teach.observer import LandmarkObservers
+from mowerhw.teach.smoother import SmootherProblem, preintegrate_segments, smooth
+
+log = logging.getLogger(__name__)
+EPI_MIN_ANGLE_DEG = 10.0
+FloatArray = NDArray[np.float64]
+
+
+def _anchor_pose_variance(anchor_cov: FloatArray, depth: FloatArray) -> FloatArray:
+    """Bearing variance (rad²) an anchor pose's uncertainty adds: rotation, and position over
+    the landmark's distance."""
+    rot = np.trace(anchor_cov[:, 3:, 3:], axis1=1, axis2=2) / 3.0
+    pos = np.trace(anchor_cov[:, :3, :3], axis1=1, axis2=2) / 3.0
+    return rot + pos / np.maximum(depth, 0.1) ** 2
+
+
+class TeachError(RuntimeError):
+    """The teach run cannot produce a map (the message says why and what to do)."""
+
+
+@dataclass
+class LoopClosure:
+    """What closing the loop measured and did."""
+
+    applied: bool
+    reason: str
+    translation_m: float = 0.0
+    rotation_rad: float = 0.0
+    landmarks_used: int = 0
+    residual_rms_rad: float = float("nan")
+
+
+@dataclass
+class TeachResult:
+    """Everything the teach run produced (world frame = body frame at the first sample)."""
+
+    boundary: FloatArray  # (M, 2) world xy, counter-clockwise, not repeating the first point
+    landmarks: dict[int, FloatArray]  # id → xyz
+    landmark_covariances: dict[int, FloatArray]  # id → (3, 3)
+    trajectory: FloatArray  # (K, 8): t, x, y, z, qw, qx, qy, qz (after loop closure)
+    trajectory_no_closure: FloatArray  # (K, 8) before loop closure
+    closure: LoopClosure
+    keyframes: list[Keyframe]
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+    descriptors: dict[int, bytes] = field(default_factory=dict)
+    camera: Any = None  # the calibration the map was made with (OmniRadtanCamera)
+
+    @property
+    def start_pose(self) -> tuple[FloatArray, FloatArray]:
+        """Position and q_wb where the teach drive started (the dock)."""
+        return self.trajectory[0, 1:4].copy(), self.trajectory[0, 4:8].copy()
+
+    def save(self, path: Any) -> Any:
+        """Write the map file atomically (see :mod:`mowerhw.map`); returns the saved map."""
+        from mowerhw.map import LawnMap
+
+        lawn_map = LawnMap.from_teach_result(self)
+        lawn_map.save(path)
+        return lawn_map
+
+
+class _Growable:
+    """An (n, width) float array that grows by doubling (trajectory recording)."""
+
+    def __init__(self, width: int) -> None:
+        self._a = np.zeros((1024, width))
+        self.n = 0
+
+    def append(self, row: FloatArray) -> None:
+        if self.n == self._a.shape[0]:
+            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
+        self._a[self.n] = row
+        self.n += 1
+
+    def array(self) -> FloatArray:
+        return self._a[: self.n].copy()
+
+
+def _teach_config(config: Config | TeachConfig | None) -> TeachConfig:
+    if config is None:
+        return TeachConfig()
+    if isinstance(config, Config):
+        return config.teach
+    return config
+
+
+class Teacher:
+    """Teach-phase estimator: landmark observers + robot-centric EKF + keyframes."""
+
+    #: landmarks unseen for this long are retired (their last world position is kept)
+    LOST_AFTER_S = 3.0
+    #: fewer than this many landmarks of the current keyframe in view → new keyframe
+    MIN_KEYFRAME_LANDMARKS = 6
+    #: a landmark counts as mapped once its depth has this relative σ or better
+    CONVERGED_REL_SIGMA = 0.15
+    #: the loop-closure smoother keeps one gyro bias per this much driving
+    BIAS_SEGMENT_S = 10.0
+
+    def __init__(self, config: Config | TeachConfig | None = None, camera: Any = None) -> None:
+        self.cfg = _teach_config(config)
+        self.camera = camera
+        c = self.cfg
+        self.sigma = c.bearing_sigma_rad
+        self.obs = LandmarkObservers(
+            c.gamma1, c.gamma2, c.d_min_m, weighted_depth=c.depth_gain == "weighted"
+        )
+        self.ekf = RobotCentricEKF(
+            EkfNoise(
+                gyro=c.gyro_noise,
+                gyro_bias_walk=c.gyro_bias_walk,
+                speed=c.speed_noise,
+                lateral=c.lateral_noise,
+            )
+        )
+        self.phase = "waiting"  # waiting → standstill → driving → finished
+        self.t0: float | None = None
+        self.t_imu: float | None = None
+        self.t_frame: float | None = None
+        self.speed_mps = 0.0
+        self.w_last = np.zeros(3)
+        self.distance_m = 0.0
+        self.keyframes: list[Keyframe] = []
+        self._gyro_sum = np.zeros(3)
+        self._gyro_sq = np.zeros(3)
+        self._gyro_n = 0
+        self._still_bearings: dict[int, list[FloatArray]] = {}
+        self._traj = _Growable(10)  # t, x^{bj} (3), q^{bj} (4), distance, keyframe index
+        self._row = np.zeros(10)
+        # Per-landmark columns aligned with the observer rows.
+        self._cols: dict[str, Any] = {}
+        self._archive: dict[int, dict[str, Any]] = {}  # retired landmarks
+        # What the loop closure (batch smoother) needs: raw IMU intervals while driving
+        # (Δt, gyro xyz, speed), and every frame with the filter's pose at it.
+        self._imu_log: list[tuple[float, float, float, float, float]] = []
+        self._frames: list[tuple] = []  # (t, ids, bearings, t_wb, q_wb, imu_log_index)
+        self._still_obs: dict[int, tuple[FloatArray, float]] = {}  # averaged standstill bearings
+        self._still_t = 0.0
+        self._bias_at_start = np.zeros(3)
+        self._bias_var = 0.005**2
+        self.counters = {
+            "frames": 0,
+            "keyframes": 0,
+            "depth_low_parallax": 0,
+            "depth_inconsistent": 0,
+            "reanchored": 0,
+            "retired": 0,
+            "revived": 0,
+            "nonfinite_inputs": 0,
+        }
+
+    # ------------------------------------------------------------------------------ inputs
+
+    def imu(self, t: float, gyro_xyz: ArrayLike) -> None:
+        """A gyro reading (rad/s, body frame): the mean rate over the interval ending at t."""
+        gyro = np.asarray(gyro_xyz, dtype=np.float64).reshape(3)
+        gx, gy, gz = gyro.tolist()
+        if not (math.isfinite(t) and math.isfinite(gx + gy + gz)):
+            self.counters["nonfinite_inputs"] += 1
+            return
+        if self.phase == "waiting":
+            self.phase = "standstill"
+            self.t0 = self.t_imu = float(t)
+            self._record()
+            return
+        if self.phase == "standstill":
+            self._gyro_sum += gyro
+            self._gyro_sq += gyro * gyro
+            self._gyro_n += 1
+            self.t_imu = float(t)
+            self._record()
+            return
+        if self.phase != "driving" or t <= self.t_imu:  # type: ignore[operator]
+            return
+        self.w_last = gyro - self.ekf.bg
+        self._propagate(float(t) - self.t_imu, self.w_last, gyro)  # type: ignore[operator]
+        self.t_imu = float(t)
+        self._record()
+
+    def speed(self, t: float, v: float) -> None:
+        """Signed ground speed (m/s); NaN or invalid readings are ignored (held speed)."""
+        if not (np.isfinite(t) and np.isfinite(v)):
+            self.counters["nonfinite_inputs"] += 1
+            return
+        self.speed_mps = float(v)
+        if self.phase in ("waiting", "standstill") and v != 0.0:
+            if self.phase == "waiting":
+                self.t0 = self.t_imu = float(t)
+                self._record()
+            self._start_driving()
+
+    def bearings(self, t: float, ids: ArrayLike, unit_xyz: ArrayLike) -> None:
+        """Unit bearings (body frame) of the landmarks seen in one frame."""
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        u = np.asarray(unit_xyz, dtype=np.float64).reshape(-1, 3)
+        if ids.size != u.shape[0]:
+            raise ValueError(f"{ids.size} ids but {u.shape[0]} bearings")
+        good = np.all(np.isfinite(u), axis=1) & (np.linalg.norm(u, axis=1) > 0.5)
+        if not good.all():
+            self.counters["nonfinite_inputs"] += int((~good).sum())
+        ids, u = ids[good], u[good] / np.linalg.norm(u[good], axis=1, keepdims=True)
+        _, first = np.unique(ids, return_index=True)  # one bearing per id
+        ids, u = ids[np.sort(first)], u[np.sort(first)]
+        self.counters["frames"] += 1
+        if self.phase in ("waiting", "standstill"):
+            for i, b in zip(ids.tolist(), u, strict=True):
+                self._still_bearings.setdefault(i, []).append(b)
+            self.t_frame = float(t)
+            return
+        if self.phase != "driving":
+            return
+        if self.t_imu is not None and t > self.t_imu:
+            self._propagate(float(t) - self.t_imu, self.w_last, self.w_last + self.ekf.bg)
+            self.t_imu = float(t)
+        self._frame(float(t), ids, u)
+        pos, q_wb = self.world_pose()
+        self._frames.append((float(t), ids, u, pos, q_wb, len(self._imu_log)))
+
+    # ------------------------------------------------------------------------- internals
+
+    def _record(self) -> None:
+        """Log the EKF state at this IMU sample; world poses are composed at ``finish``."""
+        kf = self.keyframes[-1].index if self.keyframes else -1
+        row = self._row
+        row[0] = self.t_imu
+        row[1:4] = self.ekf.p
+        row[4:8] = self.ekf.q
+        row[8] = self.distance_m
+        row[9] = kf
+        self._traj.append(row)
+
+    def _world_trajectory(self) -> FloatArray:
+        """(K, 9): t, x_b^w (3), q_wb (4), distance — eqs (19)–(20) for every logged sample."""
+        log_ = self._traj.array()
+        out = np.zeros((log_.shape[0], 9))
+        out[:, 0] = log_[:, 0]
+        out[:, 4] = 1.0
+        out[:, 8] = log_[:, 8]
+        kf_idx = log_[:, 9].astype(np.int64)
+        for kf in self.keyframes:
+            sel = kf_idx == kf.index
+            if not sel.any():
+                continue
+            p, q = log_[sel, 1:4], log_[sel, 4:8]
+            x_w = p + quat_rotate(q, kf.x_w_in_kf)  # eq. (19)
+            q_wb = quat_conjugate(quat_multiply(q, kf.q_w_in_kf))
+            out[sel, 1:4] = -quat_rotate(q_wb, x_w)  # eq. (20)
+            out[sel, 4:8] = q_wb
+        return out
+
+    def world_pose(self) -> tuple[FloatArray, FloatArray]:
+        """Current body pose in the world: ``x_b^w``, ``q_wb`` (eqs 19–20)."""
+        x_w, q_w = compose(self.ekf.p, self.ekf.q, self.keyframes[-1])
+        q_wb = quat_conjugate(q_w)
+        return -(quat_to_rotmat(q_wb) @ x_w), q_wb
+
+    def _propagate(self, dt: float, w: FloatArray, gyro_raw: FloatArray) -> None:
+        self._imu_log.append((dt, gyro_raw[0], gyro_raw[1], gyro_raw[2], self.speed_mps))
+        v = np.array([self.speed_mps, 0.0, 0.0])
+        m = BodyMotion.of(w, v, dt)
+        self.ekf.propagate(m)
+        self.obs.propagate(m.c, m.disp)
+        self.distance_m += abs(self.speed_mps) * dt
+
+    def _start_driving(self) -> None:
+        """End of the standstill: gyro bias, keyframe 0, observers from averaged bearings."""
+        c = self.cfg
+        if self._gyro_n >= 10:
+            mean = self._gyro_sum / self._gyro_n
+            var = np.maximum(self._gyro_sq / self._gyro_n - mean**2, 1e-12)
+            self._bias_var = float(np.max(var)) / self._gyro_n + 1e-10
+            self.ekf.set_bias(mean, self._bias_var)
+        else:
+            log.warning("teach: no standstill before driving; gyro bias not calibrated")
+            self.ekf.set_bias(np.zeros(3), self._bias_var)
+        self.standstill_samples = self._gyro_n
+        self._bias_at_start = self.ekf.bg.copy()
+        self._still_t = float(self.t_imu)
+        self.keyframes.append(
+            Keyframe(0, float(self.t_imu), np.zeros(3), IDENTITY_QUAT.copy(), np.zeros((6, 6)), 0.0)
+        )
+        self.phase = "driving"
+        if self._still_bearings:
+            ids = np.array(sorted(self._still_bearings), dtype=np.int64)
+            means = np.array([np.mean(self._still_bearings[i], axis=0) for i in ids.tolist()])
+            counts = np.array([len(self._still_bearings[i]) for i in ids.tolist()], float)
+            means /= np.linalg.norm(means, axis=1, keepdims=True)
+            self._add_landmarks(ids, means, self.sigma**2 / counts, float(self.t_imu))
+            self._still_obs = {
+                int(i): (m, self.sigma**2 / n) for i, m, n in zip(ids, means, counts, strict=True)
+            }
+        self._still_bearings.clear()
+        self.t_frame = self.t_imu
+        del c
+
+    def _anchor_here(self, n: int) -> dict[str, FloatArray]:
+        """Anchor columns for n landmarks anchored at the current body frame."""
+        r = quat_to_rotmat(self.ekf.q)  # R_{b←bj}
+        r_ja = np.broadcast_to(r.T, (n, 3, 3)).copy()  # anchor (= now) axes in bj
+        t_ja = np.broadcast_to(-r.T @ self.ekf.p, (n, 3)).copy()  # anchor origin in bj
+        return {
+            "anchor_kf": np.full(n, self.keyframes[-1].index, dtype=np.int64),
+            "anchor_r": r_ja,
+            "anchor_t": t_ja,
+            "anchor_p": np.broadcast_to(self.ekf.p, (n, 3)).copy(),
+            "anchor_cov": np.broadcast_to(self.ekf.P[:6, :6], (n, 6, 6)).copy(),
+        }
+
+    def _add_landmarks(
+        self, ids: NDArray[np.int64], u: FloatArray, u_var: FloatArray, t: float
+    ) -> None:
+        """New observers (or revived retired ones) for ``ids`` seen along ``u`` now."""
+        c = self.cfg
+        n = ids.size
+        d0 = np.full(n, c.d_init_m)
+        var_d0 = np.full(n, c.d_init_m**2)
+        y0 = u.copy()
+        revived = np.array([i in self._archive for i in ids.tolist()], dtype=bool)
+        if revived.any():  # a landmark seen before: start from its mapped position
+            x_w, q_w = compose(self.ekf.p, self.ekf.q, self.keyframes[-1])
+            for k in np.flatnonzero(revived):
+                rec = self._archive.pop(int(ids[k]))
+                xb = quat_to_rotmat(q_w) @ rec["xyz"] + x_w  # eq. 20 inverted
+                dist = float(np.linalg.norm(xb))
+                if dist > c.d_min_m:
+                    d0[k] = dist
+                    var_d0[k] = float(np.trace(rec["cov"])) / 3.0 + 0.01
+            self.counters["revived"] += int(revived.sum())
+        self.obs.add(ids, y0, c.d_init_m, c.d_init_m**2, self.sigma**2)
+        rows = self.obs.rows(ids)
+        self.obs.d[rows] = d0
+        self.obs.var_d[rows] = var_d0
+        new_cols = self._anchor_here(n)
+        new_cols["anchor_y"] = u.copy()
+        new_cols["anchor_var"] = np.asarray(u_var, dtype=np.float64).reshape(n).copy()
+        new_cols["last_seen"] = np.full(n, t)
+        new_cols["snap_xyz"] = np.full((n, 3), np.nan)
+        new_cols["snap_cov"] = np.full((n, 3, 3), np.nan)
+        new_cols["snap_t"] = np.full(n, np.nan)
+        new_cols["snap_dist"] = np.full(n, np.nan)
+        for key, val in new_cols.items():
+            self._cols[key] = (
+                val if key not in self._cols else np.concatenate([self._cols[key], val])
+            )
+
+    def _retire(self, keep: NDArray[np.bool_]) -> None:
+        gone = np.flatnonzero(~keep)
+        for k in gone:
+            if np.isfinite(self._cols["snap_t"][k]):
+                self._archive[int(self.obs.ids[k])] = {
+                    "xyz": self._cols["snap_xyz"][k].copy(),
+                    "cov": self._cols["snap_cov"][k].copy(),
+                    "t": float(self._cols["snap_t"][k]),
+                    "dist": float(self._cols["snap_dist"][k]),
+                }
+        self.counters["retired"] += int(gone.size)
+        self.obs.remove(keep)
+        for key in self._cols:
+            self._cols[key] = self._cols[key][keep]
+
+    def _frame(self, t: float, ids: NDArray[np.int64], u: FloatArray) -> None:
+        c = self.cfg
+        cols = self._cols
+        rows = self.obs.rows(ids)
+        new = rows < 0
+        if new.any():
+            self._add_landmarks(ids[new], u[new], np.full(int(new.sum()), self.sigma**2), t)
+        old_ids = ids[~new]
+        old_u = u[~new]
+        rows = self.obs.rows(old_ids)
+        kf = self.keyframes[-1]
+        # Landmarks anchored in an older keyframe that come back into view: anchor them here.
+        stale = cols["anchor_kf"][rows] != kf.index
+        if stale.any():
+            self._reanchor(rows[stale], old_u[stale])
+        dt_k = max(t - (self.t_frame if self.t_frame is not None else t), 1e-3)
+        self.t_frame = t
+        v = np.array([self.speed_mps, 0.0, 0.0])
+        if rows.size:
+            # eq. (3): depth pseudo-measurements from each landmark's anchor
+            dm, var_d = self._depths(rows, old_u)
+            self.counters["depth_low_parallax"] += int(dm.low_parallax.sum())
+            self.counters["depth_inconsistent"] += int(dm.inconsistent.sum())
+            # eqs (5), (7): observer updates
+            self.obs.update(rows, old_u, self.sigma**2, dm.depth, var_d, dt_k, v, self.w_last)
+            # eqs (16)–(18): EKF update with the landmarks anchored in this keyframe
+            anchor_var = cols["anchor_var"][rows] + _anchor_pose_variance(
+                cols["anchor_cov"][rows], self.obs.d[rows]
+            )
+            if c.ekf_measurement == "epipolar":
+                # Only anchors taken at the keyframe itself: an anchor taken between keyframes
+                # is one raw bearing at an estimated pose, and its error would be reused by
+                # every later update as if it were fresh (see the module doc).
+                exact = ~np.any(cols["anchor_cov"][rows] != 0.0, axis=(1, 2))
+                sel = rows[exact]
+                self.ekf.update_epipolar(
+                    old_u[exact],
+                    self.sigma**2,
+                    cols["anchor_y"][sel],
+                    anchor_var[exact],
+                    cols["anchor_r"][sel],
+                    cols["anchor_t"][sel],
+                    c.min_baseline_m,
+                    np.radians(EPI_MIN_ANGLE_DEG),
+                )
+            else:
+                self.ekf.update(
+                    self.obs.positions()[rows],
+                    self.obs.covariances()[rows],
+                    cols["anchor_y"][rows],
+                    cols["anchor_var"][rows],
+                    cols["anchor_r"][rows],
+                    cols["anchor_t"][rows],
+                    cols["anchor_cov"][rows],
+                    cols["anchor_p"][rows],
+                )
+        cols["last_seen"][self.obs.rows(ids)] = t
+        self._snapshot(self.obs.rows(ids), t)
+        self._maybe_new_keyframe(t, self.obs.rows(ids))
+        lost = t - cols["last_seen"] > self.LOST_AFTER_S
+        if lost.any():
+            self._retire(~lost)
+
+    def _depths(self, rows: NDArray[np.int64], u: FloatArray):
+        """Eq. (3) for ``rows``, with the variance of each pseudo-measurement.
+
+        Besides both rays' noise, the relative pose between anchor and now is uncertain:
+        the EKF's pose covariance and, for anchors taken between keyframes, the anchor's.
+        A rotation error acts on eq. (3) like more ray noise, a translation error like
+        baseline noise, so they enter the same first-order formula
+        (:func:`mowerhw.teach.depth.depth_pseudo_measurement`).
+        """
+        c, cols = self.cfg, self._cols
+        r = quat_to_rotmat(self.ekf.q)
+        r_ba = np.einsum("ij,njk->nik", r, cols["anchor_r"][rows])
+        origin_b = self.ekf.p + cols["anchor_t"][rows] @ r.T
+        p_rel = self.ekf.P[:6, :6] + cols["anchor_cov"][rows]
+        rot_var = np.trace(p_rel[:, 3:, 3:], axis1=1, axis2=2) / 3.0
+        pos_var = np.trace(p_rel[:, :3, :3], axis1=1, axis2=2)
+        dm = depth_pseudo_measurement(
+            origin_b,
+            r_ba,
+            cols["anchor_y"][rows],
+            u,
+            np.sqrt(self.sigma**2 + rot_var),
+            np.radians(c.min_parallax_deg),
+            c.min_baseline_m,
+            baseline_variance=pos_var,
+        )
+        return dm, dm.variance
+
+    def _reanchor(self, rows: NDArray[np.int64], u: FloatArray | None) -> None:
+        """Anchor ``rows`` at the current body frame (bearing ``u``, or the observer's)."""
+        fresh = self._anchor_here(rows.size)
+        for key, val in fresh.items():
+            self._cols[key][rows] = val
+        if u is None:
+            self._cols["anchor_y"][rows] = self.obs.y[rows]
+            self._cols["anchor_var"][rows] = self.obs.var_y[rows]
+        else:
+            self._cols["anchor_y"][rows] = u
+            self._cols["anchor_var"][rows] = self.sigma**2
+        self.counters["reanchored"] += int(rows.size)
+
+    def _snapshot(self, rows: NDArray[np.int64], t: float) -> None:
+        """World position (eq. 20) and covariance of the landmarks just observed."""
+        if rows.size == 0:
+            return
+        kf = self.keyframes[-1]
+        x_w, q_w = compose(self.ekf.p, self.ekf.q, kf)
+        cov_pose = world_pose_covariance(kf, self.ekf.p, self.ekf.q, self.ekf.P[:6, :6])
+        xb = self.obs.positions()[rows]
+        xyz = landmarks_in_world(xb, x_w, q_w)
+        cov = landmark_world_covariance(xb, self.obs.covariances()[rows], q_w, cov_pose)
+        cols = self._cols
+        cols["snap_xyz"][rows] = xyz
+        cols["snap_cov"][rows] = cov
+        cols["snap_t"][rows] = t
+        cols["snap_dist"][rows] = self.distance_m
+
+    def _maybe_new_keyframe(self, t: float, seen_rows: NDArray[np.int64]) -> None:
+        kf = self.keyframes[-1]
+        anchored_here = (self._cols["anchor_kf"][seen_rows] == kf.index) & ~np.any(
+            self._cols["anchor_cov"][seen_rows] != 0.0, axis=(1, 2)
+        )
+        converged = (
+            np.sqrt(self.obs.var_d[seen_rows]) / self.obs.d[seen_rows] < self.CONVERGED_REL_SIGMA
+        )
+        good_here = int(np.sum(anchored_here & converged))
+        few = good_here < self.MIN_KEYFRAME_LANDMARKS and np.sum(converged) > good_here
+        far = self.distance_m - kf.distance_m > self.cfg.keyframe_baseline_m
+        if not (few or far):
+            return
+        x_w, q_w = compose(self.ekf.p, self.ekf.q, kf)
+        cov_w = world_pose_covariance(kf, self.ekf.p, self.ekf.q, self.ekf.P[:6, :6])
+        self.keyframes.append(Keyframe(len(self.keyframes), t, x_w, q_w, cov_w, self.distance_m))
+        self.ekf.reset_keyframe()
+        self._reanchor(seen_rows, None)  # anchors at the new keyframe: the filtered bearings
+        self.counters["keyframes"] += 1
+
+    # ----------------------------------------------------------------------------- finish
+
+    def _all_landmarks(self) -> dict[int, dict[str, Any]]:
+        out = dict(self._archive)
+        cols = self._cols
+        for k, lid in enumerate(self.obs.ids.tolist()):
+            if np.isfinite(cols["snap_t"][k]):
+                out[lid] = {
+                    "xyz": cols["snap_xyz"][k].copy(),
+                    "cov": cols["snap_cov"][k].copy(),
+                    "t": float(cols["snap_t"][k]),
+                    "dist": float(cols["snap_dist"][k]),
+                }
+        return out
+
+    def _close_loop(self, traj: FloatArray, landmarks: dict[int, dict[str, Any]]) -> LoopClosure:
+        """Smooth the whole drive (:mod:`mowerhw.teach.smoother`) and apply it (in place)."""
+        if not self.cfg.loop_closure:
+            return LoopClosure(False, "disabled in the configuration")
+        frames = self._frames
+        if len(frames) < 3:
+            return LoopClosure(False, "too few camera frames while driving")
+        problem, lm_ids, reobserved = self._smoother_problem(landmarks)
+        if problem is None:
+            return LoopClosure(False, "no landmark was mapped")
+        try:
+            out = smooth(problem)
+        except (np.linalg.LinAlgError, ValueError, RuntimeError) as exc:
+            log.warning("teach: loop closure failed (%s); keeping the filter's estimate", exc)
+            return LoopClosure(False, f"smoother failed: {exc}")
+        # left (world) correction at every frame, spread over the IMU-rate trajectory
+        corr_r = out.r_wb @ np.swapaxes(problem.r_wb, 1, 2)
+        corr_t = out.t_wb - np.einsum("nij,nj->ni", corr_r, problem.t_wb)
+        frame_t = np.array([self._still_t] + [f[0] for f in frames])
+        phi = rotmat_log(corr_r)
+        ts = traj[:, 0]
+        phi_i = np.stack([np.interp(ts, frame_t, phi[:, a]) for a in range(3)], axis=1)
+        t_i = np.stack([np.interp(ts, frame_t, corr_t[:, a]) for a in range(3)], axis=1)
+        r_i = quat_to_rotmat(quat_exp(phi_i))
+        traj[:, 1:4] = np.einsum("nij,nj->ni", r_i, traj[:, 1:4]) + t_i
+        traj[:, 4:8] = quat_multiply(quat_exp(phi_i), traj[:, 4:8])
+        for j, lid in enumerate(lm_ids):
+            landmarks[lid]["xyz"] = out.landmarks[j].copy()
+            landmarks[lid]["cov"] = out.landmark_cov[j].copy()
+        self.ekf_bias_smoothed = out.bias[-1]
+        closed = reobserved >= 4
+        return LoopClosure(
+            applied=True,
+            reason="loop closed: start landmarks seen again at the end"
+            if closed
+            else f"refined only: {reobserved} start landmarks seen again at the end",
+            translation_m=float(
+                np.linalg.norm(corr_t[-1] + (corr_r[-1] - np.eye(3)) @ problem.t_wb[-1])
+            ),
+            rotation_rad=float(np.linalg.norm(phi[-1])),
+            landmarks_used=reobserved,
+            residual_rms_rad=out.bearing_rms_rad,
+        )
+
+    def _bias_segments(self, frames: list[tuple]) -> dict[str, Any]:
+        """One gyro bias per ``BIAS_SEGMENT_S`` of driving, tied by the bias random walk."""
+        t = np.array([self._still_t] + [f[0] for f in frames])
+        seg = np.floor((t[:-1] - t[0]) / self.BIAS_SEGMENT_S).astype(np.int64)
+        nseg = int(seg.max(initial=0)) + 1
+        walk_var = max(self.cfg.gyro_bias_walk, 1e-9) ** 2 * self.BIAS_SEGMENT_S
+        return {
+            "bias_segment": seg,
+            "bias_walk_cov": np.tile(np.eye(3) * walk_var, (nseg - 1, 1, 1)),
+        }
+
+    def _smoother_problem(self, landmarks: dict[int, dict[str, Any]]):
+        """Poses at frames (the filter's), odometry between them, bearings, initial map."""
+        c = self.cfg
+        frames = self._frames
+        lm_ids = sorted(landmarks)
+        if not lm_ids:
+            return None, [], 0
+        index = {lid: j for j, lid in enumerate(lm_ids)}
+        r_wb = [np.eye(3)] + [quat_to_rotmat(f[4]) for f in frames]
+        t_wb = [np.zeros(3)] + [f[3] for f in frames]
+        log_arr = np.asarray(self._imu_log, dtype=np.float64).reshape(-1, 5)
+        bounds = np.array([0] + [f[5] for f in frames])
+        bias0 = self._bias_at_start
+        odometry = preintegrate_segments(
+            log_arr, bounds, bias0, c.gyro_noise, c.speed_noise, c.lateral_noise
+        )
+        of, ol, ob, osg = [], [], [], []
+        for lid, (u, var) in self._still_obs.items():
+            if lid in index:
+                of.append(0)
+                ol.append(index[lid])
+                ob.append(u)
+                osg.append(np.sqrt(var))
+        for k, (_, ids, u, *_rest) in enumerate(frames, start=1):
+            for lid, b in zip(ids.tolist(), u, strict=True):
+                if lid in index:
+                    of.append(k)
+                    ol.append(index[lid])
+                    ob.append(b)
+                    osg.append(self.sigma)
+        n_frames = len(frames)
+        early = {lid for _, ids, *_r in frames[: max(1, n_frames // 10)] for lid in ids.tolist()}
+        early |= set(self._still_obs)
+        late = {lid for _, ids, *_r in frames[-max(1, n_frames // 10) :] for lid in ids.tolist()}
+        problem = SmootherProblem(
+            r_wb=np.stack(r_wb),
+            t_wb=np.stack(t_wb),
+            odometry=odometry,
+            obs_frame=np.asarray(of, dtype=np.int64),
+            obs_landmark=np.asarray(ol, dtype=np.int64),
+            obs_bearing=np.asarray(ob),
+            obs_sigma=np.asarray(osg),
+            landmarks=np.stack([landmarks[lid]["xyz"] for lid in lm_ids]),
+            bias0=bias0,
+            bias_prior=bias0,
+            bias_prior_cov=np.eye(3) * self._bias_var,
+            **self._bias_segments(frames),
+        )
+        return problem, lm_ids, len(early & late)
+
+    def finish(self) -> TeachResult:
+        """Close the loop, build the boundary, and return the map content."""
+        if self.phase != "driving":
+            raise TeachError("the mower never drove: teach needs a drive around the lawn edge")
+        self.phase = "finished"
+        traj9 = self._world_trajectory()
+        landmarks = self._all_landmarks()
+        raw = traj9[:, :8].copy()
+        closure = self._close_loop(traj9, landmarks)
+        c = self.cfg
+        boundary = boundary_from_path(
+            traj9[:, 1:3], c.boundary_simplify_m, c.min_area_m2, distance=traj9[:, 8]
+        )
+        diagnostics = {
+            "standstill_samples": getattr(self, "standstill_samples", 0),
+            "gyro_bias": self.ekf.bg.tolist(),
+            "distance_m": self.distance_m,
+            "keyframes": len(self.keyframes),
+            "ekf_updates": self.ekf.stats.used,
+            "ekf_gated": self.ekf.stats.gated,
+            **self.counters,
+            **{f"observer_{k}": v for k, v in vars(self.obs.stats).items()},
+        }
+        return TeachResult(
+            boundary=boundary,
+            landmarks={i: r["xyz"] for i, r in landmarks.items()},
+            landmark_covariances={i: r["cov"] for i, r in landmarks.items()},
+            trajectory=traj9[:, :8],
+            trajectory_no_closure=raw,
+            closure=closure,
+            keyframes=list(self.keyframes),
+            diagnostics=diagnostics,
+            camera=self.camera,
+        )
