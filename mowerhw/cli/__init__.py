@@ -13,9 +13,9 @@ import sys
 from collections.abc import Sequence
 
 from mowerhw import __version__
-from mowerhw.cli import camera_cmd, config_cmd, demo_cmd
+from mowerhw.cli import camera_cmd, config_cmd, demo_cmd, sim_cmd
 
-COMMAND_MODULES = (config_cmd, camera_cmd, demo_cmd)
+COMMAND_MODULES = (config_cmd, camera_cmd, sim_cmd, demo_cmd)
 
 DESCRIPTION = """\
 Wire-free, GPS-free containment for a robotic mower: VN-100 IMU + ISO 11783 ground speed +
@@ -28,6 +28,7 @@ examples:
   mowerhw config check configs/mower.yaml    validate a config (exit 78 with the reason)
   mowerhw config schema                      every key, its default and what it means
   mowerhw camera info                        field of view and model check of a calibration
+  mowerhw sim teach --scenario paper --seed 7 --plot   simulated teach drive, map, errors
   mowerhw demo                               a short tour of what this build can do
 """
 

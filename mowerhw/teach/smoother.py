@@ -113,18 +113,23 @@ def preintegrate_segments(
         v = np.zeros((nseg, 3))
         v[:, 0] = sp_[:, j]
         step, jr = steps[:, j], jrs[:, j]
-        dr_sv = dR @ skew(v)
+        # the displacement over the step, J_l(ω Δt) v Δt, exactly like the filter's BodyMotion
+        disp = np.einsum("nij,nj->ni", right_jacobian(-phi[:, j]), v * d[:, None])
+        dr_sd = dR @ skew(disp)
+        # covariance of (δθ, δp): δθ' = stepᵀ δθ − Jr Δt n_g ; δp' = δp − ΔR [disp]× δθ + ΔR n_v Δt
         a = np.broadcast_to(np.eye(6), (nseg, 6, 6)).copy()
         a[:, :3, :3] = np.swapaxes(step, 1, 2)
-        a[:, 3:, :3] = -dr_sv * d[:, None, None]
+        a[:, 3:, :3] = -dr_sd
         b_g = -jr * d[:, None, None]
         b_v = dR * d[:, None, None]
         cov = a @ cov @ np.swapaxes(a, 1, 2)
         cov[:, :3, :3] += b_g @ np.swapaxes(b_g, 1, 2) * (gyro_density**2 * inv_dt)[:, None, None]
         cov[:, 3:, 3:] += (b_v * qv[None, None, :]) @ np.swapaxes(b_v, 1, 2) * inv_dt[:, None, None]
-        j_pb = j_pb - dr_sv @ j_rb * d[:, None, None]
+        # ∂Δp/∂b: the rotation so far turns this step's displacement, and the step's own arc
+        # bends with the rate (first order: ½ [v]× Δt²)
+        j_pb = j_pb - dr_sd @ j_rb + dR @ skew(v) * (0.5 * d * d)[:, None, None]
         j_rb = np.swapaxes(step, 1, 2) @ j_rb - jr * d[:, None, None]
-        dp = dp + np.einsum("nij,nj->ni", dR, v) * d[:, None]
+        dp = dp + np.einsum("nij,nj->ni", dR, disp)
         dR = dR @ step
     cov = cov + np.eye(6)[None] * 1e-12
     total = dt.sum(axis=1)

@@ -148,10 +148,20 @@ class Teacher:
     CONVERGED_REL_SIGMA = 0.15
     #: the loop-closure smoother keeps one gyro bias per this much driving
     BIAS_SEGMENT_S = 10.0
+    #: the filter extrapolates the ground speed at most this far past its newest sample
+    SPEED_EXTRAPOLATE_S = 0.15
 
-    def __init__(self, config: Config | TeachConfig | None = None, camera: Any = None) -> None:
+    def __init__(
+        self,
+        config: Config | TeachConfig | None = None,
+        camera: Any = None,
+        on_frame: Any = None,
+    ) -> None:
+        """``camera`` (optional) is stored in the map; ``on_frame(teacher, t, depth)`` is called
+        after every camera frame while driving (plots and diagnostics use it)."""
         self.cfg = _teach_config(config)
         self.camera = camera
+        self.on_frame = on_frame
         c = self.cfg
         self.sigma = c.bearing_sigma_rad
         self.obs = LandmarkObservers(
@@ -184,7 +194,8 @@ class Teacher:
         self._archive: dict[int, dict[str, Any]] = {}  # retired landmarks
         # What the loop closure (batch smoother) needs: raw IMU intervals while driving
         # (Δt, gyro xyz, speed), and every frame with the filter's pose at it.
-        self._imu_log: list[tuple[float, float, float, float, float]] = []
+        self._imu_log: list[tuple[float, ...]] = []  # Δt, gyro xyz, speed, interval end
+        self._speed_log: list[tuple[float, float]] = []
         self._frames: list[tuple] = []  # (t, ids, bearings, t_wb, q_wb, imu_log_index)
         self._still_obs: dict[int, tuple[FloatArray, float]] = {}  # averaged standstill bearings
         self._still_t = 0.0
@@ -235,6 +246,7 @@ class Teacher:
             self.counters["nonfinite_inputs"] += 1
             return
         self.speed_mps = float(v)
+        self._speed_log.append((float(t), float(v)))
         if self.phase in ("waiting", "standstill") and v != 0.0:
             if self.phase == "waiting":
                 self.t0 = self.t_imu = float(t)
@@ -281,6 +293,13 @@ class Teacher:
         row[9] = kf
         self._traj.append(row)
 
+    def landmark_snapshot(self) -> tuple[NDArray[np.int64], FloatArray]:
+        """Ids and current world positions (eq. 20) of the tracked landmarks seen so far."""
+        ok = np.isfinite(self._cols["snap_t"]) if self._cols else np.zeros(0, bool)
+        if not self._cols:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        return self.obs.ids[ok].copy(), self._cols["snap_xyz"][ok].copy()
+
     def _world_trajectory(self) -> FloatArray:
         """(K, 9): t, x_b^w (3), q_wb (4), distance — eqs (19)–(20) for every logged sample."""
         log_ = self._traj.array()
@@ -306,13 +325,29 @@ class Teacher:
         q_wb = quat_conjugate(q_w)
         return -(quat_to_rotmat(q_wb) @ x_w), q_wb
 
+    def _speed_at(self, t_mid: float) -> float:
+        """Ground speed for an IMU interval centred at ``t_mid``: the newest 10 Hz sample,
+        extrapolated along the slope of the last two (a first-order hold). Holding the value
+        alone would lag every acceleration by half a speed period (≈ 2 cm per start)."""
+        log_ = self._speed_log
+        if len(log_) < 2:
+            return self.speed_mps
+        (t1, v1), (t2, v2) = log_[-2], log_[-1]
+        ahead = t_mid - t2
+        if t2 - t1 <= 0 or not 0.0 <= ahead <= self.SPEED_EXTRAPOLATE_S:
+            return v2
+        v = v2 + (v2 - v1) / (t2 - t1) * ahead
+        return v if v * v2 > 0 else 0.0  # never extrapolate through a stop
+
     def _propagate(self, dt: float, w: FloatArray, gyro_raw: FloatArray) -> None:
-        self._imu_log.append((dt, gyro_raw[0], gyro_raw[1], gyro_raw[2], self.speed_mps))
-        v = np.array([self.speed_mps, 0.0, 0.0])
+        t_end = self.t_imu + dt  # type: ignore[operator]
+        speed = self._speed_at(t_end - 0.5 * dt)
+        self._imu_log.append((dt, gyro_raw[0], gyro_raw[1], gyro_raw[2], speed, t_end))
+        v = np.array([speed, 0.0, 0.0])
         m = BodyMotion.of(w, v, dt)
         self.ekf.propagate(m)
         self.obs.propagate(m.c, m.disp)
-        self.distance_m += abs(self.speed_mps) * dt
+        self.distance_m += abs(speed) * dt
 
     def _start_driving(self) -> None:
         """End of the standstill: gyro bias, keyframe 0, observers from averaged bearings."""
@@ -435,6 +470,7 @@ class Teacher:
             self.counters["depth_inconsistent"] += int(dm.inconsistent.sum())
             # eqs (5), (7): observer updates
             self.obs.update(rows, old_u, self.sigma**2, dm.depth, var_d, dt_k, v, self.w_last)
+            self._last_depth = (self.obs.ids[rows].copy(), dm.depth.copy())
             # eqs (16)–(18): EKF update with the landmarks anchored in this keyframe
             anchor_var = cols["anchor_var"][rows] + _anchor_pose_variance(
                 cols["anchor_cov"][rows], self.obs.d[rows]
@@ -468,6 +504,8 @@ class Teacher:
                 )
         cols["last_seen"][self.obs.rows(ids)] = t
         self._snapshot(self.obs.rows(ids), t)
+        if self.on_frame is not None:
+            self.on_frame(self, t, getattr(self, "_last_depth", None))
         self._maybe_new_keyframe(t, self.obs.rows(ids))
         lost = t - cols["last_seen"] > self.LOST_AFTER_S
         if lost.any():
@@ -630,7 +668,10 @@ class Teacher:
         index = {lid: j for j, lid in enumerate(lm_ids)}
         r_wb = [np.eye(3)] + [quat_to_rotmat(f[4]) for f in frames]
         t_wb = [np.zeros(3)] + [f[3] for f in frames]
-        log_arr = np.asarray(self._imu_log, dtype=np.float64).reshape(-1, 5)
+        log_arr = np.asarray(self._imu_log, dtype=np.float64).reshape(-1, 6)
+        if len(self._speed_log) >= 2:  # after the fact: the speed interpolated mid-interval
+            sp = np.asarray(self._speed_log)
+            log_arr[:, 4] = np.interp(log_arr[:, 5] - 0.5 * log_arr[:, 0], sp[:, 0], sp[:, 1])
         bounds = np.array([0] + [f[5] for f in frames])
         bias0 = self._bias_at_start
         odometry = preintegrate_segments(

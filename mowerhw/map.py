@@ -1,0 +1,415 @@
+"""The lawn map file: what teach writes and mow trusts (DESIGN.md §1, §4).
+
+A map is one JSON document, in local metres in the world frame of the teach run (the body
+frame at its first sample: x forward, y left, z up, origin at the camera centre):
+
+.. code-block:: text
+
+    {
+      "format": "mowerhw-map",          always this string
+      "version": 1,                      the layout below; other versions are refused
+      "created_utc": "2026-11-22T10:00:00Z",
+      "frame": "...",                    a sentence describing the frame, for people
+      "boundary": [[x, y], ...],         the lawn outline, counter-clockwise, ≥ 3 points,
+                                         the first point not repeated
+      "keepout_zones": [{"name": "pond", "polygon": [[x, y], ...]}, ...],
+                                         holes in the lawn (flower beds, ponds, a sandpit)
+      "landmarks": [{"id": 7, "xyz": [x, y, z], "covariance": [[...], [...], [...]],
+                     "descriptor": null | "<base64>", "keyframe": null | k}, ...],
+      "dock": {"position": [x, y, z], "quaternion_wxyz": [w, x, y, z]},
+                                         where teach started: the default start of mow
+      "camera": {Kalibr camchain entry} | null,   the calibration the map was made with
+      "teach": {...},                    how the map was made (duration, distance, closure)
+      "checksum": "sha256:<hex>"         over the canonical JSON of everything else
+    }
+
+The checksum is the SHA-256 of the document without ``checksum``, serialised with sorted
+keys and no spaces. :func:`load` refuses, with a message that says what is wrong, a file
+that is missing, truncated, not JSON, of another format or version, tampered with, or
+geometrically unusable; it never returns a half-valid map. :meth:`LawnMap.save` writes
+atomically (:mod:`mowerhw.fileio`).
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+from shapely.geometry import Polygon
+from shapely.geometry.polygon import orient
+from shapely.validation import explain_validity
+
+from mowerhw import __version__
+from mowerhw.fileio import write_atomic
+
+FloatArray = NDArray[np.float64]
+
+FORMAT = "mowerhw-map"
+VERSION = 1
+SUPPORTED_VERSIONS = (1,)
+FRAME_DESCRIPTION = (
+    "local metres; world frame = body frame at the first teach sample "
+    "(x forward, y left, z up, origin at the camera centre)"
+)
+MIN_AREA_M2 = 4.0
+MIN_LANDMARKS = 4
+
+
+class MapError(ValueError):
+    """A map file that must not be used; the message says what is wrong."""
+
+
+@dataclass(frozen=True)
+class Landmark:
+    id: int
+    xyz: FloatArray
+    covariance: FloatArray
+    descriptor: bytes | None = None
+    keyframe: int | None = None
+
+
+@dataclass(frozen=True)
+class KeepOut:
+    name: str
+    polygon: FloatArray  # (M, 2)
+
+
+@dataclass
+class LawnMap:
+    """A validated lawn map."""
+
+    boundary: FloatArray
+    landmarks: list[Landmark]
+    dock_position: FloatArray = field(default_factory=lambda: np.zeros(3))
+    dock_quaternion: FloatArray = field(default_factory=lambda: np.array([1.0, 0, 0, 0]))
+    keepouts: list[KeepOut] = field(default_factory=list)
+    camera: dict[str, Any] | None = None
+    teach: dict[str, Any] = field(default_factory=dict)
+    created_utc: str = ""
+    version: int = VERSION
+    checksum: str = ""
+
+    # -- geometry -----------------------------------------------------------------------------
+
+    def outline_polygon(self) -> Polygon:
+        return Polygon(self.boundary)
+
+    def lawn_polygon(self) -> Polygon:
+        """The mowable area: the outline with every keep-out zone as a hole."""
+        lawn = self.outline_polygon()
+        for zone in self.keepouts:
+            lawn = lawn.difference(Polygon(zone.polygon))
+        return lawn
+
+    def landmark_ids(self) -> NDArray[np.int64]:
+        return np.array([lm.id for lm in self.landmarks], dtype=np.int64)
+
+    def landmark_positions(self) -> FloatArray:
+        return np.array([lm.xyz for lm in self.landmarks]).reshape(-1, 3)
+
+    def landmark_covariances(self) -> FloatArray:
+        return np.array([lm.covariance for lm in self.landmarks]).reshape(-1, 3, 3)
+
+    def problems(self) -> list[str]:
+        """Everything that makes this map unfit for mowing (empty: fit)."""
+        out: list[str] = []
+        outline = self.outline_polygon()
+        if not outline.is_valid:
+            out.append(f"boundary: not a simple polygon ({explain_validity(outline)})")
+        elif outline.area < MIN_AREA_M2:
+            out.append(f"boundary: encloses {outline.area:.1f} m², less than {MIN_AREA_M2} m²")
+        names = set()
+        for zone in self.keepouts:
+            poly = Polygon(zone.polygon)
+            if zone.name in names:
+                out.append(f"keep-out {zone.name!r}: the name is used twice")
+            names.add(zone.name)
+            if not poly.is_valid:
+                out.append(
+                    f"keep-out {zone.name!r}: not a simple polygon ({explain_validity(poly)})"
+                )
+            elif outline.is_valid and not outline.contains(poly):
+                out.append(f"keep-out {zone.name!r}: not inside the lawn boundary")
+            elif poly.area <= 0.0:
+                out.append(f"keep-out {zone.name!r}: has no area")
+        if len(self.landmarks) < MIN_LANDMARKS:
+            out.append(
+                f"landmarks: {len(self.landmarks)} mapped, at least {MIN_LANDMARKS} needed to "
+                "localize"
+            )
+        ids = [lm.id for lm in self.landmarks]
+        if len(set(ids)) != len(ids):
+            out.append("landmarks: duplicate ids")
+        return out
+
+    # -- editing (without re-driving) -----------------------------------------------------------
+
+    def with_keepout(self, name: str, polygon: FloatArray) -> LawnMap:
+        poly = np.asarray(polygon, dtype=np.float64)
+        if poly.ndim != 2 or poly.shape[1] != 2 or poly.shape[0] < 3:
+            raise MapError("a keep-out zone needs at least 3 points x,y")
+        if any(z.name == name for z in self.keepouts):
+            raise MapError(f"a keep-out zone named {name!r} exists already")
+        ccw = np.asarray(orient(Polygon(poly), 1.0).exterior.coords)[:-1]
+        new = replace(self, keepouts=[*self.keepouts, KeepOut(name, ccw)])
+        problems = new.problems()
+        if problems:
+            raise MapError("; ".join(problems))
+        return new
+
+    def without_keepout(self, name: str) -> LawnMap:
+        if not any(z.name == name for z in self.keepouts):
+            known = ", ".join(repr(z.name) for z in self.keepouts) or "none"
+            raise MapError(f"no keep-out zone named {name!r} (zones: {known})")
+        return replace(self, keepouts=[z for z in self.keepouts if z.name != name])
+
+    # -- serialisation ------------------------------------------------------------------------
+
+    def to_document(self) -> dict[str, Any]:
+        doc: dict[str, Any] = {
+            "format": FORMAT,
+            "version": VERSION,
+            "created_utc": self.created_utc or _utc_now(),
+            "frame": FRAME_DESCRIPTION,
+            "boundary": _rows(self.boundary),
+            "keepout_zones": [{"name": z.name, "polygon": _rows(z.polygon)} for z in self.keepouts],
+            "landmarks": [
+                {
+                    "id": int(lm.id),
+                    "xyz": _rows(lm.xyz),
+                    "covariance": _rows(lm.covariance),
+                    "descriptor": base64.b64encode(lm.descriptor).decode("ascii")
+                    if lm.descriptor is not None
+                    else None,
+                    "keyframe": lm.keyframe,
+                }
+                for lm in self.landmarks
+            ],
+            "dock": {
+                "position": _rows(self.dock_position),
+                "quaternion_wxyz": _rows(self.dock_quaternion),
+            },
+            "camera": self.camera,
+            "teach": self.teach,
+        }
+        doc["checksum"] = "sha256:" + _digest(doc)
+        return doc
+
+    def to_bytes(self) -> bytes:
+        return (json.dumps(self.to_document(), indent=1, allow_nan=False) + "\n").encode()
+
+    def save(self, path: str | Path) -> None:
+        """Write atomically; refuses a map that is unfit for mowing."""
+        problems = self.problems()
+        if problems:
+            raise MapError("refusing to save an unusable map: " + "; ".join(problems))
+        data = self.to_bytes()
+        write_atomic(path, data)
+        self.checksum = json.loads(data)["checksum"]
+
+    @classmethod
+    def from_teach_result(cls, result: Any) -> LawnMap:
+        landmarks = [
+            Landmark(
+                id=int(i),
+                xyz=np.asarray(xyz, dtype=np.float64),
+                covariance=np.asarray(result.landmark_covariances[i], dtype=np.float64),
+                descriptor=result.descriptors.get(i) if result.descriptors else None,
+            )
+            for i, xyz in sorted(result.landmarks.items())
+        ]
+        pos, quat = result.start_pose
+        camera = result.camera.to_kalibr() if result.camera is not None else None
+        closure = result.closure
+        teach = {
+            "software": f"mowerhw {__version__}",
+            "duration_s": float(result.trajectory[-1, 0] - result.trajectory[0, 0]),
+            "distance_m": float(result.diagnostics.get("distance_m", 0.0)),
+            "keyframes": len(result.keyframes),
+            "loop_closure": {
+                "applied": closure.applied,
+                "reason": closure.reason,
+                "translation_m": closure.translation_m,
+                "rotation_rad": closure.rotation_rad,
+            },
+        }
+        return cls(
+            boundary=np.asarray(result.boundary, dtype=np.float64),
+            landmarks=landmarks,
+            dock_position=pos,
+            dock_quaternion=quat,
+            camera=camera,
+            teach=teach,
+            created_utc=_utc_now(),
+        )
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def _rows(a: Any) -> Any:
+    return np.asarray(a, dtype=np.float64).tolist()
+
+
+def _digest(doc: dict[str, Any]) -> str:
+    body = {k: v for k, v in doc.items() if k != "checksum"}
+    canon = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canon.encode()).hexdigest()
+
+
+# ------------------------------------------------------------------------------------ loading
+
+
+def _points(value: Any, where: str, min_points: int) -> FloatArray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise MapError(f"{where}: must be a list of [x, y] numbers") from None
+    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < min_points:
+        raise MapError(f"{where}: must be a list of at least {min_points} [x, y] points")
+    if not np.all(np.isfinite(arr)):
+        raise MapError(f"{where}: has non-finite coordinates")
+    return arr
+
+
+def _vector(value: Any, where: str, shape: tuple[int, ...]) -> FloatArray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise MapError(f"{where}: must be numbers of shape {shape}") from None
+    if arr.shape != shape or not np.all(np.isfinite(arr)):
+        raise MapError(f"{where}: must be finite numbers of shape {shape}")
+    return arr
+
+
+def from_document(doc: Any, source: str = "map") -> LawnMap:
+    """Validate a parsed map document; raise :class:`MapError` on anything wrong."""
+    if not isinstance(doc, dict):
+        raise MapError(f"{source}: not a mowerhw map (the top level is not an object)")
+    if doc.get("format") != FORMAT:
+        raise MapError(f"{source}: not a mowerhw map (format is {doc.get('format')!r})")
+    version = doc.get("version")
+    if version not in SUPPORTED_VERSIONS:
+        raise MapError(
+            f"{source}: map version {version!r} is not supported by mowerhw {__version__} "
+            f"(supported: {', '.join(map(str, SUPPORTED_VERSIONS))})"
+        )
+    checksum = doc.get("checksum")
+    if not isinstance(checksum, str) or not checksum.startswith("sha256:"):
+        raise MapError(f"{source}: no checksum; the file is incomplete or was not made by mowerhw")
+    try:
+        expected = _digest(doc)
+    except ValueError:
+        raise MapError(f"{source}: has non-finite numbers") from None
+    if checksum != "sha256:" + expected:
+        raise MapError(
+            f"{source}: checksum mismatch: the file was modified or corrupted after it was "
+            "saved (edit maps with `mowerhw map`, or teach again)"
+        )
+    boundary = _points(doc.get("boundary"), f"{source}: boundary", 3)
+    keepouts = []
+    for k, zone in enumerate(doc.get("keepout_zones") or []):
+        if not isinstance(zone, dict) or not isinstance(zone.get("name"), str):
+            raise MapError(f"{source}: keepout_zones[{k}] needs a name and a polygon")
+        keepouts.append(
+            KeepOut(zone["name"], _points(zone.get("polygon"), f"keep-out {zone['name']!r}", 3))
+        )
+    landmarks = []
+    raw_lms = doc.get("landmarks")
+    if not isinstance(raw_lms, list):
+        raise MapError(f"{source}: landmarks must be a list")
+    for k, lm in enumerate(raw_lms):
+        where = f"{source}: landmarks[{k}]"
+        if (
+            not isinstance(lm, dict)
+            or not isinstance(lm.get("id"), int)
+            or isinstance(lm.get("id"), bool)
+        ):
+            raise MapError(f"{where}: needs an integer id")
+        desc = lm.get("descriptor")
+        try:
+            desc_bytes = base64.b64decode(desc, validate=True) if desc is not None else None
+        except (ValueError, TypeError):
+            raise MapError(f"{where}: descriptor is not base64") from None
+        kf = lm.get("keyframe")
+        landmarks.append(
+            Landmark(
+                id=lm["id"],
+                xyz=_vector(lm.get("xyz"), f"{where}.xyz", (3,)),
+                covariance=_vector(lm.get("covariance"), f"{where}.covariance", (3, 3)),
+                descriptor=desc_bytes,
+                keyframe=kf if isinstance(kf, int) else None,
+            )
+        )
+    dock = doc.get("dock") or {}
+    if not isinstance(dock, dict):
+        raise MapError(f"{source}: dock must be an object")
+    dock_pos = _vector(dock.get("position", [0, 0, 0]), f"{source}: dock.position", (3,))
+    dock_q = _vector(
+        dock.get("quaternion_wxyz", [1, 0, 0, 0]), f"{source}: dock.quaternion_wxyz", (4,)
+    )
+    if not math.isclose(float(np.linalg.norm(dock_q)), 1.0, abs_tol=1e-6):
+        raise MapError(f"{source}: dock.quaternion_wxyz is not a unit quaternion")
+    camera = doc.get("camera")
+    if camera is not None:
+        from mowerhw.camera import CameraCalibrationError, OmniRadtanCamera
+
+        try:
+            OmniRadtanCamera.from_kalibr(camera, where="camera")
+        except CameraCalibrationError as exc:
+            raise MapError(f"{source}: {exc}") from None
+    lawn = LawnMap(
+        boundary=boundary,
+        landmarks=landmarks,
+        dock_position=dock_pos,
+        dock_quaternion=dock_q,
+        keepouts=keepouts,
+        camera=camera,
+        teach=doc.get("teach") if isinstance(doc.get("teach"), dict) else {},
+        created_utc=str(doc.get("created_utc", "")),
+        version=int(version),
+        checksum=checksum,
+    )
+    problems = lawn.problems()
+    if problems:
+        raise MapError(f"{source}: " + "; ".join(problems))
+    return lawn
+
+
+def load(path: str | Path) -> LawnMap:
+    """Load and fully validate a map file (see the module doc for what is refused)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise MapError(
+            f"{path}: map file not found (teach a map first: `mowerhw run --mode teach`)"
+        ) from None
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read the map file ({exc.strerror})") from None
+    if not data.strip():
+        raise MapError(f"{path}: the map file is empty")
+    try:
+        doc = json.loads(data)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        where = (
+            f" at line {exc.lineno}, column {exc.colno}"
+            if isinstance(exc, json.JSONDecodeError)
+            else ""
+        )
+        raise MapError(f"{path}: not valid JSON{where}: the file is truncated or corrupt") from None
+    return from_document(doc, str(path))
+
+
+def polygon_area(points: FloatArray) -> float:
+    return float(shapely.area(Polygon(points)))

@@ -1,0 +1,132 @@
+"""Figures in the spirit of the paper's (matplotlib, off-screen, small PNGs)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mowerhw.evaluate import TeachOutcome, horizontal_errors
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def teach_figures(outcome: TeachOutcome, out_dir: str | Path) -> list[Path]:
+    """Figs 3, 5 and 7 of the paper for one simulated teach run; returns the files written."""
+    plt = _plt()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    run, res, hist = outcome.run, outcome.result, outcome.history
+    files = []
+
+    if hist is not None and hist.depth_est:
+        # Fig. 3: one landmark's depth and direction converging
+        lid = max(hist.depth_est, key=lambda i: len(hist.depth_est[i]))
+        rows = np.array(hist.depth_est[lid])
+        fig, (a1, a2) = plt.subplots(2, 1, figsize=(6.4, 5.0), sharex=True)
+        a1.plot(rows[:, 0], rows[:, 3], ".", ms=3, color="0.6", label="pseudo-measurements (eq. 3)")
+        a1.plot(rows[:, 0], rows[:, 2], "b-", label="true")
+        a1.plot(rows[:, 0], rows[:, 1], "r-", label="observer estimate")
+        a1.set_ylabel("distance (m)")
+        a1.set_ylim(0, max(2.0, 1.6 * np.nanmax(rows[:, 2])))
+        a1.legend(loc="upper right", fontsize=8)
+        a1.set_title(f"Landmark {lid}: depth and direction (cf. paper Fig. 3)", fontsize=10)
+        dirs = hist.direction_est[lid]
+        td = np.array([d[0] for d in dirs])
+        ye = np.array([d[1] for d in dirs])
+        yt = np.array([d[2] for d in dirs])
+        for c, col in zip(range(3), "rgb", strict=True):
+            a2.plot(td, yt[:, c], "--", color=col, lw=1)
+            a2.plot(td, ye[:, c], "-", color=col, lw=1, label=f"y_{'xyz'[c]}")
+        a2.set_ylabel("unit vector (body)")
+        a2.set_xlabel("time (s)")
+        a2.legend(loc="upper right", fontsize=8, ncol=3)
+        fig.tight_layout()
+        files.append(out / "fig3_landmark_depth.png")
+        fig.savefig(files[-1], dpi=90)
+        plt.close(fig)
+
+    if res is not None:
+        # Fig. 5: boundary and map, estimate vs truth
+        fig, ax = plt.subplots(figsize=(6.4, 5.6))
+        ax.plot(run.truth.xy[:, 0], run.truth.xy[:, 1], "b-", lw=1.5, label="true path")
+        b = np.vstack([res.boundary, res.boundary[:1]])
+        ax.plot(b[:, 0], b[:, 1], "r-", lw=1, label="taught boundary")
+        nc = res.trajectory_no_closure
+        ax.plot(nc[:, 1], nc[:, 2], "m:", lw=1, label="filter (no loop closure)")
+        ax.plot(run.landmarks_w[:, 0], run.landmarks_w[:, 1], "b*", ms=8, label="true landmarks")
+        lm_ids = sorted(res.landmarks)
+        est = np.array([res.landmarks[i] for i in lm_ids])
+        ax.plot(est[:, 0], est[:, 1], "o", mfc="none", mec="r", ms=8, label="mapped landmarks")
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.legend(fontsize=8, loc="best")
+        ax.set_title("Boundary teaching and landmark mapping (cf. paper Fig. 5)", fontsize=10)
+        fig.tight_layout()
+        files.append(out / "fig5_map.png")
+        fig.savefig(files[-1], dpi=90)
+        plt.close(fig)
+
+        # Fig. 7: errors over time
+        fig, (a1, a2) = plt.subplots(2, 1, figsize=(6.4, 5.0), sharex=True)
+        tr = res.trajectory
+        idx = np.clip(np.searchsorted(run.truth.t, tr[:, 0] - 1e-9), 0, run.truth.t.size - 1)
+        err = tr[:, 1:4] - run.truth.position[idx]
+        for c, col in zip(range(3), "rgb", strict=True):
+            a1.plot(tr[:, 0], err[:, c], color=col, lw=1, label="xyz"[c])
+        a1.plot(nc[:, 0], horizontal_errors(nc, run), "k:", lw=1, label="|xy| no closure")
+        a1.set_ylabel("boundary error (m)")
+        a1.legend(fontsize=8, ncol=4)
+        a1.set_title("Teach-phase errors (cf. paper Fig. 7)", fontsize=10)
+        if hist is not None:
+            a2.plot(hist.t, hist.landmark_err, "k-", lw=1, label="filter (eq. 20)")
+        final = np.mean(np.linalg.norm(est - run.landmarks_w[lm_ids], axis=1))
+        a2.axhline(final, color="r", ls="--", lw=1, label=f"final map {final:.3f} m")
+        a2.set_ylabel("avg. landmark error (m)")
+        a2.set_xlabel("time (s)")
+        a2.set_ylim(0, None)
+        a2.legend(fontsize=8)
+        fig.tight_layout()
+        files.append(out / "fig7_errors.png")
+        fig.savefig(files[-1], dpi=90)
+        plt.close(fig)
+    return files
+
+
+def map_figure(lawn_map: Any, path: str | Path, title: str = "") -> Path:
+    """Plot a lawn map: outline, keep-out zones, landmarks, dock."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.0, 5.4))
+    b = np.vstack([lawn_map.boundary, lawn_map.boundary[:1]])
+    ax.fill(b[:, 0], b[:, 1], color="#cdeccd", label="lawn")
+    ax.plot(b[:, 0], b[:, 1], "g-", lw=1.5)
+    for zone in lawn_map.keepouts:
+        z = np.vstack([zone.polygon, zone.polygon[:1]])
+        ax.fill(z[:, 0], z[:, 1], color="#f2c0c0")
+        ax.plot(z[:, 0], z[:, 1], "r-", lw=1)
+        c = zone.polygon.mean(axis=0)
+        ax.text(c[0], c[1], zone.name, ha="center", va="center", fontsize=8)
+    pts = lawn_map.landmark_positions()
+    if pts.size:
+        ax.plot(pts[:, 0], pts[:, 1], "k^", ms=6, label=f"{pts.shape[0]} landmarks")
+    ax.plot(*lawn_map.dock_position[:2], "bs", ms=8, label="dock / teach start")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(fontsize=8, loc="best")
+    ax.set_title(title or "Lawn map", fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

@@ -1,0 +1,140 @@
+"""The map file: versioned JSON with a checksum, written atomically, refused when broken."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from mowerhw import map as lawnmap
+from mowerhw.map import KeepOut, Landmark, LawnMap, MapError
+
+
+def make_map(n_landmarks=6) -> LawnMap:
+    a = np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    boundary = np.column_stack([5 * np.cos(a), 4 * np.sin(a)])
+    rng = np.random.default_rng(0)
+    lms = [
+        Landmark(i, rng.uniform(-8, 8, 3), np.eye(3) * 1e-4, descriptor=bytes([i] * 32))
+        for i in range(n_landmarks)
+    ]
+    return LawnMap(boundary=boundary, landmarks=lms, camera=None, teach={"distance_m": 28.3})
+
+
+def test_round_trip(tmp_path):
+    m = make_map()
+    m.save(tmp_path / "lawn.json")
+    back = lawnmap.load(tmp_path / "lawn.json")
+    assert np.allclose(back.boundary, m.boundary)
+    assert [lm.id for lm in back.landmarks] == list(range(6))
+    assert back.landmarks[3].descriptor == bytes([3] * 32)
+    assert np.allclose(back.landmark_positions(), m.landmark_positions())
+    assert back.checksum.startswith("sha256:") and back.checksum == m.checksum
+    doc = json.loads((tmp_path / "lawn.json").read_text())
+    assert doc["format"] == "mowerhw-map" and doc["version"] == 1
+
+
+def test_write_is_atomic_and_leaves_no_temp_files(tmp_path):
+    path = tmp_path / "lawn.json"
+    make_map().save(path)
+    before = path.read_bytes()
+
+    class Boom(Exception):
+        pass
+
+    m = make_map()
+    real = os.fsync
+
+    def failing_fsync(fd):
+        raise Boom()
+
+    os.fsync = failing_fsync
+    try:
+        with pytest.raises(Boom):
+            m.save(path)
+    finally:
+        os.fsync = real
+    assert path.read_bytes() == before  # the old map is untouched
+    assert [p.name for p in tmp_path.iterdir()] == ["lawn.json"]
+
+
+def test_truncated_file_is_refused(tmp_path):
+    path = tmp_path / "lawn.json"
+    make_map().save(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(MapError, match=r"not valid JSON .*truncated or corrupt"):
+        lawnmap.load(path)
+
+
+def test_tampered_file_is_refused(tmp_path):
+    path = tmp_path / "lawn.json"
+    make_map().save(path)
+    doc = json.loads(path.read_text())
+    doc["boundary"][0][0] += 0.5  # someone "fixed" the boundary by hand
+    path.write_text(json.dumps(doc))
+    with pytest.raises(MapError, match="checksum mismatch"):
+        lawnmap.load(path)
+
+
+def test_wrong_version_format_and_missing_checksum(tmp_path):
+    path = tmp_path / "lawn.json"
+    make_map().save(path)
+    doc = json.loads(path.read_text())
+    path.write_text(json.dumps({**doc, "version": 2}))
+    with pytest.raises(MapError, match=r"version 2 is not supported .*supported: 1"):
+        lawnmap.load(path)
+    path.write_text(json.dumps({**doc, "format": "gpx"}))
+    with pytest.raises(MapError, match="not a mowerhw map"):
+        lawnmap.load(path)
+    no_sum = {k: v for k, v in doc.items() if k != "checksum"}
+    path.write_text(json.dumps(no_sum))
+    with pytest.raises(MapError, match="no checksum"):
+        lawnmap.load(path)
+
+
+def test_missing_and_empty(tmp_path):
+    with pytest.raises(MapError, match="map file not found"):
+        lawnmap.load(tmp_path / "nope.json")
+    (tmp_path / "empty.json").write_text("")
+    with pytest.raises(MapError, match="empty"):
+        lawnmap.load(tmp_path / "empty.json")
+
+
+def test_an_unusable_map_is_never_saved_nor_loaded(tmp_path):
+    m = make_map(n_landmarks=2)
+    with pytest.raises(MapError, match="at least 4 needed"):
+        m.save(tmp_path / "x.json")
+    # a well-formed file with a bow-tie boundary (checksum valid) still does not load
+    bad = make_map()
+    bad.boundary = np.array([[0, 0], [4, 4], [4, 0], [0, 4]], float)
+    doc = bad.to_document()
+    (tmp_path / "bow.json").write_text(json.dumps(doc))
+    with pytest.raises(MapError, match="not a simple polygon"):
+        lawnmap.load(tmp_path / "bow.json")
+
+
+def test_keepouts_edit_and_validate(tmp_path):
+    m = make_map()
+    m2 = m.with_keepout("pond", np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float))
+    assert m2.lawn_polygon().area == pytest.approx(m.outline_polygon().area - 1.0, rel=1e-6)
+    m2.save(tmp_path / "k.json")
+    back = lawnmap.load(tmp_path / "k.json")
+    assert [z.name for z in back.keepouts] == ["pond"]
+    with pytest.raises(MapError, match="not inside the lawn boundary"):
+        m.with_keepout("road", np.array([[4, 0], [9, 0], [9, 1], [4, 1]], float))
+    with pytest.raises(MapError, match="exists already"):
+        m2.with_keepout("pond", np.array([[2, 0], [3, 0], [3, 1]], float))
+    assert m2.without_keepout("pond").keepouts == []
+    with pytest.raises(MapError, match="no keep-out zone named 'lake'"):
+        m2.without_keepout("lake")
+    assert isinstance(back.keepouts[0], KeepOut)
+
+
+def test_non_finite_numbers_are_refused(tmp_path):
+    path = tmp_path / "lawn.json"
+    make_map().save(path)
+    text = path.read_text().replace('"distance_m": 28.3', '"distance_m": NaN')
+    path.write_text(text)
+    with pytest.raises(MapError):
+        lawnmap.load(path)

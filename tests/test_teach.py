@@ -1,0 +1,113 @@
+"""The teach phase end to end on the simulated bench (paper §V), through the pure API."""
+
+import json
+
+import numpy as np
+import pytest
+
+from mowerhw import map as lawnmap
+from mowerhw.config import TeachConfig
+from mowerhw.evaluate import run_teach
+from mowerhw.sim import simulate_teach
+from mowerhw.teach import Teacher, TeachError
+from mowerhw.teach.boundary import BoundaryError
+
+
+@pytest.fixture(scope="module")
+def outcome():
+    return run_teach("paper", seed=5)
+
+
+def test_paper_scenario_accuracy(outcome):
+    m = outcome.metrics
+    assert not m["diverged"]
+    assert m["boundary_rmse_m"] <= 0.02  # the issue's figure (median over seeds 1–20)
+    assert m["landmark_rmse_m"] <= 0.10
+    assert m["landmarks_mapped"] == 15
+    assert m["loop_closure"]["applied"]
+    assert m["boundary_rmse_m"] < m["boundary_rmse_no_closure_m"]
+
+
+def test_result_shape_follows_the_api(outcome):
+    res = outcome.result
+    assert res.boundary.ndim == 2 and res.boundary.shape[1] == 2
+    assert res.trajectory.shape[1] == 8
+    assert np.all(np.diff(res.trajectory[:, 0]) > 0)
+    # the world frame is the body frame at the first sample
+    assert np.allclose(res.trajectory[0, 1:4], 0.0) and np.allclose(
+        res.trajectory[0, 4:], [1, 0, 0, 0]
+    )
+    assert np.allclose(np.linalg.norm(res.trajectory[:, 4:8], axis=1), 1.0)
+    assert set(res.landmarks) == set(range(15))
+    assert all(v.shape == (3,) for v in res.landmarks.values())
+
+
+def test_result_saves_a_loadable_map(outcome, tmp_path):
+    path = tmp_path / "lawn.json"
+    outcome.result.save(path)
+    m = lawnmap.load(path)
+    assert len(m.landmarks) == 15
+    assert m.camera["camera_model"] == "omni"
+    assert json.loads(path.read_text())["teach"]["loop_closure"]["applied"] is True
+
+
+def test_gyro_bias_is_calibrated_from_the_standstill():
+    run = simulate_teach("paper", seed=8)
+    t = Teacher(TeachConfig())
+    for kind, p in run.streams.events():
+        if kind == "speed" and p[1] != 0.0:
+            t.speed(*p)
+            break
+        if kind == "imu":
+            t.imu(*p)
+        elif kind == "speed":
+            t.speed(*p)
+    assert t.phase == "driving"
+    err = np.abs(t.ekf.bg - run.streams.gyro_bias[200])
+    assert np.all(err < 2e-4)  # 0.002 rad/s of bias, calibrated to a few 1e-5
+
+
+def test_bad_inputs_are_counted_not_fatal():
+    t = Teacher()
+    t.imu(0.0, [0, 0, 0])
+    t.imu(0.01, [np.nan, 0, 0])
+    t.speed(0.02, float("inf"))
+    t.bearings(0.03, [1, 2], [[np.nan, 0, 0], [0, 1, 0]])
+    assert t.counters["nonfinite_inputs"] == 3
+    with pytest.raises(ValueError, match="2 ids but 1 bearings"):
+        t.bearings(0.04, [1, 2], [[1, 0, 0]])
+
+
+def test_finish_without_driving_is_a_clear_error():
+    t = Teacher()
+    for k in range(100):
+        t.imu(k * 0.01, [0, 0, 0])
+    with pytest.raises(TeachError, match="never drove"):
+        t.finish()
+
+
+def test_an_unfinished_loop_is_refused():
+    run = simulate_teach("paper", seed=4)
+    t = Teacher()
+    half = run.duration_s / 2
+    for kind, p in run.streams.events():
+        tt = p[0] if kind != "bearings" else p.t
+        if tt > half:
+            break
+        if kind == "imu":
+            t.imu(*p)
+        elif kind == "speed":
+            t.speed(*p)
+        else:
+            t.bearings(p.t, p.ids, p.bearings)
+    with pytest.raises(BoundaryError, match="open loop"):
+        t.finish()
+
+
+def test_large_lawn_with_keyframes_and_landmarks_coming_and_going():
+    out = run_teach("large", seed=2)
+    m = out.metrics
+    assert not m["diverged"]
+    assert m["keyframes"] > 1
+    assert out.result.diagnostics["retired"] > 0
+    assert m["boundary_rmse_m"] < 0.05
