@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mowerhw.config import TeachConfig
+from mowerhw.geometry import quat_to_rotmat, rotmat_log
 from mowerhw.sim import TeachRun, simulate_teach
 from mowerhw.sim.sensors import body_points
 from mowerhw.teach import BoundaryError, Teacher, TeachError, TeachResult
@@ -35,6 +36,7 @@ class TeachHistory:
         default_factory=dict
     )
     landmark_err: list[float] = field(default_factory=list)  # mean world landmark error
+    nees: list[tuple[float, float, float]] = field(default_factory=list)  # t, pose (6), 9-dof
 
 
 @dataclass
@@ -78,6 +80,9 @@ def _history_hook(run: TeachRun, hist: TeachHistory):
             )
             y_true = true_b[lid] / np.linalg.norm(true_b[lid])
             hist.direction_est.setdefault(lid, []).append((t, obs.y[row].copy(), y_true))
+        nees = ekf_nees(teacher, run, k)
+        if nees is not None:
+            hist.nees.append((t, *nees))
         ids, xyz = teacher.landmark_snapshot()
         if ids.size:
             hist.landmark_err.append(
@@ -87,6 +92,35 @@ def _history_hook(run: TeachRun, hist: TeachHistory):
             hist.landmark_err.append(np.nan)
 
     return on_frame
+
+
+def ekf_nees(teacher: Teacher, run: TeachRun, k: int) -> tuple[float, float] | None:
+    """NEES of the robot-centric EKF at truth sample ``k``: (pose 6-dof, pose + bias 9-dof).
+
+    The state is the keyframe's pose in the current body frame; its truth comes from the
+    body's true poses at the keyframe's time and now. Skipped in the first second after a
+    keyframe, where the covariance is (exactly) zero.
+    """
+    kf = teacher.keyframes[-1]
+    truth = run.truth
+    if truth.t[k] - kf.t < 1.0:
+        return None
+    j = truth.index_at(kf.t)
+    r_now = quat_to_rotmat(truth.quat[k])
+    r_kf = quat_to_rotmat(truth.quat[j])
+    p_true = r_now.T @ (truth.position[j] - truth.position[k])
+    r_true = r_now.T @ r_kf
+    ekf = teacher.ekf
+    d_theta = rotmat_log(r_true @ ekf.R.T)
+    d_bias = run.streams.gyro_bias[k] - ekf.bg
+    e = np.concatenate([p_true - ekf.p, d_theta, d_bias])
+    p6 = ekf.P[:6, :6]
+    try:
+        n6 = float(e[:6] @ np.linalg.solve(p6, e[:6]))
+        n9 = float(e @ np.linalg.solve(ekf.P, e))
+    except np.linalg.LinAlgError:
+        return None
+    return n6, n9
 
 
 def horizontal_errors(traj: FloatArray, run: TeachRun) -> FloatArray:

@@ -110,6 +110,9 @@ class RobotCentricEKF:
         self.q = IDENTITY_QUAT.copy()  # q^{bj} = q_{b←bj}
         self.bg = np.zeros(3)
         self.P = np.zeros((9, 9))
+        # Schmidt consider parameters: the 2-D errors of the anchors taken at the keyframe
+        self.pxa = np.zeros((9, 0))  # cross-covariance state ↔ anchor errors
+        self.pa_var = np.zeros(0)  # each anchor error's variance (per column)
         self._phi = np.eye(9)
         self._q = np.zeros((9, 9))
         self._qv = np.diag([noise.speed**2, noise.lateral**2, noise.lateral**2])
@@ -131,11 +134,19 @@ class RobotCentricEKF:
         self.P[:6, BG] = 0.0
 
     def reset_keyframe(self) -> None:
-        """A new keyframe at the current body pose: ``x^{bj} = 0``, ``q^{bj} = 1``, exactly."""
+        """A new keyframe at the current body pose: ``x^{bj} = 0``, ``q^{bj} = 1``, exactly.
+        The old keyframe's anchors go with it (:meth:`set_anchors` gives the new ones)."""
         self.p = np.zeros(3)
         self.q = IDENTITY_QUAT.copy()
         self.P[:6, :] = 0.0
         self.P[:, :6] = 0.0
+        self.set_anchors(np.zeros(0))
+
+    def set_anchors(self, variances: FloatArray) -> None:
+        """Consider slots 0..n−1 for the anchors taken at this keyframe (bearing variances)."""
+        v = np.asarray(variances, dtype=np.float64)
+        self.pxa = np.zeros((9, 2 * v.size))
+        self.pa_var = np.repeat(v, 2)
 
     # -- eq. (14): propagation ------------------------------------------------------------------
 
@@ -169,7 +180,9 @@ class RobotCentricEKF:
         q[P_, P_] = self._qv_dt + qg_dt * (s_ @ s_.T)
         q[P_, TH] = -qg_dt * s_
         q[TH, P_] = qg_dt * s_  # (Q_pθ)ᵀ = −q Sᵀ = q S
-        self.P = phi @ self.P @ phi.T + q  # symmetrised at every update (Joseph form)
+        self.P = phi @ self.P @ phi.T + q  # symmetrised at every update
+        if self.pxa.shape[1]:
+            self.pxa = phi @ self.pxa
 
     # -- eqs (16)–(18): update --------------------------------------------------------------------
 
@@ -270,6 +283,7 @@ class RobotCentricEKF:
         t_ja: FloatArray,
         min_baseline_m: float,
         min_angle_rad: float,
+        anchor_slot: NDArray[np.int64] | None = None,
     ) -> NDArray[np.bool_]:
         """Batch update with the depth-free part of eq. (16): the epipolar constraint.
 
@@ -279,6 +293,12 @@ class RobotCentricEKF:
         ``n̂ = (b × v)/‖b × v‖`` is ``r = n̂ · u_a``, free of the landmark depth. Because the
         observer's depth is itself triangulated from this EKF's pose (eq. 3), the in-plane
         component would feed the EKF's own errors back to it; the normal one does not.
+
+        An anchor bearing is measured once and used in every later update, so its error is
+        not white noise. Anchors with a ``anchor_slot`` ≥ 0 (those taken at the keyframe) are
+        Schmidt *consider* parameters: their 2-D errors keep a cross-covariance with the state
+        (``P_xa``, propagated with Φ), enter every innovation covariance, and are never
+        "estimated away". Others count as white noise of variance ``anchor_var``.
         """
         n = y_now.shape[0]
         self.stats.frames += 1
@@ -314,28 +334,38 @@ class RobotCentricEKF:
             "nij,njk->nik", skew(b[idx]), dv
         )
         H = np.einsum("ni,nij->nj", g, dm)  # (K, 9)
-        # noise: the anchor bearing (σ_a) and the current bearing (σ_y) through the plane tilt
+        # noise: the current bearing (σ_y) through the plane tilt ...
         dr_dy = np.einsum("ni,nij,njk->nk", g, skew(b[idx]), ai)
         dr_dy -= np.einsum("nk,nk->n", dr_dy, y_now[idx])[:, None] * y_now[idx]  # tangent part
-        rvar = anchor_var[idx] + y_var * np.einsum("nk,nk->n", dr_dy, dr_dy)
-        s_each = np.einsum("ni,ij,nj->n", H, self.P, H) + rvar
-        nis = res**2 / s_each
-        gate_1d = self.gate_1d
-        passed = nis <= gate_1d
+        rvar = y_var * np.einsum("nk,nk->n", dr_dy, dr_dy)
+        # ... and the anchor bearing: ∂r/∂u_a = m̂ in the anchor's tangent plane
+        slot = np.full(idx.size, -1) if anchor_slot is None else anchor_slot[idx]
+        consider = (slot >= 0) & (2 * slot + 1 < self.pxa.shape[1])
+        rvar = rvar + np.where(consider, 0.0, anchor_var[idx])
+        h_a = np.einsum("ni,nij->nj", m_hat, tangent_basis(u))  # (K, 2)
+        cols = np.stack([2 * slot, 2 * slot + 1], axis=1)  # (K, 2), valid where consider
+        ha_full = np.zeros((idx.size, self.pxa.shape[1]))
+        rows_c = np.flatnonzero(consider)
+        ha_full[rows_c[:, None], cols[rows_c]] = h_a[rows_c]
+        ph = self.P @ H.T + self.pxa @ ha_full.T  # (9, K): P_xx Hᵀ + P_xa H_aᵀ
+        s_mat = H @ ph + ha_full @ (self.pxa.T @ H.T) + (ha_full * self.pa_var) @ ha_full.T
+        s_mat += np.diag(rvar)
+        nis = res**2 / np.diag(s_mat)
+        passed = nis <= self.gate_1d
         ok[idx[passed]] = True
         self.stats.last_nis = nis
         self.stats.gated += int((~passed).sum())
         self.stats.used += int(passed.sum())
         if not passed.any():
             return ok
-        # the constraint's measurement is 0: innovation = 0 − r(x̂)
-        Hs, rs, Rs = H[passed], -res[passed], np.diag(rvar[passed])
-        S_all = Hs @ self.P @ Hs.T + Rs
-        K = np.linalg.solve(S_all, Hs @ self.P).T
-        dx = K @ rs
-        ikh = np.eye(9) - K @ Hs
-        self.P = ikh @ self.P @ ikh.T + K @ Rs @ K.T
+        # the constraint's measurement is 0: innovation = 0 − r(x̂); Schmidt gain on x only
+        sel = np.flatnonzero(passed)
+        S = s_mat[np.ix_(sel, sel)]
+        K = np.linalg.solve(S, ph[:, sel].T).T  # (9, k)
+        dx = K @ (-res[sel])
+        self.P = self.P - K @ S @ K.T
         self.P = 0.5 * (self.P + self.P.T)
+        self.pxa = self.pxa - K @ (H[sel] @ self.pxa + ha_full[sel] * self.pa_var)
         self.p = self.p + dx[P_]
         self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
         self.bg = self.bg + dx[BG]

@@ -373,6 +373,7 @@ class Teacher:
             counts = np.array([len(self._still_bearings[i]) for i in ids.tolist()], float)
             means /= np.linalg.norm(means, axis=1, keepdims=True)
             self._add_landmarks(ids, means, self.sigma**2 / counts, float(self.t_imu))
+            self._set_consider_anchors(self.obs.rows(ids))
             self._still_obs = {
                 int(i): (m, self.sigma**2 / n) for i, m, n in zip(ids, means, counts, strict=True)
             }
@@ -421,6 +422,7 @@ class Teacher:
         new_cols["anchor_y"] = u.copy()
         new_cols["anchor_var"] = np.asarray(u_var, dtype=np.float64).reshape(n).copy()
         new_cols["last_seen"] = np.full(n, t)
+        new_cols["anchor_slot"] = np.full(n, -1, dtype=np.int64)
         new_cols["snap_xyz"] = np.full((n, 3), np.nan)
         new_cols["snap_cov"] = np.full((n, 3, 3), np.nan)
         new_cols["snap_t"] = np.full(n, np.nan)
@@ -490,6 +492,7 @@ class Teacher:
                     cols["anchor_t"][sel],
                     c.min_baseline_m,
                     np.radians(EPI_MIN_ANGLE_DEG),
+                    anchor_slot=cols["anchor_slot"][sel],
                 )
             else:
                 self.ekf.update(
@@ -544,6 +547,7 @@ class Teacher:
         fresh = self._anchor_here(rows.size)
         for key, val in fresh.items():
             self._cols[key][rows] = val
+        self._cols["anchor_slot"][rows] = -1
         if u is None:
             self._cols["anchor_y"][rows] = self.obs.y[rows]
             self._cols["anchor_var"][rows] = self.obs.var_y[rows]
@@ -551,6 +555,12 @@ class Teacher:
             self._cols["anchor_y"][rows] = u
             self._cols["anchor_var"][rows] = self.sigma**2
         self.counters["reanchored"] += int(rows.size)
+
+    def _set_consider_anchors(self, rows: NDArray[np.int64]) -> None:
+        """The anchors just taken at the keyframe become the EKF's consider parameters."""
+        self._cols["anchor_slot"][:] = -1
+        self._cols["anchor_slot"][rows] = np.arange(rows.size)
+        self.ekf.set_anchors(self._cols["anchor_var"][rows])
 
     def _snapshot(self, rows: NDArray[np.int64], t: float) -> None:
         """World position (eq. 20) and covariance of the landmarks just observed."""
@@ -586,6 +596,7 @@ class Teacher:
         self.keyframes.append(Keyframe(len(self.keyframes), t, x_w, q_w, cov_w, self.distance_m))
         self.ekf.reset_keyframe()
         self._reanchor(seen_rows, None)  # anchors at the new keyframe: the filtered bearings
+        self._set_consider_anchors(seen_rows)
         self.counters["keyframes"] += 1
 
     # ----------------------------------------------------------------------------- finish
