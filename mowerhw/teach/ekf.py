@@ -113,11 +113,7 @@ class RobotCentricEKF:
         # Schmidt consider parameters: the 2-D errors of the anchors taken at the keyframe
         self.pxa = np.zeros((9, 0))  # cross-covariance state ↔ anchor errors
         self.pa_var = np.zeros(0)  # each anchor error's variance (per column)
-        self._phi = np.eye(9)
-        self._q = np.zeros((9, 9))
-        self._qv = np.diag([noise.speed**2, noise.lateral**2, noise.lateral**2])
-        self._qv_dt = self._qv
-        self._q_dt = -1.0
+        self._qv_diag = (noise.speed**2, noise.lateral**2, noise.lateral**2)
         self.gate = float(chi2.ppf(gate_probability, df=2))
         self.gate_1d = float(chi2.ppf(gate_probability, df=1))
         self.stats = UpdateStats()
@@ -162,24 +158,7 @@ class RobotCentricEKF:
         dt = m.dt
         self.p = m.c.T @ (p_hat - m.disp)
         self.q = quat_normalize(quat_multiply(quat_conjugate(m.dq), self.q))
-        wdt = skew(m.w) * dt  # [ω̂]× Δt
-        s_ = skew(p_hat)
-        diag_block = _I3 - wdt + 0.5 * (wdt @ wdt)  # I − W Δt + ½ W² Δt²
-        phi = self._phi  # only these blocks change; the rest stays I / 0
-        phi[P_, P_] = diag_block
-        phi[TH, TH] = diag_block
-        phi[P_, BG] = (-s_ + 0.5 * (wdt @ s_)) * dt
-        phi[TH, BG] = (_I3 - 0.5 * wdt) * dt
-        qg_dt = self.noise.gyro**2 * dt
-        q = self._q  # Q Δt
-        if dt != self._q_dt:  # blocks that depend on Δt only
-            q[TH, TH] = _I3 * qg_dt
-            q[BG, BG] = _I3 * (self.noise.gyro_bias_walk**2 * dt)
-            self._qv_dt = self._qv * dt
-            self._q_dt = dt
-        q[P_, P_] = self._qv_dt + qg_dt * (s_ @ s_.T)
-        q[P_, TH] = -qg_dt * s_
-        q[TH, P_] = qg_dt * s_  # (Q_pθ)ᵀ = −q Sᵀ = q S
+        phi, q = _transition(m.w.tolist(), p_hat.tolist(), dt, self.noise, self._qv_diag)
         self.P = phi @ self.P @ phi.T + q  # symmetrised at every update
         if self.pxa.shape[1]:
             self.pxa = phi @ self.pxa
@@ -370,6 +349,69 @@ class RobotCentricEKF:
         self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
         self.bg = self.bg + dx[BG]
         return ok
+
+
+def _transition(
+    w: list[float], p: list[float], dt: float, noise: EkfNoise, qv: tuple[float, float, float]
+) -> tuple[FloatArray, FloatArray]:
+    """Φ and Q Δt of :meth:`RobotCentricEKF.propagate`, written out in scalars.
+
+    With ``W = [ω̂]× Δt``, ``S = [p̂]×``: ``Φ_pp = Φ_θθ = I − W + ½ W²``,
+    ``Φ_pb = (−S + ½ W S) Δt``, ``Φ_θb = (I − ½ W) Δt``; ``Q_pp = Q_v + q_g S Sᵀ``,
+    ``Q_pθ = −q_g S``, ``Q_θθ = q_g I``, ``Q_bb = q_b I`` (all times Δt). One ``np.array``
+    call instead of a dozen small-matrix operations: this runs at IMU rate.
+    """
+    wx, wy, wz = w[0] * dt, w[1] * dt, w[2] * dt
+    px, py, pz = p
+    # D = I − W + ½ W²  (W = [w dt]×,  W² = w wᵀ dt² − |w dt|² I)
+    n2 = wx * wx + wy * wy + wz * wz
+    d00, d11, d22 = 1 + 0.5 * (wx * wx - n2), 1 + 0.5 * (wy * wy - n2), 1 + 0.5 * (wz * wz - n2)
+    d01, d02, d12 = 0.5 * wx * wy + wz, 0.5 * wx * wz - wy, 0.5 * wy * wz + wx
+    d10, d20, d21 = 0.5 * wx * wy - wz, 0.5 * wx * wz + wy, 0.5 * wy * wz - wx
+    # WS = W S with S = [p]×: (W S)_ij = (w·p) δ... computed explicitly
+    s = ((0.0, -pz, py), (pz, 0.0, -px), (-py, px, 0.0))
+    wm = ((0.0, -wz, wy), (wz, 0.0, -wx), (-wy, wx, 0.0))
+    ws = [[sum(wm[i][k] * s[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+    pb = [[(-s[i][j] + 0.5 * ws[i][j]) * dt for j in range(3)] for i in range(3)]
+    tb = [[((1.0 if i == j else 0.0) - 0.5 * wm[i][j]) * dt for j in range(3)] for i in range(3)]
+    phi = np.array(
+        [
+            [d00, d01, d02, 0, 0, 0, pb[0][0], pb[0][1], pb[0][2]],
+            [d10, d11, d12, 0, 0, 0, pb[1][0], pb[1][1], pb[1][2]],
+            [d20, d21, d22, 0, 0, 0, pb[2][0], pb[2][1], pb[2][2]],
+            [0, 0, 0, d00, d01, d02, tb[0][0], tb[0][1], tb[0][2]],
+            [0, 0, 0, d10, d11, d12, tb[1][0], tb[1][1], tb[1][2]],
+            [0, 0, 0, d20, d21, d22, tb[2][0], tb[2][1], tb[2][2]],
+            [0, 0, 0, 0, 0, 0, 1, 0, 0],
+            [0, 0, 0, 0, 0, 0, 0, 1, 0],
+            [0, 0, 0, 0, 0, 0, 0, 0, 1],
+        ],
+        dtype=np.float64,
+    )
+    g = noise.gyro**2 * dt
+    b = noise.gyro_bias_walk**2 * dt
+    # S Sᵀ = |p|² I − p pᵀ
+    pp = px * px + py * py + pz * pz
+    sst = (
+        (pp - px * px, -px * py, -px * pz),
+        (-px * py, pp - py * py, -py * pz),
+        (-px * pz, -py * pz, pp - pz * pz),
+    )
+    q = np.array(
+        [
+            [qv[0] * dt + g * sst[0][0], g * sst[0][1], g * sst[0][2], 0, g * pz, -g * py, 0, 0, 0],
+            [g * sst[1][0], qv[1] * dt + g * sst[1][1], g * sst[1][2], -g * pz, 0, g * px, 0, 0, 0],
+            [g * sst[2][0], g * sst[2][1], qv[2] * dt + g * sst[2][2], g * py, -g * px, 0, 0, 0, 0],
+            [0, -g * pz, g * py, g, 0, 0, 0, 0, 0],
+            [g * pz, 0, -g * px, 0, g, 0, 0, 0, 0],
+            [-g * py, g * px, 0, 0, 0, g, 0, 0, 0],
+            [0, 0, 0, 0, 0, 0, b, 0, 0],
+            [0, 0, 0, 0, 0, 0, 0, b, 0],
+            [0, 0, 0, 0, 0, 0, 0, 0, b],
+        ],
+        dtype=np.float64,
+    )
+    return phi, q
 
 
 def _block_diag(blocks: FloatArray) -> FloatArray:
