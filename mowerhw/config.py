@@ -208,14 +208,22 @@ class TeachConfig:
 class MowConfig:
     """Mow phase: world-centric EKF localizer (eqs 21–23)."""
 
-    gyro_noise: float = opt(0.002, "gyro white noise density, rad/s/√Hz", gt=0.0)
-    gyro_bias_walk: float = opt(2e-5, "gyro bias random walk, rad/s²/√Hz", ge=0.0)
-    speed_noise: float = opt(0.02, "ground speed noise density, m/s/√Hz", gt=0.0)
-    lateral_noise: float = opt(0.01, "non-holonomic slip (lateral/vertical), m/s/√Hz", gt=0.0)
-    bearing_sigma_rad: float = opt(0.006, "bearing noise (1σ)", gt=0.0, lt=0.5)
+    gyro_noise: float = opt(1e-4, "gyro white noise density, rad/s/√Hz (VN-100: 6e-5)", gt=0.0)
+    gyro_bias_walk: float = opt(2e-6, "gyro bias random walk, rad/s²/√Hz", ge=0.0)
+    speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
+    lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
+    bearing_sigma_rad: float = opt(0.008, "bearing noise (1σ per axis)", gt=0.0, lt=0.5)
     gate_probability: float = opt(0.999, "χ² gate of each landmark bearing", gt=0.5, lt=1.0)
     history_s: float = opt(2.0, "IMU history kept to apply late frames", gt=0.0, le=30.0)
-    lockout_s: float = opt(3.0, "re-initialise after rejecting everything for this long", gt=0.0)
+    lockout_s: float = opt(
+        3.0, "inflate, then re-initialise, after rejecting everything this long", gt=0.0
+    )
+    init_sigma_position_m: float = opt(0.05, "σ of the start pose's position", gt=0.0)
+    init_sigma_heading_rad: float = opt(0.02, "σ of the start pose's heading", gt=0.0)
+    min_landmarks: int = opt(3, "fewest accepted landmarks for a frame to count as a fix", ge=1)
+    localized_after_frames: int = opt(
+        3, "good frames needed after a (re)start to be localized", ge=1
+    )
 
 
 @dataclass(frozen=True)

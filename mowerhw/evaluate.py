@@ -130,8 +130,9 @@ def horizontal_errors(traj: FloatArray, run: TeachRun) -> FloatArray:
 
 
 def teach_metrics(run: TeachRun, result: TeachResult, wall_s: float, finish_s: float) -> dict:
-    moving = run.truth.speed[np.clip(np.searchsorted(run.truth.t, result.trajectory[:, 0]), 0,
-                                     run.truth.t.size - 1)]  # fmt: skip
+    moving = run.truth.speed[
+        np.clip(np.searchsorted(run.truth.t, result.trajectory[:, 0]), 0, run.truth.t.size - 1)
+    ]
     first = int(np.argmax(moving > 0)) if np.any(moving > 0) else 0
     e = horizontal_errors(result.trajectory, run)[first:]
     e0 = horizontal_errors(result.trajectory_no_closure, run)[first:]
@@ -187,8 +188,12 @@ def run_teach(
     try:
         result = teacher.finish()
     except (BoundaryError, TeachError) as exc:
-        metrics = {"diverged": True, "error": str(exc), "sim_duration_s": run.duration_s,
-                   "wall_s": wall}  # fmt: skip
+        metrics = {
+            "diverged": True,
+            "error": str(exc),
+            "sim_duration_s": run.duration_s,
+            "wall_s": wall,
+        }
         return TeachOutcome(run, None, metrics, hist, str(exc))
     finish = time.perf_counter() - t0
     return TeachOutcome(run, result, teach_metrics(run, result, wall, finish), hist)

@@ -130,3 +130,62 @@ def map_figure(lawn_map: Any, path: str | Path, title: str = "") -> Path:
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
+
+
+def mow_figures(outcome: Any, out_dir: str | Path) -> list[Path]:
+    """Figs 6 and 8 of the paper for a simulated mowing run (``evaluate_mow.MowOutcome``)."""
+    plt = _plt()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    o = outcome
+    files = []
+    # Fig. 6: containment while mowing
+    fig, ax = plt.subplots(figsize=(6.4, 5.6))
+    b = np.vstack([o.true_outline, o.true_outline[:1]])
+    ax.plot(b[:, 0], b[:, 1], "k-", lw=0.8, label="true lawn edge")
+    mb = np.vstack([o.lawn_map.boundary, o.lawn_map.boundary[:1]])
+    ax.plot(mb[:, 0], mb[:, 1], "g-", lw=1.5, label="taught boundary")
+    for zone in o.lawn_map.keepouts:
+        z = np.vstack([zone.polygon, zone.polygon[:1]])
+        ax.fill(z[:, 0], z[:, 1], color="#f2c0c0", label=f"keep-out {zone.name!r}")
+    ax.plot(o.true_xy[:, 0], o.true_xy[:, 1], "b-", lw=0.6, label="true path")
+    ax.plot(o.est[:, 0], o.est[:, 1], "r-", lw=0.4, alpha=0.8, label="estimated path")
+    halted = ~o.permit
+    ax.plot(o.est[halted, 0], o.est[halted, 1], ".", ms=2, color="orange", label="deck halted")
+    lm = o.lawn_map.landmark_positions()
+    ax.plot(lm[:, 0], lm[:, 1], "o", mfc="none", mec="r", ms=7, label="map landmarks")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title("Containment while mowing (cf. paper Fig. 6)", fontsize=10)
+    fig.tight_layout()
+    files.append(out / "fig6_mowing.png")
+    fig.savefig(files[-1], dpi=90)
+    plt.close(fig)
+    # Fig. 8: pose errors over time, and the permit
+    fig, (a1, a2, a3) = plt.subplots(
+        3, 1, figsize=(6.4, 6.2), sharex=True, gridspec_kw={"height_ratios": [3, 3, 1]}
+    )
+    err = o.est[:, :3] - np.column_stack([o.true_xy, np.zeros(len(o.t))])
+    for c, col in zip(range(3), "rgb", strict=True):
+        a1.plot(o.t, err[:, c], color=col, lw=0.6, label="xyz"[c])
+    a1.set_ylabel("location error (m)")
+    a1.legend(fontsize=7, ncol=3)
+    a1.set_title("Mowing-phase errors (cf. paper Fig. 8)", fontsize=10)
+    from mowerhw.geometry import yaw_to_quat
+
+    qt = yaw_to_quat(o.true_yaw)
+    qe = o.est[:, 3:] * np.sign(np.sum(o.est[:, 3:] * qt, axis=1))[:, None]
+    for c, col in zip(range(4), ("k", "r", "g", "b"), strict=True):
+        a2.plot(o.t, qe[:, c] - qt[:, c], color=col, lw=0.6, label=f"q{c + 1}")
+    a2.set_ylabel("orientation error (quaternion)")
+    a2.legend(fontsize=7, ncol=4)
+    a3.fill_between(o.t, 0, o.permit.astype(float), step="post", color="g", alpha=0.5)
+    a3.set_yticks([0, 1], ["halt", "permit"])
+    a3.set_xlabel("time (s)")
+    fig.tight_layout()
+    files.append(out / "fig8_errors.png")
+    fig.savefig(files[-1], dpi=90)
+    plt.close(fig)
+    return files

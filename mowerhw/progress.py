@@ -10,8 +10,9 @@ from typing import TextIO
 class Progress:
     """``with Progress(total, "teach seeds") as bar: ... bar.advance()``."""
 
-    def __init__(self, total: int, label: str = "", stream: TextIO | None = None,
-                 force: bool = False) -> None:  # fmt: skip
+    def __init__(
+        self, total: int, label: str = "", stream: TextIO | None = None, force: bool = False
+    ) -> None:
         self.total = max(int(total), 1)
         self.label = label
         self.stream = stream or sys.stderr

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from mowerhw.geometry import quat_exp, quat_multiply, quat_normalize, quat_to_rotmat, skew
-from mowerhw.teach.ekf import BodyMotion, EkfNoise, RobotCentricEKF
+from mowerhw.odometry import BodyMotion
+from mowerhw.teach.ekf import EkfNoise, RobotCentricEKF
 
 
 def _random_ekf(seed=0):

@@ -47,8 +47,10 @@ METHODS = ("observer+closure", "observer (filter)", "paper as printed", "inverse
 
 def _score(traj, landmarks, run) -> tuple[float, float]:
     e = horizontal_errors(traj, run)
-    moving = run.truth.speed[np.clip(np.searchsorted(run.truth.t, traj[:, 0]), 0,
-                                     run.truth.t.size - 1)] > 0  # fmt: skip
+    moving = (
+        run.truth.speed[np.clip(np.searchsorted(run.truth.t, traj[:, 0]), 0, run.truth.t.size - 1)]
+        > 0
+    )
     first = int(np.argmax(moving)) if moving.any() else 0
     e = e[first:]
     ids = sorted(landmarks)
@@ -78,8 +80,9 @@ def one_seed(args: tuple[str, int]) -> dict:
         out["observer+closure"] = out["observer (filter)"] = (np.nan, np.nan, wall)
         out["nees"] = []
     # the paper as printed
-    printed = replace(TeachConfig(), ekf_measurement="bearing", depth_gain="contraction",
-                      loop_closure=False)  # fmt: skip
+    printed = replace(
+        TeachConfig(), ekf_measurement="bearing", depth_gain="contraction", loop_closure=False
+    )
     t0 = time.perf_counter()
     p = run_teach(run=run, config=printed)
     wall = time.perf_counter() - t0
@@ -178,8 +181,11 @@ def main() -> int:
         )
         print("|---|---|---|---|---|")
         for meth, r in table.items():
-            lm = (f"{r['landmark_rmse_median_m']} / {r['landmark_rmse_p95_m']}"
-                  if r["landmark_rmse_median_m"] is not None else "—")  # fmt: skip
+            lm = (
+                f"{r['landmark_rmse_median_m']} / {r['landmark_rmse_p95_m']}"
+                if r["landmark_rmse_median_m"] is not None
+                else "—"
+            )
             print(
                 f"| {meth} | {r['boundary_rmse_median_m']} / {r['boundary_rmse_p95_m']} | {lm} "
                 f"| {r['diverged']} | {r['wall_s_per_run']} |"

@@ -34,7 +34,7 @@ from mowerhw.geometry import (
     skew,
     tangent_basis,
 )
-from mowerhw.teach.ekf import BodyMotion
+from mowerhw.odometry import BodyMotion, SpeedTrack
 from mowerhw.teach.smoother import right_jacobian
 
 FloatArray = NDArray[np.float64]
@@ -73,7 +73,7 @@ class InverseDepthEkfMapper:
         self.phase = "standstill"
         self.t_imu: float | None = None
         self.speed_mps = 0.0
-        self._speed_log: list[tuple[float, float]] = []
+        self._speeds = SpeedTrack()
         self._gyro: list[FloatArray] = []
         self._traj: list[FloatArray] = []
         self.w_last = np.zeros(3)
@@ -103,7 +103,7 @@ class InverseDepthEkfMapper:
         if not (math.isfinite(t) and math.isfinite(v)):
             return
         self.speed_mps = float(v)
-        self._speed_log.append((float(t), float(v)))
+        self._speeds.add(t, v)
         if self.phase == "standstill" and v != 0.0:
             g = np.array(self._gyro) if self._gyro else np.zeros((1, 3))
             self.bg = g.mean(axis=0)
@@ -125,19 +125,8 @@ class InverseDepthEkfMapper:
 
     # -- estimation -----------------------------------------------------------------------------
 
-    def _speed_at(self, t_mid: float) -> float:
-        log = self._speed_log
-        if len(log) < 2:
-            return self.speed_mps
-        (t1, v1), (t2, v2) = log[-2], log[-1]
-        ahead = t_mid - t2
-        if t2 - t1 <= 0 or not 0.0 <= ahead <= 0.15:
-            return v2
-        v = v2 + (v2 - v1) / (t2 - t1) * ahead
-        return v if v * v2 > 0 else 0.0
-
     def _propagate(self, dt: float, w: FloatArray) -> None:
-        v = np.array([self._speed_at(self.t_imu + 0.5 * dt), 0.0, 0.0])  # type: ignore[operator]
+        v = np.array([self._speeds.at(self.t_imu + 0.5 * dt), 0.0, 0.0])  # type: ignore[operator]
         m = BodyMotion.of(w, v, dt)
         r = quat_to_rotmat(self.q)
         disp_w = r @ m.disp
@@ -165,8 +154,9 @@ class InverseDepthEkfMapper:
         m = r @ u
         rxy = math.hypot(m[0], m[1])
         theta, phi_ = math.atan2(m[1], m[0]), math.atan2(m[2], rxy)
-        d_ang = np.array([[-m[1] / rxy**2, m[0] / rxy**2, 0.0],
-                          [-m[0] * m[2] / rxy, -m[1] * m[2] / rxy, rxy]])  # fmt: skip
+        d_ang = np.array(
+            [[-m[1] / rxy**2, m[0] / rxy**2, 0.0], [-m[0] * m[2] / rxy, -m[1] * m[2] / rxy, rxy]]
+        )
         j_r = np.zeros((LM, ROBOT))
         j_r[0:3, X] = np.eye(3)
         j_r[3:5, TH] = d_ang @ (-skew(m))

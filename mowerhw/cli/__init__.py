@@ -13,9 +13,9 @@ import sys
 from collections.abc import Sequence
 
 from mowerhw import __version__
-from mowerhw.cli import camera_cmd, config_cmd, demo_cmd, sim_cmd
+from mowerhw.cli import camera_cmd, config_cmd, demo_cmd, map_cmd, sim_cmd
 
-COMMAND_MODULES = (config_cmd, camera_cmd, sim_cmd, demo_cmd)
+COMMAND_MODULES = (config_cmd, camera_cmd, sim_cmd, map_cmd, demo_cmd)
 
 DESCRIPTION = """\
 Wire-free, GPS-free containment for a robotic mower: VN-100 IMU + ISO 11783 ground speed +
@@ -29,6 +29,8 @@ examples:
   mowerhw config schema                      every key, its default and what it means
   mowerhw camera info                        field of view and model check of a calibration
   mowerhw sim teach --scenario paper --seed 7 --plot   simulated teach drive, map, errors
+  mowerhw sim mow --map MAP --seed 7 --duration 500 --plot   simulated closed-loop mowing
+  mowerhw map show MAP                       what a lawn map holds (map check|plot|add-keepout)
   mowerhw demo                               a short tour of what this build can do
 """
 

@@ -23,6 +23,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     _common(teach)
     teach.add_argument("--landmarks", type=int, help="override the scenario's landmark count")
     teach.set_defaults(handler=_teach)
+    mow = ssub.add_parser(
+        "mow",
+        help="simulate closed-loop mowing with a map (paper §V): errors and missed halts",
+        description="Mow the simulated yard the map was taught in: the mower drives by its "
+        "estimate and turns at NEAR_EDGE (bang-bang, 0.4 m), the containment output is scored "
+        "against the truth. Prints ONE JSON object.",
+    )
+    _common(mow)
+    mow.add_argument(
+        "--map", type=Path, help="a map from `mowerhw sim teach` (default: teach one first)"
+    )
+    mow.add_argument(
+        "--duration", type=float, default=500.0, help="simulated seconds (default 500)"
+    )
+    mow.add_argument(
+        "--vision-dropout",
+        metavar="START:SECONDS",
+        help="the camera recognises nothing for SECONDS from START (e.g. 200:10)",
+    )
+    mow.add_argument(
+        "--latency",
+        type=float,
+        default=0.15,
+        help="camera frames arrive this late (s, default 0.15)",
+    )
+    mow.set_defaults(handler=_mow)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -66,7 +92,7 @@ def _teach(args: argparse.Namespace) -> int:
     map_path = out / "map.json"
     if outcome.result is not None:
         try:
-            outcome.result.save(map_path)
+            _save_sim_map(outcome.result, map_path, args.scenario, args.seed)
             metrics["map"] = str(map_path)
         except MapError as exc:
             metrics["map"] = None
@@ -87,3 +113,86 @@ def _teach(args: argparse.Namespace) -> int:
     if not args.json and metrics.get("error"):
         print(f"mowerhw: teach failed: {metrics['error']}", file=sys.stderr)
     return 1 if metrics.get("diverged") else 0
+
+
+def _save_sim_map(result, path: Path, scenario: str, seed: int):
+    """Save a simulated teach map, remembering which simulated yard it belongs to."""
+    from mowerhw.map import LawnMap
+
+    lawn_map = LawnMap.from_teach_result(result)
+    lawn_map.teach["sim"] = {"scenario": scenario, "seed": seed}
+    lawn_map.save(path)
+    return lawn_map
+
+
+def _mow(args: argparse.Namespace) -> int:
+    from mowerhw.config import EX_CONFIG
+    from mowerhw.evaluate import run_teach
+    from mowerhw.evaluate_mow import run_mow
+    from mowerhw.map import MapError, load
+
+    cfg = load_config_or_exit(args.config)
+    out = _out_dir(args, "mow")
+    dropout = None
+    if args.vision_dropout:
+        try:
+            start, dur = (float(x) for x in args.vision_dropout.split(":"))
+        except ValueError:
+            print(
+                f"mowerhw: --vision-dropout {args.vision_dropout!r}: expected START:SECONDS, "
+                "e.g. 200:10",
+                file=sys.stderr,
+            )
+            return 2
+        dropout = (start, dur)
+    if args.map is None:
+        taught = run_teach(args.scenario, args.seed, cfg.teach)
+        if taught.result is None:
+            print(f"mowerhw: teaching the map failed: {taught.error}", file=sys.stderr)
+            return 1
+        lawn_map = _save_sim_map(taught.result, out / "map.json", args.scenario, args.seed)
+        map_path = out / "map.json"
+    else:
+        map_path = args.map
+        try:
+            lawn_map = load(map_path)
+        except MapError as exc:
+            print(f"mowerhw: {exc}", file=sys.stderr)
+            return EX_CONFIG
+        sim = lawn_map.teach.get("sim")
+        if not isinstance(sim, dict):
+            print(
+                f"mowerhw: {map_path}: not taught on the simulator; `mowerhw sim mow` needs a "
+                "map from `mowerhw sim teach`",
+                file=sys.stderr,
+            )
+            return 2
+        if (sim.get("scenario"), sim.get("seed")) != (args.scenario, args.seed):
+            print(
+                f"mowerhw: {map_path} was taught in the simulated yard {sim.get('scenario')!r} "
+                f"seed {sim.get('seed')}; run with --scenario {sim.get('scenario')} "
+                f"--seed {sim.get('seed')}",
+                file=sys.stderr,
+            )
+            return 2
+    outcome = run_mow(
+        lawn_map,
+        args.scenario,
+        args.seed,
+        args.duration,
+        cfg,
+        vision_dropout=dropout,
+        frame_latency_s=args.latency,
+    )
+    metrics = {**outcome.metrics, "map": str(map_path)}
+    if args.plot:
+        from mowerhw.plots import mow_figures
+
+        metrics["figures"] = [str(f) for f in mow_figures(outcome, out)]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    if args.json:
+        print(json.dumps(metrics))
+    else:
+        print_json(metrics)
+    return 0 if metrics["missed_halts"] == 0 else 1

@@ -68,9 +68,37 @@ class SensorStreams:
 
 def body_points(truth: PlanarTruth, idx: int, points_world: FloatArray) -> FloatArray:
     """World points in the body frame of truth sample ``idx``: ``R_wbᵀ (p − x_b)``."""
-    c, s = np.cos(truth.yaw[idx]), np.sin(truth.yaw[idx])
-    d = points_world - np.array([truth.xy[idx, 0], truth.xy[idx, 1], 0.0])
+    return points_in_body(truth.xy[idx], float(truth.yaw[idx]), points_world)
+
+
+def points_in_body(xy: FloatArray, yaw: float, points_world: FloatArray) -> FloatArray:
+    """World points in the body frame of a planar pose (camera at z = 0)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    d = points_world - np.array([xy[0], xy[1], 0.0])
     return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
+
+
+def observe_at(
+    world: World,
+    t: float,
+    xy: FloatArray,
+    yaw: float,
+    landmarks_w: FloatArray,
+    rng: np.random.Generator,
+    pixel_sigma: float,
+) -> tuple[BearingObservation, FloatArray]:
+    """The landmarks the camera sees from a planar pose: noisy bearings + true pixels."""
+    pb = points_in_body(xy, yaw, landmarks_w)
+    rng_ok = np.linalg.norm(pb, axis=-1) <= world.scenario.max_range_m
+    r_bc = quat_to_rotmat(world.q_bc)
+    pix, vis = world.camera.visible(pb @ r_bc)  # R_bcᵀ p (row vectors)
+    vis &= rng_ok
+    noisy = pix[vis] + rng.normal(0.0, pixel_sigma, size=(int(vis.sum()), 2))
+    still_ok = world.camera.valid(noisy)
+    ids = world.landmark_ids[vis][still_ok]
+    bearings = world.camera.lift(noisy[still_ok]) @ r_bc.T
+    obs = BearingObservation(t=float(t), ids=ids, bearings=bearings)
+    return obs, pix[vis][still_ok]
 
 
 def observe(
@@ -81,18 +109,16 @@ def observe(
     rng: np.random.Generator,
     pixel_sigma: float,
 ) -> tuple[BearingObservation, FloatArray]:
-    """The landmarks the camera sees at truth sample ``idx``: noisy bearings + true pixels."""
-    pb = body_points(truth, idx, landmarks_w)
-    rng_ok = np.linalg.norm(pb, axis=-1) <= world.scenario.max_range_m
-    r_bc = quat_to_rotmat(world.q_bc)
-    pix, vis = world.camera.visible(pb @ r_bc)  # R_bcᵀ p (row vectors)
-    vis &= rng_ok
-    noisy = pix[vis] + rng.normal(0.0, pixel_sigma, size=(int(vis.sum()), 2))
-    still_ok = world.camera.valid(noisy)
-    ids = world.landmark_ids[vis][still_ok]
-    bearings = world.camera.lift(noisy[still_ok]) @ r_bc.T
-    obs = BearingObservation(t=float(truth.t[idx]), ids=ids, bearings=bearings)
-    return obs, pix[vis][still_ok]
+    """The landmarks the camera sees at truth sample ``idx``."""
+    return observe_at(
+        world,
+        float(truth.t[idx]),
+        truth.xy[idx],
+        float(truth.yaw[idx]),
+        landmarks_w,
+        rng,
+        pixel_sigma,
+    )
 
 
 def simulate_sensors(

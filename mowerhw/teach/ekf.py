@@ -23,7 +23,6 @@ plane of the measured bearing; each landmark is χ²-gated before the batch upda
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,47 +39,12 @@ from mowerhw.geometry import (
     skew,
     tangent_basis,
 )
+from mowerhw.odometry import BodyMotion
 
 FloatArray = NDArray[np.float64]
 
 P_, TH, BG = slice(0, 3), slice(3, 6), slice(6, 9)  # error-state blocks
 _I3 = np.eye(3)
-
-
-@dataclass(frozen=True)
-class BodyMotion:
-    """One IMU interval of rigid body motion for constant body rate ω and velocity v.
-
-    ``dq = exp(ω Δt)`` and ``c = R(dq)``: the new body axes in the old body frame;
-    ``disp = ∫₀^Δt exp([ω]× τ) v dτ = J_l(ω Δt) v Δt``: the new origin in the old frame, with
-    the SO(3) left Jacobian ``J_l(φ) = I + (1 − cos θ)/θ² [φ]× + (θ − sin θ)/θ³ [φ]×²``.
-    Exact for constant ω and v.
-    """
-
-    dq: FloatArray
-    c: FloatArray
-    disp: FloatArray
-    w: FloatArray
-    dt: float
-
-    @classmethod
-    def of(cls, w: FloatArray, v: FloatArray, dt: float) -> BodyMotion:
-        dq = quat_exp(w * dt)
-        return cls(dq, quat_to_rotmat(dq), left_jacobian_times(w * dt, v * dt), w, dt)
-
-
-def left_jacobian_times(phi: FloatArray, u: FloatArray) -> FloatArray:
-    """``J_l(φ) u`` for single 3-vectors (closed form, no matrices)."""
-    (px, py, pz), (ux, uy, uz) = phi.tolist(), u.tolist()
-    t2 = px * px + py * py + pz * pz
-    if t2 < 1e-12:
-        a, b = 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
-    else:
-        t = math.sqrt(t2)
-        a, b = (1.0 - math.cos(t)) / t2, (t - math.sin(t)) / (t2 * t)
-    cx, cy, cz = py * uz - pz * uy, pz * ux - px * uz, px * uy - py * ux  # φ × u
-    ccx, ccy, ccz = py * cz - pz * cy, pz * cx - px * cz, px * cy - py * cx  # φ × (φ × u)
-    return np.array([ux + a * cx + b * ccx, uy + a * cy + b * ccy, uz + a * cz + b * ccz])
 
 
 @dataclass

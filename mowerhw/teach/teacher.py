@@ -41,9 +41,10 @@ from mowerhw.geometry import (
     quat_to_rotmat,
     rotmat_log,
 )
+from mowerhw.odometry import BodyMotion, SpeedTrack
 from mowerhw.teach.boundary import boundary_from_path
 from mowerhw.teach.depth import depth_pseudo_measurement
-from mowerhw.teach.ekf import BodyMotion, EkfNoise, RobotCentricEKF
+from mowerhw.teach.ekf import EkfNoise, RobotCentricEKF
 from mowerhw.teach.keyframes import (
     Keyframe,
     compose,
@@ -148,8 +149,6 @@ class Teacher:
     CONVERGED_REL_SIGMA = 0.15
     #: the loop-closure smoother keeps one gyro bias per this much driving
     BIAS_SEGMENT_S = 10.0
-    #: the filter extrapolates the ground speed at most this far past its newest sample
-    SPEED_EXTRAPOLATE_S = 0.15
 
     def __init__(
         self,
@@ -195,7 +194,7 @@ class Teacher:
         # What the loop closure (batch smoother) needs: raw IMU intervals while driving
         # (Δt, gyro xyz, speed), and every frame with the filter's pose at it.
         self._imu_log: list[tuple[float, ...]] = []  # Δt, gyro xyz, speed, interval end
-        self._speed_log: list[tuple[float, float]] = []
+        self._speeds = SpeedTrack()
         self._frames: list[tuple] = []  # (t, ids, bearings, t_wb, q_wb, imu_log_index)
         self._still_obs: dict[int, tuple[FloatArray, float]] = {}  # averaged standstill bearings
         self._still_t = 0.0
@@ -246,7 +245,7 @@ class Teacher:
             self.counters["nonfinite_inputs"] += 1
             return
         self.speed_mps = float(v)
-        self._speed_log.append((float(t), float(v)))
+        self._speeds.add(t, v)
         if self.phase in ("waiting", "standstill") and v != 0.0:
             if self.phase == "waiting":
                 self.t0 = self.t_imu = float(t)
@@ -325,23 +324,9 @@ class Teacher:
         q_wb = quat_conjugate(q_w)
         return -(quat_to_rotmat(q_wb) @ x_w), q_wb
 
-    def _speed_at(self, t_mid: float) -> float:
-        """Ground speed for an IMU interval centred at ``t_mid``: the newest 10 Hz sample,
-        extrapolated along the slope of the last two (a first-order hold). Holding the value
-        alone would lag every acceleration by half a speed period (≈ 2 cm per start)."""
-        log_ = self._speed_log
-        if len(log_) < 2:
-            return self.speed_mps
-        (t1, v1), (t2, v2) = log_[-2], log_[-1]
-        ahead = t_mid - t2
-        if t2 - t1 <= 0 or not 0.0 <= ahead <= self.SPEED_EXTRAPOLATE_S:
-            return v2
-        v = v2 + (v2 - v1) / (t2 - t1) * ahead
-        return v if v * v2 > 0 else 0.0  # never extrapolate through a stop
-
     def _propagate(self, dt: float, w: FloatArray, gyro_raw: FloatArray) -> None:
         t_end = self.t_imu + dt  # type: ignore[operator]
-        speed = self._speed_at(t_end - 0.5 * dt)
+        speed = self._speeds.at(t_end - 0.5 * dt)
         self._imu_log.append((dt, gyro_raw[0], gyro_raw[1], gyro_raw[2], speed, t_end))
         v = np.array([speed, 0.0, 0.0])
         m = BodyMotion.of(w, v, dt)
@@ -680,9 +665,8 @@ class Teacher:
         r_wb = [np.eye(3)] + [quat_to_rotmat(f[4]) for f in frames]
         t_wb = [np.zeros(3)] + [f[3] for f in frames]
         log_arr = np.asarray(self._imu_log, dtype=np.float64).reshape(-1, 6)
-        if len(self._speed_log) >= 2:  # after the fact: the speed interpolated mid-interval
-            sp = np.asarray(self._speed_log)
-            log_arr[:, 4] = np.interp(log_arr[:, 5] - 0.5 * log_arr[:, 0], sp[:, 0], sp[:, 1])
+        # after the fact: the speed interpolated mid-interval
+        log_arr[:, 4] = self._speeds.interpolate(log_arr[:, 5] - 0.5 * log_arr[:, 0])
         bounds = np.array([0] + [f[5] for f in frames])
         bias0 = self._bias_at_start
         odometry = preintegrate_segments(

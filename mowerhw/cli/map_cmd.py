@@ -1,0 +1,184 @@
+"""``mowerhw map check|show|plot|add-keepout|remove-keepout``: look at and edit lawn maps."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+from shapely.geometry import Polygon
+
+from mowerhw.cli.common import print_json
+from mowerhw.config import EX_CONFIG
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("map", help="check, show, plot and edit lawn maps")
+    msub = p.add_subparsers(dest="map_command", metavar="ACTION", required=True)
+    check = msub.add_parser("check", help="validate a map (exit 0, or 78 saying what is wrong)")
+    check.add_argument("map", type=Path)
+    check.set_defaults(handler=_check)
+    show = msub.add_parser("show", help="summary: outline, area, keep-outs, landmarks, dock")
+    show.add_argument("map", type=Path)
+    show.add_argument("--json", action="store_true")
+    show.set_defaults(handler=_show)
+    plot = msub.add_parser("plot", help="draw a map to a PNG")
+    plot.add_argument("map", type=Path)
+    plot.add_argument("-o", "--output", type=Path, help="PNG path (default: next to the map)")
+    plot.set_defaults(handler=_plot)
+    add = msub.add_parser(
+        "add-keepout", help="add a keep-out zone (no re-driving; the old map is kept as a backup)"
+    )
+    add.add_argument("map", type=Path)
+    add.add_argument(
+        "--polygon", required=True, help='corners in map metres: "x,y x,y x,y ..." (at least 3)'
+    )
+    add.add_argument("--name", help="a name for the zone (default: keepout-N)")
+    add.set_defaults(handler=_add)
+    rem = msub.add_parser("remove-keepout", help="remove a keep-out zone by name (with a backup)")
+    rem.add_argument("map", type=Path)
+    rem.add_argument("--name", required=True)
+    rem.set_defaults(handler=_remove)
+
+
+def _load(path: Path):
+    from mowerhw.map import MapError, load
+
+    try:
+        return load(path)
+    except MapError as exc:
+        print(f"mowerhw: {exc}", file=sys.stderr)
+        raise SystemExit(EX_CONFIG) from None
+
+
+def _summary(m, path: Path) -> dict:
+    outline = m.outline_polygon()
+    return {
+        "map": str(path),
+        "version": m.version,
+        "created_utc": m.created_utc,
+        "checksum": m.checksum,
+        "boundary_points": m.boundary.shape[0],
+        "perimeter_m": round(outline.length, 2),
+        "area_m2": round(outline.area, 2),
+        "mowable_area_m2": round(m.lawn_polygon().area, 2),
+        "keepout_zones": [
+            {"name": z.name, "points": len(z.polygon), "area_m2": round(Polygon(z.polygon).area, 2)}
+            for z in m.keepouts
+        ],
+        "landmarks": len(m.landmarks),
+        "landmark_sigma_median_m": round(
+            float(np.median(np.sqrt(np.trace(m.landmark_covariances(), axis1=1, axis2=2) / 3))), 4
+        )
+        if m.landmarks
+        else None,
+        "dock_position": [round(v, 3) for v in m.dock_position.tolist()],
+        "camera": (m.camera or {}).get("camera_model"),
+        "teach": m.teach,
+    }
+
+
+def _check(args: argparse.Namespace) -> int:
+    m = _load(args.map)
+    print(
+        f"{args.map}: ok ({len(m.landmarks)} landmarks, {m.outline_polygon().area:.1f} m² "
+        f"outline, {len(m.keepouts)} keep-out zone(s), checksum verified)"
+    )
+    return 0
+
+
+def _show(args: argparse.Namespace) -> int:
+    m = _load(args.map)
+    s = _summary(m, args.map)
+    if args.json:
+        print_json(s)
+        return 0
+    print(f"map          {s['map']}  (version {s['version']}, created {s['created_utc']})")
+    print(
+        f"outline      {s['boundary_points']} points, perimeter {s['perimeter_m']} m, "
+        f"area {s['area_m2']} m² (mowable {s['mowable_area_m2']} m²)"
+    )
+    for z in s["keepout_zones"]:
+        print(f"keep-out     {z['name']!r}: {z['points']} points, {z['area_m2']} m²")
+    print(f"landmarks    {s['landmarks']} (median σ {s['landmark_sigma_median_m']} m)")
+    print(f"dock         {s['dock_position']}")
+    print(f"checksum     {s['checksum']}")
+    return 0
+
+
+def _plot(args: argparse.Namespace) -> int:
+    from mowerhw.plots import map_figure
+
+    m = _load(args.map)
+    out = args.output or args.map.with_suffix(".png")
+    map_figure(m, out, title=f"{args.map.name}: {len(m.landmarks)} landmarks")
+    print(out)
+    return 0
+
+
+def parse_polygon(text: str) -> np.ndarray:
+    """``"x,y x,y x,y"`` → (N, 2); a ValueError says what is wrong."""
+    pts = []
+    for k, tok in enumerate(text.replace(";", " ").split()):
+        parts = tok.split(",")
+        if len(parts) != 2:
+            raise ValueError(f"corner {k + 1} {tok!r} is not x,y")
+        try:
+            x, y = float(parts[0]), float(parts[1])
+        except ValueError:
+            raise ValueError(f"corner {k + 1} {tok!r} is not two numbers") from None
+        if not (np.isfinite(x) and np.isfinite(y)):
+            raise ValueError(f"corner {k + 1} {tok!r} is not finite")
+        pts.append((x, y))
+    if len(pts) < 3:
+        raise ValueError(f"a keep-out zone needs at least 3 corners, got {len(pts)}")
+    return np.array(pts)
+
+
+def _backup(path: Path) -> Path:
+    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
+    backup = path.with_name(f"{path.name}.{stamp}.bak")
+    shutil.copy2(path, backup)
+    return backup
+
+
+def _add(args: argparse.Namespace) -> int:
+    from mowerhw.map import MapError
+
+    try:
+        poly = parse_polygon(args.polygon)
+    except ValueError as exc:
+        print(f'mowerhw: --polygon: {exc}; expected "x,y x,y x,y ..."', file=sys.stderr)
+        return 2
+    m = _load(args.map)
+    name = args.name or f"keepout-{len(m.keepouts) + 1}"
+    try:
+        new = m.with_keepout(name, poly)
+    except MapError as exc:
+        print(f"mowerhw: cannot add keep-out {name!r}: {exc}", file=sys.stderr)
+        return EX_CONFIG
+    backup = _backup(args.map)
+    new.save(args.map)
+    print(
+        f"{args.map}: added keep-out {name!r} ({new.lawn_polygon().area:.1f} m² left to mow); "
+        f"previous map kept as {backup}"
+    )
+    return 0
+
+
+def _remove(args: argparse.Namespace) -> int:
+    from mowerhw.map import MapError
+
+    m = _load(args.map)
+    try:
+        new = m.without_keepout(args.name)
+    except MapError as exc:
+        print(f"mowerhw: {exc}", file=sys.stderr)
+        return EX_CONFIG
+    backup = _backup(args.map)
+    new.save(args.map)
+    print(f"{args.map}: removed keep-out {args.name!r}; previous map kept as {backup}")
+    return 0

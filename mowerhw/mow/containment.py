@@ -1,0 +1,190 @@
+"""Containment: may the deck run here? (DESIGN.md §5 table; paper §IV).
+
+``s`` is the signed distance from the estimated position to the lawn's edge — positive
+inside, keep-out zones being holes — and ``σ`` the largest standard deviation of the
+estimated horizontal position. With ``m = s − k σ``:
+
+| state     | when                                   | permit |
+|-----------|----------------------------------------|--------|
+| INSIDE    | ``m ≥ margin``                         | yes    |
+| NEAR_EDGE | ``0 ≤ m < margin``                     | yes (the mower's controller turns) |
+| OUTSIDE   | ``m < 0``                              | no     |
+| UNKNOWN   | not localized, σ too large, a sensor stale, an estimator fault, no map | no |
+
+So that estimation noise does not chatter the deck at the edge, a *soft* violation
+(``−hard_margin ≤ m < 0``) must last ``soft_persist`` consecutive samples before it halts,
+and once halted for OUTSIDE, ``m ≥ 0`` must last as long before the permit returns; a *hard*
+violation (``m < −hard_margin``) halts at once. Every halt carries a reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+import shapely
+import shapely.ops
+from numpy.typing import NDArray
+from shapely.geometry import Polygon
+from shapely.geometry.polygon import orient
+
+from mowerhw.config import ContainmentConfig
+
+FloatArray = NDArray[np.float64]
+
+
+class State(StrEnum):
+    INSIDE = "INSIDE"
+    NEAR_EDGE = "NEAR_EDGE"
+    OUTSIDE = "OUTSIDE"
+    UNKNOWN = "UNKNOWN"
+
+
+class Reason(StrEnum):
+    """Why the deck is halted (empty string while permitted)."""
+
+    OUTSIDE = "OUTSIDE"  # beyond the boundary or inside a keep-out zone
+    UNCERTAIN = "UNCERTAIN"  # σ above containment.sigma_max_m
+    NOT_LOCALIZED = "NOT_LOCALIZED"  # starting, lost, or re-initialising
+    SENSOR_STALE = "SENSOR_STALE"  # IMU, speed or camera silent for too long
+    FAULT = "FAULT"  # estimator produced NaN / raised; it was reset
+    MAP_INVALID = "MAP_INVALID"  # no usable map
+    NOT_MOWING = "NOT_MOWING"  # the runtime is not in mow mode
+    SHUTTING_DOWN = "SHUTTING_DOWN"
+
+
+@dataclass(frozen=True)
+class ContainmentResult:
+    state: str
+    permit: bool
+    signed_distance_m: float
+    sigma_m: float
+    reason: str  # "" while permitted
+    detail: str = ""
+    t: float = float("nan")
+
+
+def unknown(
+    reason: Reason, detail: str = "", t: float = float("nan"), sigma: float = float("nan")
+) -> ContainmentResult:
+    """A halt without a usable position."""
+    return ContainmentResult(State.UNKNOWN, False, float("nan"), sigma, reason.value, detail, t)
+
+
+class LawnGeometry:
+    """The mowable area (outline minus keep-outs) as prepared shapely geometry."""
+
+    def __init__(self, outline: FloatArray, keepouts: list[tuple[str, FloatArray]] = ()) -> None:
+        poly = orient(Polygon(outline), 1.0)
+        if not poly.is_valid or poly.area <= 0:
+            raise ValueError("the lawn outline is not a simple polygon with an area")
+        self.outline = poly
+        self.keepouts = [(name, Polygon(pts)) for name, pts in keepouts]
+        area = poly
+        for _, zone in self.keepouts:
+            area = area.difference(zone)
+        self.area = area
+        self.edges = area.boundary
+        shapely.prepare(self.area)
+        shapely.prepare(self.edges)
+
+    def signed_distance(self, x: float, y: float) -> float:
+        """Distance to the nearest edge (outline or keep-out), positive inside the mowable area."""
+        d = float(shapely.distance(self.edges, shapely.Point(x, y)))
+        return d if shapely.contains_xy(self.area, x, y) else -d
+
+    def signed_distances(self, xy: FloatArray) -> FloatArray:
+        pts = shapely.points(xy)
+        d = shapely.distance(self.edges, pts)
+        return np.where(shapely.contains_xy(self.area, xy[:, 0], xy[:, 1]), d, -d)
+
+    def keepout_at(self, x: float, y: float) -> str | None:
+        for name, zone in self.keepouts:
+            if zone.covers(shapely.Point(x, y)):
+                return name
+        return None
+
+    def inward_direction(self, x: float, y: float) -> FloatArray:
+        """Unit vector from the nearest edge point into the mowable area."""
+        p = shapely.Point(x, y)
+        near = shapely.ops.nearest_points(self.edges, p)[0]
+        v = np.array([x - near.x, y - near.y])
+        n = np.linalg.norm(v)
+        if n < 1e-9:  # on the edge: towards the area's representative point
+            c = self.area.representative_point()
+            v, n = np.array([c.x - x, c.y - y]), 1.0
+            n = np.linalg.norm(v)
+        inside = shapely.contains_xy(self.area, x, y)
+        return v / n if inside else -v / n
+
+
+class Containment:
+    """The containment decision with its soft/hard margins (see the module doc)."""
+
+    def __init__(self, geometry: LawnGeometry, config: ContainmentConfig | None = None) -> None:
+        self.geometry = geometry
+        self.cfg = config or ContainmentConfig()
+        self._t: float | None = None
+        self._soft = 0  # consecutive samples of a soft violation
+        self._clear = 0  # consecutive samples with m ≥ 0 while latched OUTSIDE
+        self._latched = False
+        self.last: ContainmentResult = unknown(Reason.NOT_LOCALIZED, "no estimate yet")
+
+    def evaluate(
+        self, t: float, x: float, y: float, sigma: float, halt: tuple[Reason, str] | None = None
+    ) -> ContainmentResult:
+        """Decide for the estimate (x, y, σ) at time t; ``halt`` forces UNKNOWN with a reason."""
+        c = self.cfg
+        new_sample = self._t is None or t > self._t
+        self._t = t if new_sample else self._t
+        if halt is not None:
+            self._soft = self._clear = 0
+            self.last = unknown(halt[0], halt[1], t, sigma)
+            return self.last
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(sigma)):
+            self.last = unknown(Reason.FAULT, "non-finite position estimate", t, sigma)
+            return self.last
+        if sigma > c.sigma_max_m:
+            self._soft = self._clear = 0
+            self.last = unknown(
+                Reason.UNCERTAIN, f"position σ {sigma:.2f} m > {c.sigma_max_m} m", t, sigma
+            )
+            return self.last
+        s = self.geometry.signed_distance(x, y)
+        m = s - c.k_sigma * sigma
+        if m < -c.hard_margin_m:  # hard violation: at once
+            self._latched, self._soft, self._clear = True, 0, 0
+            return self._outside(t, x, y, s, sigma, "hard margin")
+        if m < 0.0:  # soft violation: only if it persists
+            self._clear = 0
+            if new_sample:
+                self._soft += 1
+            if self._latched or self._soft >= c.soft_persist:
+                self._latched = True
+                return self._outside(t, x, y, s, sigma, f"{self._soft} samples past the edge")
+            self.last = ContainmentResult(
+                State.NEAR_EDGE, True, s, sigma, "", f"soft margin {self._soft}/{c.soft_persist}", t
+            )
+            return self.last
+        self._soft = 0
+        if self._latched:  # released only after m ≥ 0 persists
+            if new_sample:
+                self._clear += 1
+            if self._clear < c.soft_persist:
+                return self._outside(
+                    t, x, y, s, sigma, f"back inside {self._clear}/{c.soft_persist}"
+                )
+            self._latched, self._clear = False, 0
+        state = State.INSIDE if m >= c.margin_m else State.NEAR_EDGE
+        self.last = ContainmentResult(state, True, s, sigma, "", "", t)
+        return self.last
+
+    def _outside(self, t: float, x: float, y: float, s: float, sigma: float, why: str):
+        zone = self.geometry.keepout_at(x, y) if self.geometry.keepouts else None
+        where = f"inside keep-out {zone!r}" if zone else "outside the boundary"
+        detail = f"{where} by {max(-s, 0.0):.2f} m (σ {sigma:.2f} m); {why}"
+        self.last = ContainmentResult(
+            State.OUTSIDE, False, s, sigma, Reason.OUTSIDE.value, detail, t
+        )
+        return self.last

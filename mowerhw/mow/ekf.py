@@ -1,0 +1,233 @@
+"""World-centric error-state EKF of the mow phase (paper §IV, eqs 21–23; DESIGN.md §5).
+
+State: the body's world position ``x = x_b^w``, orientation ``q = q_wb`` and the gyro bias.
+Error state (9): ``δθ`` (world frame, ``R_wb = exp([δθ]×) R̂_wb``), ``δx``, ``δb``.
+
+Propagation (eq. 21): ``ẋ = R(q) v``, ``q̇ = ½ q ⊗ (0, ω)`` with ``ω = ω_m − b``,
+``v = (s, 0, 0)``; the mean moves by the exact rigid motion of one IMU interval
+(:class:`mowerhw.odometry.BodyMotion`), the error by
+
+    δθ' = δθ − R̂' Δt (δb + n_g)
+    δx' = δx − [R̂ Δ]× δθ + R̂ Δt n_v
+    δb' = δb + n_b
+
+Update (eqs 22–23): a map landmark at ``L_i`` (world) is seen along
+``h = normalize(R(q)ᵀ (L_i − x))``; the residual lives in the tangent plane of the measured
+bearing. Each landmark is χ²-gated on its own 2×2 innovation covariance.
+
+The map's landmark positions are themselves estimates, and the same map errors are met in
+every frame: they are Schmidt *consider* parameters (cross-covariance ``P_xL`` with the state,
+propagated with Φ, never estimated away), so the pose covariance never shrinks below what
+the map can support.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from mowerhw.geometry import (
+    IDENTITY_QUAT,
+    quat_exp,
+    quat_multiply,
+    quat_normalize,
+    quat_to_rotmat,
+    skew,
+    tangent_basis,
+)
+from mowerhw.odometry import BodyMotion
+
+FloatArray = NDArray[np.float64]
+
+TH, X, BG = slice(0, 3), slice(3, 6), slice(6, 9)
+
+
+@dataclass
+class LocalizerNoise:
+    gyro: float = 1e-4  # rad/s/√Hz
+    gyro_bias_walk: float = 2e-6  # rad/s²/√Hz
+    speed: float = 2e-3  # m/s/√Hz
+    lateral: float = 3e-3  # m/s/√Hz
+
+
+@dataclass
+class UpdateOutcome:
+    accepted: NDArray[np.bool_]
+    nis: FloatArray
+    used: int = 0
+    rejected: int = 0
+
+
+@dataclass
+class EkfState:
+    """Everything needed to restart the filter from a point in time (late frames)."""
+
+    x: FloatArray
+    q: FloatArray
+    bg: FloatArray
+    P: FloatArray
+    pxl: FloatArray = field(repr=False)
+
+    def copy(self) -> EkfState:
+        return EkfState(
+            self.x.copy(), self.q.copy(), self.bg.copy(), self.P.copy(), self.pxl.copy()
+        )
+
+
+class WorldPoseEKF:
+    """Pose of the body in the map's world frame, plus gyro bias."""
+
+    def __init__(
+        self,
+        noise: LocalizerNoise,
+        landmark_cov: FloatArray,
+        gate_probability: float = 0.999,
+    ) -> None:
+        self.noise = noise
+        self.x = np.zeros(3)
+        self.q = IDENTITY_QUAT.copy()
+        self.bg = np.zeros(3)
+        self.P = np.zeros((9, 9))
+        self.landmark_cov = np.asarray(landmark_cov, dtype=np.float64).reshape(-1, 3, 3)
+        self.pxl = np.zeros((9, 3 * self.landmark_cov.shape[0]))  # P_xL (consider)
+        self.gate = float(chi2.ppf(gate_probability, df=2))
+        self._qv = np.array([noise.speed**2, noise.lateral**2, noise.lateral**2])
+
+    # -- state handling -----------------------------------------------------------------------
+
+    def snapshot(self) -> EkfState:
+        return EkfState(
+            self.x.copy(), self.q.copy(), self.bg.copy(), self.P.copy(), self.pxl.copy()
+        )
+
+    def restore(self, s: EkfState) -> None:
+        self.x, self.q, self.bg = s.x.copy(), s.q.copy(), s.bg.copy()
+        self.P, self.pxl = s.P.copy(), s.pxl.copy()
+
+    def reset(
+        self,
+        x: FloatArray,
+        q: FloatArray,
+        sigma_pos: float,
+        sigma_rot: FloatArray,
+        bias: FloatArray | None = None,
+        bias_var: float | None = None,
+    ) -> None:
+        """Start over at pose (x, q) with the given σ (rotation σ per world axis)."""
+        self.x = np.asarray(x, dtype=np.float64).copy()
+        self.q = quat_normalize(q)
+        if bias is not None:
+            self.bg = np.asarray(bias, dtype=np.float64).copy()
+        p = np.zeros((9, 9))
+        p[TH, TH] = np.diag(np.asarray(sigma_rot, dtype=np.float64) ** 2)
+        p[X, X] = np.eye(3) * sigma_pos**2
+        old_bias = self.P[BG, BG].copy()
+        p[BG, BG] = np.eye(3) * bias_var if bias_var is not None else old_bias
+        self.P = p
+        self.pxl[:] = 0.0
+
+    def inflate(self, sigma_pos: float, sigma_yaw: float) -> None:
+        """Widen the pose uncertainty (recovery from a lock-out)."""
+        self.P[X, X] += np.diag([sigma_pos**2, sigma_pos**2, 0.0])
+        self.P[2, 2] += sigma_yaw**2  # yaw: the world-z component of δθ
+
+    @property
+    def R(self) -> FloatArray:
+        return quat_to_rotmat(self.q)
+
+    def finite(self) -> bool:
+        return bool(
+            np.all(np.isfinite(self.x))
+            and np.all(np.isfinite(self.q))
+            and np.all(np.isfinite(self.P))
+            and np.all(np.isfinite(self.bg))
+        )
+
+    # -- eq. (21): propagation ------------------------------------------------------------------
+
+    def propagate(self, m: BodyMotion) -> None:
+        r = quat_to_rotmat(self.q)
+        disp_w = r @ m.disp
+        self.x = self.x + disp_w
+        self.q = quat_normalize(quat_multiply(self.q, m.dq))
+        r_new = quat_to_rotmat(self.q)
+        dt = m.dt
+        phi = np.eye(9)
+        phi[TH, BG] = -r_new * dt
+        phi[X, TH] = -skew(disp_w)
+        q = np.zeros((9, 9))
+        q[TH, TH] = np.eye(3) * (self.noise.gyro**2 * dt)
+        q[X, X] = (r * self._qv) @ r.T * dt
+        q[BG, BG] = np.eye(3) * (self.noise.gyro_bias_walk**2 * dt)
+        self.P = phi @ self.P @ phi.T + q
+        if self.pxl.shape[1]:
+            self.pxl = phi @ self.pxl
+
+    # -- eqs (22)–(23): update ------------------------------------------------------------------
+
+    def update(
+        self,
+        rows: NDArray[np.int64],
+        landmarks_w: FloatArray,
+        bearings: FloatArray,
+        sigma: float,
+    ) -> UpdateOutcome:
+        """Update with bearings (body frame) of map landmarks ``rows`` at ``landmarks_w``."""
+        n = rows.size
+        if n == 0:
+            return UpdateOutcome(np.zeros(0, bool), np.zeros(0))
+        r = self.R
+        d = landmarks_w - self.x
+        ell = d @ r  # R(q)ᵀ (L − x)
+        norm = np.linalg.norm(ell, axis=1)
+        h = ell / norm[:, None]
+        dh = (np.eye(3)[None] - np.einsum("ni,nj->nij", h, h)) / norm[:, None, None]
+        bt = np.swapaxes(tangent_basis(bearings), 1, 2)
+        a = np.einsum("nij,njk->nik", bt, dh) @ r.T  # (N, 2, 3): ∂r/∂(world vector)
+        hx = np.zeros((n, 2, 9))
+        hx[:, :, TH] = np.einsum("nij,njk->nik", a, skew(d))  # ∂ℓ/∂δθ = Rᵀ [d]×
+        hx[:, :, X] = -a
+        hl = a  # ∂/∂L
+        res = np.einsum("nij,nj->ni", bt, bearings - h)
+        # per-landmark innovation covariance, with the consider terms of that landmark
+        cols = 3 * rows[:, None] + np.arange(3)[None, :]  # (N, 3) columns in P_xL
+        pxl_i = self.pxl[:, cols]  # (9, N, 3)
+        cov_l = self.landmark_cov[rows]
+        s_each = (
+            np.einsum("nij,jk,nlk->nil", hx, self.P, hx)
+            + np.einsum("nij,jnk,nlk->nil", hx, pxl_i, hl)
+            + np.einsum("nij,knj,nlk->nil", hl, pxl_i, hx)
+            + np.einsum("nij,njk,nlk->nil", hl, cov_l, hl)
+            + sigma**2 * np.eye(2)[None]
+        )
+        nis = np.einsum("ni,nij,nj->n", res, np.linalg.inv(s_each), res)
+        ok = np.isfinite(nis) & (nis <= self.gate)
+        out = UpdateOutcome(ok, nis, int(ok.sum()), int((~ok).sum()))
+        if not ok.any():
+            return out
+        k = int(ok.sum())
+        Hx = hx[ok].reshape(2 * k, 9)
+        # H_L as a dense (2k, 3·len(map)) matrix over the observed landmarks' columns only
+        sel = rows[ok]
+        r_idx = (2 * np.arange(k)[:, None, None] + np.arange(2)[None, :, None]).repeat(3, 2)
+        c_idx = (3 * sel[:, None, None] + np.arange(3)[None, None, :]).repeat(2, 1)
+        hl_full = np.zeros((2 * k, self.pxl.shape[1]))
+        hl_full[r_idx, c_idx] = hl[ok]
+        pll_hl = np.zeros_like(hl_full)  # H_L P_LL (P_LL is block diagonal)
+        pll_hl[r_idx, c_idx] = hl[ok] @ self.landmark_cov[sel]
+        ph = self.P @ Hx.T + self.pxl @ hl_full.T  # (9, 2k)
+        S = Hx @ ph + hl_full @ (self.pxl.T @ Hx.T) + pll_hl @ hl_full.T
+        S += sigma**2 * np.eye(2 * k)
+        K = np.linalg.solve(S, ph.T).T
+        dx = K @ res[ok].reshape(-1)
+        self.P = self.P - K @ S @ K.T
+        self.P = 0.5 * (self.P + self.P.T)
+        if self.pxl.shape[1]:
+            self.pxl = self.pxl - K @ (Hx @ self.pxl + pll_hl)
+        self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
+        self.x = self.x + dx[X]
+        self.bg = self.bg + dx[BG]
+        return out

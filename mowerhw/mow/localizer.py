@@ -1,0 +1,460 @@
+"""The mow phase as one pure object: localize against the map, decide containment.
+
+    loc = Localizer(map_, config=None, start_pose=None)
+    loc.imu(t, gyro_xyz); loc.speed(t, v)
+    loc.bearings(t, ids, unit_xyz)     # ids = map landmark ids
+    loc.pose()          # -> Pose(t, position (3,), quaternion (4,) wxyz, covariance (6, 6))
+    loc.containment()   # -> .state, .permit, .signed_distance_m, .sigma_m, .reason
+
+Around the world-centric EKF (:mod:`mowerhw.mow.ekf`):
+
+* **Start**: at the map's dock pose (the teach start) or a given pose, with the configured σ.
+  While the mower stands still at the start, the gyro is averaged into its bias and the
+  pose is held (no integration of a still gyro); vision updates already run.
+* **Late frames**: the filter keeps ``history_s`` of IMU inputs and states; a frame stamped
+  before the newest IMU sample is applied at its own time and the IMU samples since are
+  re-propagated, so the newest state stays at IMU rate and is exact.
+* **Gating and lock-out**: every bearing is χ²-gated; if frames that see enough landmarks are
+  all rejected for ``lockout_s``, the pose uncertainty is widened; if that does not help
+  within another ``lockout_s``, the pose is re-fitted from the bearings of one frame (known
+  ids) and the filter restarts there. A frame naming an id the map does not have is counted
+  and ignored.
+* **Faults**: a non-finite state restarts the filter at its last good pose with a wide
+  uncertainty; containment reports FAULT until it is localized again.
+* **Containment**: UNKNOWN unless localized, all sensors fresh, the last landmark fix no older
+  than ``MAX_DEAD_RECKONING_S``, and σ ≤ ``containment.sigma_max_m``; otherwise the table of
+  :mod:`mowerhw.mow.containment`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mowerhw.config import Config, ContainmentConfig, MowConfig
+from mowerhw.geometry import rotmat_to_quat
+from mowerhw.map import LawnMap
+from mowerhw.map import load as load_map
+from mowerhw.mow.containment import (
+    Containment,
+    ContainmentResult,
+    LawnGeometry,
+    Reason,
+)
+from mowerhw.mow.ekf import EkfState, LocalizerNoise, WorldPoseEKF
+from mowerhw.odometry import BodyMotion, SpeedTrack
+from mowerhw.posefit import fit_pose_to_bearings
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Pose:
+    t: float
+    position: FloatArray  # (3,) x_b^w
+    quaternion: FloatArray  # (4,) q_wb, w first
+    covariance: FloatArray  # (6, 6): position (3), then rotation (3, world axes)
+
+    def __iter__(self):  # t, position, quaternion, covariance = loc.pose()
+        return iter((self.t, self.position, self.quaternion, self.covariance))
+
+
+@dataclass
+class LocalizerCounters:
+    imu_samples: int = 0
+    frames: int = 0
+    frames_with_fix: int = 0
+    bearings_used: int = 0
+    bearings_rejected: int = 0
+    unknown_ids: int = 0
+    late_frames: int = 0
+    late_frames_dropped: int = 0
+    lockouts: int = 0
+    inflations: int = 0
+    reinitialisations: int = 0
+    faults: int = 0
+    nonfinite_inputs: int = 0
+
+
+@dataclass
+class _Step:
+    """One propagated IMU interval: its inputs and the state after it (for late frames)."""
+
+    t0: float
+    t1: float
+    gyro: FloatArray
+    speed: float
+    state: EkfState = field(repr=False)
+    held: bool = False  # a start-up calibration step: the pose was held, not propagated
+
+
+def _configs(config: Any) -> tuple[MowConfig, ContainmentConfig, dict[str, float]]:
+    stale = {"imu": 0.1, "speed": 0.3, "camera": 1.0}
+    if config is None:
+        return MowConfig(), ContainmentConfig(), stale
+    if isinstance(config, Config):
+        stale = {
+            "imu": config.imu.stale_after_s,
+            "speed": config.speed.stale_after_s,
+            "camera": config.camera.stale_after_s,
+        }
+        return config.mow, config.containment, stale
+    if isinstance(config, MowConfig):
+        return config, ContainmentConfig(), stale
+    raise TypeError(f"config must be a Config or MowConfig, not {type(config).__name__}")
+
+
+class Localizer:
+    """World-centric localization against a lawn map, and the containment decision."""
+
+    #: a position older than this since the last landmark fix is not trusted for mowing
+    MAX_DEAD_RECKONING_S = 3.0
+    #: a still gyro beyond this (rad/s) from its running mean ends the start calibration
+    CALIBRATION_ROTATION = 0.05
+
+    def __init__(
+        self,
+        map_: LawnMap | str | Path,
+        config: Config | MowConfig | None = None,
+        start_pose: tuple[ArrayLike, ArrayLike] | None = None,
+    ) -> None:
+        self.map = load_map(map_) if isinstance(map_, str | Path) else map_
+        self.cfg, ccfg, self.stale_s = _configs(config)
+        c = self.cfg
+        self.ids = self.map.landmark_ids()
+        self._row = {int(i): r for r, i in enumerate(self.ids.tolist())}
+        self.landmarks = self.map.landmark_positions()
+        self.geometry = LawnGeometry(
+            self.map.boundary, [(z.name, z.polygon) for z in self.map.keepouts]
+        )
+        self._containment = Containment(self.geometry, ccfg)
+        noise = LocalizerNoise(c.gyro_noise, c.gyro_bias_walk, c.speed_noise, c.lateral_noise)
+        self.ekf = WorldPoseEKF(noise, self.map.landmark_covariances(), c.gate_probability)
+        self.counters = LocalizerCounters()
+        self._speeds = SpeedTrack()
+        self._history: deque[_Step] = deque()
+        self.t_imu: float | None = None
+        self.t_speed: float | None = None
+        self.t_camera: float | None = None  # arrival (capture stamp) of the newest frame
+        self.t_fix: float | None = None  # newest frame that gave a landmark fix
+        self._good_frames = 0
+        self._fault = ""
+        self._lockout_since: float | None = None
+        self._inflated = False
+        self._w_last = np.zeros(3)
+        self._gyro_sum = np.zeros(3)
+        self._gyro_n = 0
+        self._resets = 0
+        self.calibrating = True
+        if start_pose is None:
+            start_pose = (self.map.dock_position, self.map.dock_quaternion)
+        self.reinitialise(start_pose)
+
+    # ---------------------------------------------------------------------------- control
+
+    def reinitialise(
+        self,
+        pose: tuple[ArrayLike, ArrayLike] | None = None,
+        sigma_position_m: float | None = None,
+        sigma_heading_rad: float | None = None,
+    ) -> None:
+        """Restart the filter at ``pose`` (position, q_wb), or at its current pose."""
+        c = self.cfg
+        if pose is None:
+            pos, quat = self.ekf.x.copy(), self.ekf.q.copy()
+        else:
+            pos = np.asarray(pose[0], dtype=np.float64).reshape(3)
+            quat = np.asarray(pose[1], dtype=np.float64).reshape(4)
+        s_pos = sigma_position_m if sigma_position_m is not None else c.init_sigma_position_m
+        s_yaw = sigma_heading_rad if sigma_heading_rad is not None else c.init_sigma_heading_rad
+        bias_var = None if self.counters.imu_samples else 0.005**2
+        self.ekf.reset(pos, quat, s_pos, np.array([0.01, 0.01, s_yaw]), bias_var=bias_var)
+        self._good_frames = 0
+        self._lockout_since = None
+        self._inflated = False
+        self._history.clear()
+        self._resets += 1
+
+    # ------------------------------------------------------------------------------ inputs
+
+    def imu(self, t: float, gyro_xyz: ArrayLike) -> None:
+        """Gyro (rad/s, body frame): the mean rate over the interval ending at ``t``."""
+        gyro = np.asarray(gyro_xyz, dtype=np.float64).reshape(3)
+        gx, gy, gz = gyro.tolist()
+        if not (math.isfinite(t) and math.isfinite(gx + gy + gz)):
+            self.counters.nonfinite_inputs += 1
+            return
+        self.counters.imu_samples += 1
+        if self.t_imu is None:
+            self.t_imu = float(t)
+            self._remember(float(t), float(t), gyro, 0.0, held=True)
+            return
+        if t <= self.t_imu:
+            return
+        if self.calibrating:
+            self._calibrate(gyro)
+        if self.calibrating:  # standing still at the start: hold the pose, learn the bias
+            self._remember(self.t_imu, float(t), gyro, 0.0, held=True)
+            self.t_imu = float(t)
+            return
+        self._step(self.t_imu, float(t), gyro)
+        self.t_imu = float(t)
+
+    def speed(self, t: float, v: float) -> None:
+        """Signed ground speed (m/s); NaN (invalid / not available) is ignored."""
+        if not (math.isfinite(t) and math.isfinite(v)):
+            self.counters.nonfinite_inputs += 1
+            return
+        self._speeds.add(t, v)
+        self.t_speed = float(t) if self.t_speed is None else max(self.t_speed, float(t))
+        if self.calibrating and v != 0.0:
+            self._end_calibration()
+
+    def bearings(self, t: float, ids: ArrayLike, unit_xyz: ArrayLike) -> None:
+        """Unit bearings (body frame) of map landmarks ``ids`` seen in the frame taken at ``t``."""
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        u = np.asarray(unit_xyz, dtype=np.float64).reshape(-1, 3)
+        if ids.size != u.shape[0]:
+            raise ValueError(f"{ids.size} ids but {u.shape[0]} bearings")
+        if not math.isfinite(t):
+            self.counters.nonfinite_inputs += 1
+            return
+        norms = np.linalg.norm(u, axis=1)
+        good = np.all(np.isfinite(u), axis=1) & (norms > 0.5)
+        self.counters.nonfinite_inputs += int((~good).sum())
+        rows = np.array([self._row.get(int(i), -1) for i in ids.tolist()], dtype=np.int64)
+        self.counters.unknown_ids += int(np.sum(good & (rows < 0)))
+        keep = good & (rows >= 0)
+        rows, u = rows[keep], u[keep] / norms[keep, None]
+        self.counters.frames += 1
+        self.t_camera = float(t) if self.t_camera is None else max(self.t_camera, float(t))
+        if self.t_imu is None:
+            return
+        if t < self.t_imu - 1e-9:
+            self._late_frame(float(t), rows, u)
+        else:
+            if t > self.t_imu:  # a frame slightly ahead of the IMU: extrapolate to it
+                self._step(self.t_imu, float(t), self._w_last + self.ekf.bg)
+                self.t_imu = float(t)
+            self._frame_update(float(t), rows, u)
+        self._check_fault()
+
+    # ------------------------------------------------------------------------- internals
+
+    def _calibrate(self, gyro: FloatArray) -> None:
+        if self._gyro_n >= 20:
+            mean = self._gyro_sum / self._gyro_n
+            if np.linalg.norm(gyro - mean) > self.CALIBRATION_ROTATION:
+                self._end_calibration()  # it is turning: not a standstill any more
+                return
+        self._gyro_sum += gyro
+        self._gyro_n += 1
+
+    def _end_calibration(self) -> None:
+        if not self.calibrating:
+            return
+        self.calibrating = False
+        if self._gyro_n < 20:
+            return
+        bias = self._gyro_sum / self._gyro_n
+        var = self.cfg.gyro_noise**2 * 100 / self._gyro_n
+        # The bias is set out of band: every stored state gets it too, or a late frame from
+        # before this moment would restore the uncalibrated bias.
+        for state in [self.ekf, *(st.state for st in self._history)]:
+            state.bg = bias.copy()
+            state.P[6:9, :] = 0.0
+            state.P[:, 6:9] = 0.0
+            state.P[6:9, 6:9] = np.eye(3) * var
+            state.pxl[6:9, :] = 0.0
+
+    def _remember(
+        self, t0: float, t1: float, gyro: FloatArray, speed: float, held: bool = False
+    ) -> None:
+        self._history.append(_Step(t0, t1, gyro.copy(), speed, self.ekf.snapshot(), held))
+        horizon = t1 - self.cfg.history_s
+        while len(self._history) > 2 and self._history[1].t1 < horizon:
+            self._history.popleft()
+
+    def _propagate(self, t0: float, t1: float, gyro: FloatArray, speed: float) -> None:
+        w = gyro - self.ekf.bg
+        self._w_last = w
+        self.ekf.propagate(BodyMotion.of(w, np.array([speed, 0.0, 0.0]), t1 - t0))
+
+    def _step(self, t0: float, t1: float, gyro: FloatArray) -> None:
+        speed = self._speeds.at(0.5 * (t0 + t1))
+        self._propagate(t0, t1, gyro, speed)
+        self._remember(t0, t1, gyro, speed)
+        self._check_fault()
+
+    def _late_frame(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
+        """Apply a frame at its own time and re-propagate the IMU samples since (exact)."""
+        hist = self._history
+        k = next((i for i in range(len(hist) - 1, -1, -1) if hist[i].t1 <= t), None)
+        if k is None:
+            self.counters.late_frames_dropped += 1
+            return
+        self.counters.late_frames += 1
+        self.ekf.restore(hist[k].state)
+        after = list(hist)[k + 1 :]
+        if after and t > hist[k].t1 and not after[0].held:  # the next interval up to t
+            nxt = after[0]
+            self._propagate(hist[k].t1, t, nxt.gyro, nxt.speed)
+        resets = self._resets
+        self._frame_update(t, rows, u)
+        if self._resets != resets:  # the update re-initialised the filter at t: replay since
+            for j, st in enumerate(after):
+                t0 = t if j == 0 and t > st.t0 else st.t0
+                if st.t1 > t0:
+                    self._propagate(t0, st.t1, st.gyro, st.speed)
+                self._remember(t0, st.t1, st.gyro, st.speed)
+            return
+        # re-propagate: the rest of that interval, then every later one, as they were
+        for j, st in enumerate(after):
+            t0 = t if j == 0 and t > st.t0 else st.t0
+            if not st.held and st.t1 > t0:
+                self._propagate(t0, st.t1, st.gyro, st.speed)
+            hist[k + 1 + j] = _Step(st.t0, st.t1, st.gyro, st.speed, self.ekf.snapshot(), st.held)
+
+    def _frame_update(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
+        c = self.cfg
+        out = self.ekf.update(rows, self.landmarks[rows], u, c.bearing_sigma_rad)
+        self.counters.bearings_used += out.used
+        self.counters.bearings_rejected += out.rejected
+        # a fix: enough landmarks, and most of those in view agree with the estimate
+        if out.used >= c.min_landmarks and out.used >= 0.5 * rows.size:
+            self.counters.frames_with_fix += 1
+            self._good_frames += 1
+            self.t_fix = t if self.t_fix is None else max(self.t_fix, t)
+            self._lockout_since = None
+            self._inflated = False
+            if self._fault and self._good_frames >= c.localized_after_frames:
+                self._fault = ""
+            return
+        if rows.size >= c.min_landmarks:  # it sees landmarks but believes too few of them
+            self._lockout(t, rows, u)
+
+    def _lockout(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
+        c = self.cfg
+        if self._lockout_since is None:
+            self._lockout_since = t
+            self.counters.lockouts += 1
+            return
+        waited = t - self._lockout_since
+        if waited >= c.lockout_s and not self._inflated:
+            self.ekf.inflate(0.5, math.radians(15.0))
+            self._inflated = True
+            self._good_frames = 0
+            self.counters.inflations += 1
+        elif waited >= 2 * c.lockout_s:
+            self._refit(rows, u)
+
+    def _refit(self, rows: NDArray[np.int64], u: FloatArray) -> None:
+        """Re-initialise from one frame: fit the pose to the bearings of known landmarks,
+        starting from the current position at several headings, keeping the best fit."""
+        sigma = self.cfg.bearing_sigma_rad
+        best = None
+        r0 = self.ekf.R
+        for yaw in np.radians([0, 45, -45, 90, -90, 135, -135, 180]):
+            c, s = math.cos(yaw), math.sin(yaw)
+            rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            fit = fit_pose_to_bearings(
+                self.landmarks[rows], u, rz @ r0, self.ekf.x, sigma, iterations=25
+            )
+            if np.all(np.isfinite(fit.t_wb)) and (best is None or fit.rms_rad < best.rms_rad):
+                best = fit
+        if best is None or best.rms_rad > 3 * sigma:
+            return  # no credible fit either: stay halted, try again next frame
+        self.counters.reinitialisations += 1
+        self.reinitialise((best.t_wb, rotmat_to_quat(best.r_wb)), 0.2, math.radians(5.0))
+
+    def _check_fault(self) -> None:
+        if self.ekf.finite():
+            return
+        self.counters.faults += 1
+        self._fault = "the estimator produced non-finite values and was restarted"
+        good = next((s.state for s in reversed(self._history) if _finite(s.state)), None)
+        if good is not None:
+            self.ekf.restore(good)
+        if not self.ekf.finite():
+            self.ekf.bg = np.zeros(3)
+            self.ekf.x = self.map.dock_position.copy()
+            self.ekf.q = self.map.dock_quaternion.copy()
+        self.reinitialise(None, 1.0, math.radians(30.0))
+
+    # ----------------------------------------------------------------------------- outputs
+
+    def pose(self) -> Pose:
+        """The newest estimate: t, position, q_wb, covariance (position then rotation)."""
+        p = self.ekf.P
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = p[3:6, 3:6]
+        cov[3:, 3:] = p[0:3, 0:3]
+        cov[:3, 3:] = p[3:6, 0:3]
+        cov[3:, :3] = p[0:3, 3:6]
+        t = self.t_imu if self.t_imu is not None else float("nan")
+        return Pose(t, self.ekf.x.copy(), self.ekf.q.copy(), cov)
+
+    @property
+    def localized(self) -> bool:
+        return self._good_frames >= self.cfg.localized_after_frames and not self._fault
+
+    def sigma_xy(self) -> float:
+        """Largest standard deviation of the horizontal position (m)."""
+        w = np.linalg.eigvalsh(self.ekf.P[3:5, 3:5])
+        return float(math.sqrt(max(w[-1], 0.0)))
+
+    def containment(self, now: float | None = None) -> ContainmentResult:
+        """The containment decision for the newest estimate (``now``: the caller's clock, for
+        staleness; default the newest input time)."""
+        t = self.t_imu if self.t_imu is not None else float("nan")
+        halt = self._halt_reason(now)
+        x, y = float(self.ekf.x[0]), float(self.ekf.x[1])
+        return self._containment.evaluate(t, x, y, self.sigma_xy(), halt)
+
+    def _halt_reason(self, now: float | None) -> tuple[Reason, str] | None:
+        if self.t_imu is None:
+            return Reason.NOT_LOCALIZED, "no IMU sample yet"
+        latest = [x for x in (self.t_imu, self.t_speed, self.t_camera) if x is not None]
+        now = max(latest) if now is None else now
+        for name, last in (("imu", self.t_imu), ("speed", self.t_speed), ("camera", self.t_camera)):
+            if last is None:
+                return Reason.SENSOR_STALE, f"no {name} data yet"
+            if now - last > self.stale_s[name]:
+                return Reason.SENSOR_STALE, (
+                    f"{name} silent for {now - last:.2f} s (limit {self.stale_s[name]} s)"
+                )
+        if self._fault:
+            return Reason.FAULT, self._fault
+        if not self.localized:
+            return Reason.NOT_LOCALIZED, (
+                f"{self._good_frames}/{self.cfg.localized_after_frames} landmark fixes since start"
+            )
+        if self.t_fix is not None and self.t_imu - self.t_fix > self.MAX_DEAD_RECKONING_S:
+            return Reason.UNCERTAIN, (
+                f"no landmark fix for {self.t_imu - self.t_fix:.1f} s "
+                f"(limit {self.MAX_DEAD_RECKONING_S} s)"
+            )
+        return None
+
+    def status(self) -> dict[str, Any]:
+        """Counters and state for logs, the control socket and recordings."""
+        p = self.pose()
+        return {
+            "t": p.t,
+            "localized": self.localized,
+            "calibrating": self.calibrating,
+            "position": p.position.tolist(),
+            "sigma_xy_m": self.sigma_xy(),
+            "gyro_bias": self.ekf.bg.tolist(),
+            **vars(self.counters),
+        }
+
+
+def _finite(s: EkfState) -> bool:
+    return bool(np.all(np.isfinite(s.x)) and np.all(np.isfinite(s.P)))

@@ -1,0 +1,123 @@
+"""Containment, tested the way ArduPilot tests its fences."""
+
+import numpy as np
+import pytest
+
+from mowerhw.config import ContainmentConfig
+from mowerhw.mow.containment import Containment, LawnGeometry, Reason, State
+
+SQUARE = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+CFG = ContainmentConfig(
+    margin_m=0.4, k_sigma=3.0, sigma_max_m=0.3, soft_persist=3, hard_margin_m=0.1
+)
+
+
+def decide(points, sigma=0.01, outline=SQUARE, keepouts=(), samples=1):
+    c = Containment(LawnGeometry(outline, list(keepouts)), CFG)
+    out = []
+    for x, y in points:
+        c2 = Containment(c.geometry, CFG)
+        for k in range(samples):
+            r = c2.evaluate(float(k), x, y, sigma)
+        out.append(r)
+    return out
+
+
+@pytest.mark.parametrize("outline", [SQUARE, SQUARE[::-1]], ids=["ccw", "cw"])
+def test_winding_order_does_not_matter(outline):
+    r = decide([(5, 5), (5, 0.2), (5, -0.5), (12, 5)], outline=outline, samples=5)
+    assert [x.state for x in r] == ["INSIDE", "NEAR_EDGE", "OUTSIDE", "OUTSIDE"]
+    assert r[0].signed_distance_m == pytest.approx(5.0)
+    assert r[3].signed_distance_m == pytest.approx(-2.0)
+
+
+def test_points_on_edges_and_vertices_are_not_permitted():
+    r = decide([(5, 0), (0, 0), (10, 10), (0, 5)], samples=5)
+    assert all(x.state == "OUTSIDE" and not x.permit for x in r)
+    assert all(x.signed_distance_m == pytest.approx(0.0, abs=1e-12) for x in r)
+
+
+def test_large_coordinates():
+    off = np.array([1.0e6, -2.0e6])
+    a = decide([(5, 5), (5, 0.2), (5, -0.5)], samples=5)
+    b = decide(
+        [tuple(np.array(p) + off) for p in [(5, 5), (5, 0.2), (5, -0.5)]],
+        outline=SQUARE + off,
+        samples=5,
+    )
+    assert [x.state for x in a] == [x.state for x in b]
+    assert [x.signed_distance_m for x in a] == pytest.approx(
+        [x.signed_distance_m for x in b], abs=1e-6
+    )
+
+
+def test_keep_out_zones_are_holes():
+    pond = ("pond", np.array([[4, 4], [6, 4], [6, 6], [4, 6]], float))
+    r = decide([(5, 5), (3.8, 5), (3.0, 5), (4.05, 5)], keepouts=[pond], samples=5)
+    assert r[0].state == "OUTSIDE" and "inside keep-out 'pond'" in r[0].detail
+    assert r[1].state == "NEAR_EDGE"  # 0.2 m from the pond
+    assert r[2].state == "INSIDE"
+    assert r[3].state == "OUTSIDE"
+    assert r[0].reason == Reason.OUTSIDE
+
+
+def test_concave_lawn_notch_is_outside():
+    u_shape = np.array([[0, 0], [9, 0], [9, 9], [6, 9], [6, 3], [3, 3], [3, 9], [0, 9]], float)
+    r = decide([(4.5, 6), (1.5, 6), (7.5, 6), (4.5, 1.5)], outline=u_shape, samples=5)
+    assert [x.state for x in r] == ["OUTSIDE", "INSIDE", "INSIDE", "INSIDE"]
+    assert r[0].signed_distance_m == pytest.approx(-1.5)
+
+
+def test_uncertainty_moves_the_edge_and_too_much_is_unknown():
+    inside = decide([(5, 1.0)], sigma=0.01)[0]
+    assert inside.state == "INSIDE"
+    near = decide([(5, 1.0)], sigma=0.25)[0]  # 1.0 − 3·0.25 = 0.25 < margin
+    assert near.state == "NEAR_EDGE" and near.permit
+    lost = decide([(5, 5)], sigma=0.35)[0]
+    assert lost.state == "UNKNOWN" and not lost.permit and lost.reason == Reason.UNCERTAIN
+
+
+def test_soft_margin_must_persist_and_release_is_hysteretic():
+    c = Containment(LawnGeometry(SQUARE), CFG)
+    seq = [(5, -0.05)] * 4 + [(5, 0.5)] * 4
+    res = [c.evaluate(float(k), x, y, 0.005) for k, (x, y) in enumerate(seq)]
+    assert [r.permit for r in res] == [True, True, False, False, False, False, True, True]
+    assert res[0].state == "NEAR_EDGE" and "soft margin 1/3" in res[0].detail
+    assert res[4].state == "OUTSIDE" and "back inside 1/3" in res[4].detail
+
+
+def test_hard_margin_halts_at_once():
+    c = Containment(LawnGeometry(SQUARE), CFG)
+    r = c.evaluate(0.0, 5, -0.3, 0.005)
+    assert r.state == "OUTSIDE" and not r.permit and "hard margin" in r.detail
+
+
+def test_repeated_evaluation_of_one_sample_does_not_count_twice():
+    c = Containment(LawnGeometry(SQUARE), CFG)
+    for _ in range(10):
+        r = c.evaluate(1.0, 5, -0.05, 0.005)
+    assert r.permit  # still one sample of a soft violation
+
+
+def test_forced_halts_carry_their_reason():
+    c = Containment(LawnGeometry(SQUARE), CFG)
+    for reason in (Reason.NOT_LOCALIZED, Reason.SENSOR_STALE, Reason.FAULT):
+        r = c.evaluate(0.0, 5, 5, 0.01, (reason, "why"))
+        assert r.state == State.UNKNOWN and not r.permit and r.reason == reason.value
+        assert r.detail == "why"
+    r = c.evaluate(1.0, float("nan"), 5, 0.01)
+    assert r.reason == Reason.FAULT and not r.permit
+
+
+def test_inward_direction_points_into_the_lawn():
+    g = LawnGeometry(SQUARE)
+    assert np.allclose(g.inward_direction(5, 0.2), [0, 1], atol=1e-9)
+    assert np.allclose(g.inward_direction(5, -0.5), [0, 1], atol=1e-9)
+    assert np.allclose(g.inward_direction(9.9, 5), [-1, 0], atol=1e-9)
+
+
+def test_signed_distances_vectorised_match():
+    g = LawnGeometry(SQUARE, [("pond", np.array([[4, 4], [6, 4], [6, 6], [4, 6]], float))])
+    pts = np.random.default_rng(0).uniform(-2, 12, size=(200, 2))
+    one = np.array([g.signed_distance(x, y) for x, y in pts])
+    assert np.allclose(g.signed_distances(pts), one)

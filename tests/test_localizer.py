@@ -1,0 +1,166 @@
+"""The mow-phase Localizer through its pure API (DESIGN.md §5)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mowerhw.evaluate import run_teach
+from mowerhw.map import LawnMap, MapError
+from mowerhw.mow import Localizer, Reason
+from mowerhw.sim import make_world
+from mowerhw.sim.plant import MowerPlant
+
+
+@pytest.fixture(scope="module")
+def lawn_map():
+    out = run_teach("paper", seed=6)
+    m = LawnMap.from_teach_result(out.result)
+    m.teach["sim"] = {"scenario": "paper", "seed": 6}
+    return m
+
+
+def drive(loc, plant, commands, until=None):
+    """Open-loop: feed the localizer what the plant's sensors say for each (v, ω, seconds)."""
+    out = plant.first_output()
+    loc.imu(*out.imu)
+    loc.speed(*out.speed)
+    for v, w, secs in commands:
+        for _ in range(round(secs / plant.dt)):
+            out = plant.step(v, w)
+            loc.imu(*out.imu)
+            if out.speed is not None:
+                loc.speed(*out.speed)
+            for f in out.frames:
+                loc.bearings(f.t, f.ids, f.bearings)
+            if until is not None and plant.t >= until:
+                return
+
+
+def test_api_shape_and_start_at_the_dock(lawn_map):
+    loc = Localizer(lawn_map)
+    t, pos, quat, cov = loc.pose()
+    assert t == t or np.isnan(t)  # no IMU yet: NaN
+    assert np.allclose(pos, lawn_map.dock_position) and quat.shape == (4,)
+    assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) >= -1e-15)
+    c = loc.containment()
+    assert c.state == "UNKNOWN" and not c.permit and c.reason == Reason.NOT_LOCALIZED
+
+
+def test_localizes_and_permits_inside(lawn_map):
+    world = make_world("paper", 6)
+    plant = MowerPlant(world, 1)
+    loc = Localizer(lawn_map)
+    drive(loc, plant, [(0, 0, 2.0), (0, 0.8, 1.2), (0.45, 0, 3.0)])
+    c = loc.containment()
+    assert loc.localized and c.permit and c.state in ("INSIDE", "NEAR_EDGE")
+    _, pos, _, _ = loc.pose()
+    assert np.linalg.norm(pos[:2] - plant.xy) < 0.05
+    assert loc.calibrating is False
+    assert np.abs(loc.ekf.bg - plant.bias).max() < 5e-4  # calibrated on the standstill
+
+
+def test_late_frames_are_applied_exactly_at_their_time(lawn_map):
+    world = make_world("paper", 6)
+    cmds = [(0, 0, 2.0), (0.45, 0, 2.0), (0.2, 0.5, 2.0), (0.45, -0.2, 2.0)]
+    on_time = Localizer(lawn_map)
+    drive(on_time, MowerPlant(world, 2, frame_latency_s=0.0), cmds)
+    late = Localizer(lawn_map)
+    late_plant = MowerPlant(world, 2, frame_latency_s=0.15)
+    drive(late, late_plant, cmds)
+    for f in late_plant._pending:  # the frames still in flight arrive now, late
+        late.bearings(f.t, f.ids, f.bearings)
+    # (the frame taken at t = 0 arrives one IMU period later even without latency)
+    assert late.counters.late_frames > 20 and on_time.counters.late_frames <= 1
+    assert late.t_imu == on_time.t_imu
+    assert np.allclose(late.ekf.x, on_time.ekf.x, atol=1e-9)
+    assert np.allclose(late.ekf.q, on_time.ekf.q, atol=1e-9)
+    assert np.allclose(late.ekf.P, on_time.ekf.P, atol=1e-12)
+
+
+def test_a_frame_older_than_the_history_is_dropped_and_counted(lawn_map):
+    world = make_world("paper", 6)
+    plant = MowerPlant(world, 3)
+    loc = Localizer(lawn_map)
+    drive(loc, plant, [(0, 0, 4.0)])
+    loc.bearings(loc.t_imu - 10.0, [0], [[1.0, 0.0, 0.0]])
+    assert loc.counters.late_frames_dropped == 1
+
+
+def test_wrong_bearings_are_gated_and_unknown_ids_ignored(lawn_map):
+    world = make_world("paper", 6)
+    plant = MowerPlant(world, 4)
+    loc = Localizer(lawn_map)
+    drive(loc, plant, [(0, 0, 3.0)])
+    before = loc.counters.bearings_rejected
+    ids = lawn_map.landmark_ids()[:5]
+    b = np.tile([[0.0, 0.0, 1.0]], (5, 1))  # all straight up: nothing is up there
+    loc.bearings(loc.t_imu, np.concatenate([ids, [999]]), np.vstack([b, [[1, 0, 0]]]))
+    assert loc.counters.bearings_rejected - before == 5
+    assert loc.counters.unknown_ids == 1
+
+
+def test_lock_out_leads_to_a_refit_and_recovery(lawn_map):
+    world = make_world("paper", 6)
+    plant = MowerPlant(world, 5)
+    # started 5 m and 115° off: it sees the landmarks but believes none of them
+    loc = Localizer(
+        lawn_map,
+        start_pose=(np.array([4.0, 3.0, 0.0]), np.array([math.cos(1.0), 0, 0, math.sin(1.0)])),
+    )
+    drive(loc, plant, [(0, 0, 15.0)])
+    assert loc.counters.lockouts >= 1 and loc.counters.inflations >= 1
+    assert loc.counters.reinitialisations >= 1
+    _, pos, _, _ = loc.pose()
+    assert np.linalg.norm(pos[:2] - plant.xy) < 0.1
+    assert loc.localized
+
+
+def test_vision_dropout_halts_then_recovers(lawn_map):
+    world = make_world("paper", 6)
+    plant = MowerPlant(world, 6, vision_dropout=(6.0, 10.0))
+    loc = Localizer(lawn_map)
+    states = []
+    out = plant.first_output()
+    loc.imu(*out.imu)
+    loc.speed(*out.speed)
+    for k in range(2500):
+        v, w = (0.0, 0.0) if k < 200 else ((0.0, 0.8) if k < 320 else (0.3, 0.0))
+        if 900 < k < 1400:
+            v, w = 0.0, 0.0
+        out = plant.step(v, w)
+        loc.imu(*out.imu)
+        if out.speed is not None:
+            loc.speed(*out.speed)
+        for f in out.frames:
+            loc.bearings(f.t, f.ids, f.bearings)
+        c = loc.containment()
+        states.append((plant.t, c.permit, c.reason))
+    during = [s for s in states if 10.0 < s[0] < 16.0]
+    after = [s for s in states if s[0] > 20.0]
+    assert not any(s[1] for s in during)
+    assert {s[2] for s in during} == {Reason.UNCERTAIN}
+    assert after[-1][1]  # permitted again
+
+
+def test_stale_sensors_and_faults_halt_with_a_reason(lawn_map):
+    world = make_world("paper", 6)
+    plant = MowerPlant(world, 7)
+    loc = Localizer(lawn_map)
+    drive(loc, plant, [(0, 0, 2.0), (0, 0.8, 1.2), (0.3, 0, 2.0)])
+    assert loc.containment().permit
+    c = loc.containment(now=loc.t_imu + 0.5)
+    assert c.reason == Reason.SENSOR_STALE and "silent" in c.detail
+    loc.ekf.x[:] = np.nan  # an estimator fault
+    loc._check_fault()
+    c = loc.containment()
+    assert c.reason == Reason.FAULT and not c.permit
+    assert loc.counters.faults == 1
+    drive(loc, plant, [(0.3, 0, 3.0)])
+    assert loc.containment().permit
+
+
+def test_a_broken_map_is_refused(tmp_path):
+    (tmp_path / "m.json").write_text('{"format": "mowerhw-map", "version": 1}')
+    with pytest.raises(MapError):
+        Localizer(tmp_path / "m.json")

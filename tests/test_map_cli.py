@@ -1,0 +1,85 @@
+"""``mowerhw map ...``: check, show, plot, add and remove keep-out zones (with backups)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from mowerhw import map as lawnmap
+from mowerhw.cli import main
+from mowerhw.cli.map_cmd import parse_polygon
+from mowerhw.map import Landmark, LawnMap
+
+
+@pytest.fixture
+def map_file(tmp_path):
+    a = np.linspace(0, 2 * np.pi, 80, endpoint=False)
+    m = LawnMap(
+        boundary=np.column_stack([6 * np.cos(a), 4 * np.sin(a)]),
+        landmarks=[
+            Landmark(i, np.array([8.0 * np.cos(i), 8.0 * np.sin(i), 1.0]), np.eye(3) * 1e-4)
+            for i in range(6)
+        ],
+    )
+    path = tmp_path / "lawn.json"
+    m.save(path)
+    return path
+
+
+def test_check_and_show(map_file, capsys):
+    assert main(["map", "check", str(map_file)]) == 0
+    assert "ok (6 landmarks" in capsys.readouterr().out
+    assert main(["map", "show", str(map_file), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["landmarks"] == 6 and s["area_m2"] == pytest.approx(np.pi * 24, rel=0.01)
+
+
+def test_check_refuses_a_tampered_map_with_78(map_file, capsys):
+    doc = json.loads(map_file.read_text())
+    doc["landmarks"][0]["xyz"][0] += 1.0
+    map_file.write_text(json.dumps(doc))
+    with pytest.raises(SystemExit) as info:
+        main(["map", "check", str(map_file)])
+    assert info.value.code == 78
+    assert "checksum mismatch" in capsys.readouterr().err
+
+
+def test_add_and_remove_keepout_keep_backups(map_file, capsys):
+    before = map_file.read_bytes()
+    rc = main(
+        ["map", "add-keepout", str(map_file), "--polygon", "0,0 1,0 1,1 0,1", "--name", "flowerbed"]
+    )
+    assert rc == 0
+    msg = capsys.readouterr().out
+    assert "added keep-out 'flowerbed'" in msg
+    backups = sorted(map_file.parent.glob("lawn.json.*.bak"))
+    assert len(backups) == 1 and backups[0].read_bytes() == before
+    m = lawnmap.load(map_file)
+    assert [z.name for z in m.keepouts] == ["flowerbed"]
+    assert main(["map", "remove-keepout", str(map_file), "--name", "flowerbed"]) == 0
+    assert lawnmap.load(map_file).keepouts == []
+    assert len(list(map_file.parent.glob("lawn.json.*.bak"))) == 2
+
+
+def test_bad_keepouts_are_refused_and_nothing_is_written(map_file, capsys):
+    before = map_file.read_bytes()
+    assert main(["map", "add-keepout", str(map_file), "--polygon", "0,0 1,0"]) == 2
+    assert "at least 3 corners" in capsys.readouterr().err
+    assert main(["map", "add-keepout", str(map_file), "--polygon", "0,0 1,x 1,1"]) == 2
+    assert main(["map", "add-keepout", str(map_file), "--polygon", "5,0 9,0 9,1 5,1"]) == 78
+    assert "not inside the lawn boundary" in capsys.readouterr().err
+    assert main(["map", "remove-keepout", str(map_file), "--name", "nope"]) == 78
+    assert map_file.read_bytes() == before
+    assert list(map_file.parent.glob("*.bak")) == []
+
+
+def test_plot_writes_a_png(map_file, tmp_path):
+    out = tmp_path / "m.png"
+    assert main(["map", "plot", str(map_file), "-o", str(out)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_parse_polygon():
+    assert parse_polygon("0,0 1,0;1,1").shape == (3, 2)
+    with pytest.raises(ValueError, match="corner 2"):
+        parse_polygon("0,0 1 1,1")
