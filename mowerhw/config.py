@@ -221,6 +221,9 @@ class MowConfig:
     init_sigma_position_m: float = opt(0.05, "σ of the start pose's position", gt=0.0)
     init_sigma_heading_rad: float = opt(0.02, "σ of the start pose's heading", gt=0.0)
     min_landmarks: int = opt(3, "fewest accepted landmarks for a frame to count as a fix", ge=1)
+    max_dead_reckoning_s: float = opt(
+        3.0, "halt (UNCERTAIN) when the last landmark fix is older than this", gt=0.0, le=60.0
+    )
     localized_after_frames: int = opt(
         3, "good frames needed after a (re)start to be localized", ge=1
     )

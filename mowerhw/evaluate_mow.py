@@ -89,6 +89,7 @@ def run_mow(
     permit = np.zeros(n + 1, dtype=bool)
     state = np.zeros(n + 1, dtype=np.int8)
     sigma = np.zeros(n + 1)
+    reason = np.empty(n + 1, dtype=object)
     reasons: Counter[str] = Counter()
     out = plant.first_output()
     loc.imu(*out.imu)
@@ -102,6 +103,7 @@ def run_mow(
         t_arr[k], true_xy[k], true_yaw[k] = plant.t, plant.xy, plant.yaw
         est[k, :3], est[k, 3:] = x, q
         permit[k], state[k], sigma[k] = res.permit, STATE_CODE[res.state], res.sigma_m
+        reason[k] = res.reason
         if prev_permit and not res.permit:
             reasons[res.reason] += 1
         prev_permit = res.permit
@@ -144,6 +146,8 @@ def run_mow(
         "wall_s": round(wall, 3),
         "real_time_factor": round(float(t_arr[-1]) / wall, 1),
     }
+    if vision_dropout is not None:
+        metrics["vision_dropout"] = _dropout_timeline(vision_dropout, t_arr, permit, reason, sigma)
     return MowOutcome(
         metrics,
         t_arr,
@@ -158,3 +162,30 @@ def run_mow(
         plant.landmarks_w,
         dict(reasons),
     )
+
+
+def _dropout_timeline(dropout, t, permit, reason, sigma) -> dict[str, Any]:
+    """When the deck halted after vision went, why, and when it was permitted again."""
+    d0, d1 = dropout
+    halted = (t >= d0) & ~permit
+    out: dict[str, Any] = {"start_s": d0, "end_s": d0 + d1}
+    if halted.any():
+        k = int(np.argmax(halted))
+        back_idx = min(int(np.searchsorted(t, d0 + d1)), len(t) - 1)
+        out.update(
+            halt_at_s=round(float(t[k]), 2),
+            halt_reason=str(reason[k]),
+            halt_after_s=round(float(t[k] - d0), 2),
+            sigma_at_halt_m=round(float(sigma[k]), 4),
+            sigma_at_vision_return_m=round(float(sigma[back_idx]), 4),
+        )
+        back = (t > t[k]) & permit
+        if back.any():
+            j = int(np.argmax(back))
+            out.update(
+                permit_again_at_s=round(float(t[j]), 2),
+                permit_again_after_vision_s=round(float(t[j] - d0 - d1), 2),
+            )
+    window = (t >= d0) & (t < d0 + d1 + 5) & ~permit
+    out["halt_reasons_in_window"] = dict(Counter(str(r) for r in reason[window]))
+    return out
