@@ -164,3 +164,19 @@ def test_a_broken_map_is_refused(tmp_path):
     (tmp_path / "m.json").write_text('{"format": "mowerhw-map", "version": 1}')
     with pytest.raises(MapError):
         Localizer(tmp_path / "m.json")
+
+
+def test_a_silent_camera_is_a_stale_sensor(lawn_map):
+    world = make_world("paper", 6)
+    plant = MowerPlant(world, 8)
+    loc = Localizer(lawn_map)
+    drive(loc, plant, [(0, 0, 2.0), (0, 0.8, 1.2), (0.3, 0, 2.0)])
+    assert loc.containment().permit
+    for _ in range(150):  # 1.5 s of IMU and speed, no frames at all
+        out = plant.step(0.3, 0.0)
+        loc.imu(*out.imu)
+        if out.speed is not None:
+            loc.speed(*out.speed)
+    c = loc.containment()
+    assert not c.permit and c.reason == Reason.SENSOR_STALE
+    assert "camera silent" in c.detail
