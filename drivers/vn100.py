@@ -1,0 +1,739 @@
+"""VectorNav VN-100 over serial: the wire protocol (DESIGN.md §7) and the device driver.
+
+Two layers:
+
+* :class:`Vn100Parser` — pure and incremental: ``feed(bytes)`` returns every packet found in
+  order, ASCII (``$VN…*CS``, XOR-8 or CRC-16 check, CRLF or LF) and binary (``0xFA``, groups,
+  field masks, CRC-16) interleaved in one byte stream. After garbage it resynchronises on
+  the next ``$`` / ``0xFA``; after a failed check it resumes at the byte after the false sync
+  byte; every rejected byte or packet is counted by cause; it never raises on bad input.
+* :class:`Vn100` — the device on a serial port (pyserial): finds the sensor's baud rate,
+  configures it (pause async output, switch baud — the reply comes at the old rate —, write
+  the binary output register 75, verify every reply, resume), then reads in a thread,
+  timestamps every packet on arrival, maps the sensor's ``TimeStartup`` onto the host clock
+  (:class:`mowerhw.clocksync.ClockSync`), and reconnects with backoff when the port vanishes
+  (USB unplugged) and comes back.
+
+Units: the ASCII messages keep the sensor's units except where noted (YPR in degrees,
+magnetic field in Gauss, acceleration m/s², angular rate rad/s); a binary packet's fields are
+converted to SI by name (angles rad, magnetic field T, pressure Pa, times ns).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import re
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mowerhw.clocksync import ClockSync
+from mowerhw.samples import ImuSample
+
+log = logging.getLogger(__name__)
+
+BAUDRATES = (9600, 19200, 38400, 57600, 115200, 128000, 230400, 460800, 921600)
+
+ERROR_CODES = {
+    1: "hard fault",
+    2: "serial buffer overflow",
+    3: "invalid checksum",
+    4: "invalid command",
+    5: "not enough parameters",
+    6: "too many parameters",
+    7: "invalid parameter",
+    8: "invalid register",
+    9: "unauthorized access",
+    10: "watchdog reset",
+    11: "output buffer overflow",
+    12: "insufficient baud rate",
+    255: "error buffer overflow",
+}
+
+# -------------------------------------------------------------------------------- checks
+
+
+def xor8(body: bytes) -> int:
+    """8-bit XOR of every byte (the bytes strictly between ``$`` and ``*``)."""
+    c = 0
+    for b in body:
+        c ^= b
+    return c
+
+
+def _crc16_table() -> list[int]:
+    table = []
+    for i in range(256):
+        crc = i << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else (crc << 1)
+        table.append(crc & 0xFFFF)
+    return table
+
+
+_CRC_TABLE = _crc16_table()
+
+
+def crc16(data: bytes, crc: int = 0) -> int:
+    """CRC-16, polynomial 0x1021, initial 0, not reflected ("XMODEM"): b"123456789" → 0x31C3."""
+    for b in data:
+        crc = ((crc << 8) & 0xFFFF) ^ _CRC_TABLE[((crc >> 8) ^ b) & 0xFF]
+    return crc
+
+
+def ascii_command(body: str, crc: bool = False) -> bytes:
+    """``"VNRRG,05"`` → ``b"$VNRRG,05*5D\\r\\n"`` (XOR-8, or CRC-16 with ``crc=True``)."""
+    raw = body.encode("ascii")
+    check = f"{crc16(raw):04X}" if crc else f"{xor8(raw):02X}"
+    return b"$" + raw + b"*" + check.encode() + b"\r\n"
+
+
+# ------------------------------------------------------------------------- ASCII messages
+
+
+@dataclass(frozen=True)
+class YmrMessage:
+    """``$VNYMR``: yaw, pitch, roll (deg), magnetic (Gauss), acceleration (m/s²), rate (rad/s)."""
+
+    yaw: float
+    pitch: float
+    roll: float
+    mag: np.ndarray
+    accel: np.ndarray
+    gyro: np.ndarray
+
+
+@dataclass(frozen=True)
+class QmrMessage:
+    """``$VNQMR``: quaternion (sent x, y, z, w; kept here w first), mag, accel, gyro."""
+
+    quaternion_wxyz: np.ndarray
+    mag: np.ndarray
+    accel: np.ndarray
+    gyro: np.ndarray
+
+
+@dataclass(frozen=True)
+class ImuMessage:
+    """``$VNIMU``: uncompensated mag, accel, gyro, temperature (°C), pressure (kPa)."""
+
+    mag: np.ndarray
+    accel: np.ndarray
+    gyro: np.ndarray
+    temperature: float
+    pressure: float
+
+
+@dataclass(frozen=True)
+class YprAccelRateMessage:
+    """``$VNYBA`` (body acceleration) / ``$VNYIA`` (inertial NED acceleration)."""
+
+    header: str
+    yaw: float
+    pitch: float
+    roll: float
+    accel: np.ndarray
+    gyro: np.ndarray
+
+
+@dataclass(frozen=True)
+class RegisterReply:
+    """``$VNRRG`` / ``$VNWRG`` reply: the register and its values, as sent."""
+
+    command: str
+    register: int
+    values: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ErrorReply:
+    """``$VNERR,<code>``: the sensor refused the last command."""
+
+    code: int
+
+    @property
+    def meaning(self) -> str:
+        return ERROR_CODES.get(self.code, f"unknown error {self.code}")
+
+
+@dataclass(frozen=True)
+class AsciiMessage:
+    """Any other well-formed ASCII message (command echoes such as ``$VNASY,0``)."""
+
+    header: str
+    fields: tuple[str, ...]
+
+
+# ----------------------------------------------------------------------- binary messages
+
+#: bytes of each field in each output group (groups 1–6: common, time, IMU, GPS, attitude,
+#: INS); 0 = not defined. From the VN-100/200/300 interface control documents.
+GROUP_FIELD_SIZES: tuple[tuple[int, ...], ...] = (
+    (8, 8, 8, 12, 16, 12, 24, 12, 12, 24, 20, 28, 2, 4, 8, 0),
+    (8, 8, 8, 2, 8, 8, 8, 4, 0, 0, 0, 0, 0, 0, 0, 0),
+    (2, 12, 12, 12, 4, 4, 16, 12, 12, 12, 12, 2, 40, 0, 0, 0),
+    (8, 8, 2, 1, 1, 24, 24, 12, 12, 12, 4, 4, 32, 0, 0, 0),
+    (2, 12, 16, 36, 12, 12, 12, 12, 12, 12, 28, 24, 0, 0, 0, 0),
+    (2, 24, 24, 12, 12, 12, 12, 12, 12, 4, 4, 68, 64, 0, 0, 0),
+)
+
+_DEG = math.pi / 180.0
+_GAUSS = 1e-4
+
+# Decoders of the fields we name: (group index, bit) → (name, struct format, scale).
+_FIELDS: dict[tuple[int, int], tuple[str, str, float]] = {
+    (0, 0): ("TimeStartup", "<Q", 1.0),
+    (0, 1): ("TimeGps", "<Q", 1.0),
+    (0, 2): ("TimeSyncIn", "<Q", 1.0),
+    (0, 3): ("YawPitchRoll", "<3f", _DEG),
+    (0, 4): ("Quaternion", "<4f", 1.0),
+    (0, 5): ("AngularRate", "<3f", 1.0),
+    (0, 6): ("Position", "<3d", 1.0),
+    (0, 7): ("Velocity", "<3f", 1.0),
+    (0, 8): ("Accel", "<3f", 1.0),
+    (0, 9): ("Imu", "<6f", 1.0),
+    (0, 10): ("MagPres", "<5f", 1.0),
+    (0, 11): ("Deltas", "<7f", 1.0),
+    (0, 12): ("InsStatus", "<H", 1.0),
+    (0, 13): ("SyncInCnt", "<I", 1.0),
+    (0, 14): ("TimeGpsPps", "<Q", 1.0),
+    (1, 0): ("Time.TimeStartup", "<Q", 1.0),
+    (1, 7): ("Time.SyncInCnt", "<I", 1.0),
+    (2, 4): ("Imu.Temp", "<f", 1.0),
+    (2, 5): ("Imu.Pres", "<f", 1000.0),
+    (2, 8): ("Imu.Mag", "<3f", _GAUSS),
+    (2, 9): ("Imu.Accel", "<3f", 1.0),
+    (2, 10): ("Imu.AngularRate", "<3f", 1.0),
+    (4, 1): ("Attitude.YawPitchRoll", "<3f", _DEG),
+    (4, 2): ("Attitude.Quaternion", "<4f", 1.0),
+}
+
+
+@dataclass(frozen=True)
+class BinaryPacket:
+    """A binary output packet: its group byte, field masks and named fields in SI units.
+
+    Common group: ``TimeStartup`` (ns), ``YawPitchRoll`` (rad, yaw/pitch/roll),
+    ``Quaternion`` (x, y, z, w as sent), ``AngularRate`` (rad/s), ``Accel`` (m/s²), ``Imu``
+    (uncompensated accel m/s² then gyro rad/s), ``MagPres`` (mag T, temperature °C,
+    pressure Pa), ``Deltas`` (Δt s, Δθ rad, Δv m/s), ….
+    """
+
+    groups: int
+    masks: tuple[int, ...]
+    fields: dict[str, Any]
+
+    def __getitem__(self, name: str) -> Any:
+        return self.fields[name]
+
+    def get(self, name: str, default: Any = None) -> Any:
+        return self.fields.get(name, default)
+
+
+def _decode_field(key: tuple[int, int], chunk: bytes) -> tuple[str, Any]:
+    name, fmt, scale = _FIELDS[key]
+    vals = struct.unpack(fmt, chunk)
+    if name == "MagPres":  # mag (Gauss → T), temperature (°C), pressure (kPa → Pa)
+        return name, np.array(
+            [vals[0] * _GAUSS, vals[1] * _GAUSS, vals[2] * _GAUSS, vals[3], vals[4] * 1000.0]
+        )
+    if name == "Deltas":  # Δt (s), Δθ (deg → rad), Δv (m/s)
+        return name, np.array([vals[0], *(v * _DEG for v in vals[1:4]), *vals[4:7]])
+    if len(vals) == 1:
+        v = vals[0]
+        return name, (int(v) if isinstance(v, int) else v * scale)
+    return name, np.asarray(vals, dtype=np.float64) * scale
+
+
+# ------------------------------------------------------------------------------- parser
+
+
+@dataclass
+class ParserStats:
+    """Counts of what the parser saw; rejected packets by cause."""
+
+    bytes_in: int = 0
+    packets_ok: int = 0
+    ascii_ok: int = 0
+    binary_ok: int = 0
+    garbage_bytes: int = 0  # skipped while looking for a sync byte
+    bad_checksum: int = 0  # ASCII XOR-8 mismatch
+    bad_crc: int = 0  # ASCII CRC-16 or binary CRC-16 mismatch
+    malformed: int = 0  # a valid check but fields that do not parse, or no check at all
+    too_long: int = 0  # a ``$`` with no line end within the longest message
+    bad_binary_header: int = 0  # 0xFA followed by group bits or fields that do not exist
+    truncated: int = 0  # a packet cut short at the end of the stream (``close``)
+
+    @property
+    def rejected(self) -> int:
+        return (
+            self.bad_checksum
+            + self.bad_crc
+            + self.malformed
+            + self.too_long
+            + self.bad_binary_header
+            + self.truncated
+        )
+
+
+_ASCII_MAX = 512
+_HEX = set(b"0123456789ABCDEFabcdef")
+_N_FIELDS = {"VNYMR": 12, "VNQMR": 13, "VNIMU": 11, "VNYBA": 9, "VNYIA": 9}
+
+
+class Vn100Parser:
+    """Incremental parser of a VN-100 byte stream (ASCII and binary interleaved)."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self.stats = ParserStats()
+
+    def feed(self, data: bytes) -> list[Any]:
+        """Add bytes; return every complete packet found, in order."""
+        self.stats.bytes_in += len(data)
+        self._buf += data
+        out: list[Any] = []
+        buf = self._buf
+        i = 0
+        n = len(buf)
+        while i < n:
+            b = buf[i]
+            if b != 0x24 and b != 0xFA:  # '$' or 0xFA
+                j = i + 1
+                while j < n and buf[j] != 0x24 and buf[j] != 0xFA:
+                    j += 1
+                self.stats.garbage_bytes += j - i
+                i = j
+                continue
+            step = self._ascii(buf, i, n, out) if b == 0x24 else self._binary(buf, i, n, out)
+            if step == 0:  # need more bytes
+                break
+            i += step
+        del buf[:i]
+        return out
+
+    def close(self) -> list[Any]:
+        """End of stream: a pending partial packet is counted as truncated and dropped."""
+        buf = self._buf
+        if buf:
+            if buf[0] in (0x24, 0xFA):
+                self.stats.truncated += 1
+            else:
+                self.stats.garbage_bytes += len(buf)
+            buf.clear()
+        return []
+
+    # -- ASCII --------------------------------------------------------------------------
+
+    def _ascii(self, buf: bytearray, i: int, n: int, out: list[Any]) -> int:
+        end = buf.find(b"\n", i + 1, min(n, i + _ASCII_MAX))
+        if end < 0:
+            if n - i < _ASCII_MAX:
+                return 0
+            self.stats.too_long += 1
+            return 1  # resume at the byte after the false sync
+        line = bytes(buf[i + 1 : end])
+        if line.endswith(b"\r"):
+            line = line[:-1]
+        star = line.rfind(b"*")
+        if star < 0:
+            self.stats.malformed += 1
+            return 1
+        body, check = line[:star], line[star + 1 :]
+        if len(check) == 2 and all(c in _HEX for c in check):
+            if int(check, 16) != xor8(body):
+                self.stats.bad_checksum += 1
+                return 1
+        elif len(check) == 4 and all(c in _HEX for c in check):
+            if int(check, 16) != crc16(body):
+                self.stats.bad_crc += 1
+                return 1
+        else:
+            self.stats.malformed += 1
+            return 1
+        try:
+            msg = _parse_ascii(body.decode("ascii"))
+        except (ValueError, UnicodeDecodeError, IndexError):
+            self.stats.malformed += 1
+            return 1
+        out.append(msg)
+        self.stats.packets_ok += 1
+        self.stats.ascii_ok += 1
+        return end + 1 - i
+
+    # -- binary ---------------------------------------------------------------------------
+
+    def _binary(self, buf: bytearray, i: int, n: int, out: list[Any]) -> int:
+        if n - i < 2:
+            return 0
+        groups = buf[i + 1]
+        if groups == 0 or groups & 0xC0:  # no group, or groups 7/8 which do not exist
+            self.stats.bad_binary_header += 1
+            return 1
+        active = [g for g in range(6) if groups >> g & 1]
+        head = 2 + 2 * len(active)
+        if n - i < head:
+            return 0
+        masks = struct.unpack_from(f"<{len(active)}H", buf, i + 2)
+        length = 0
+        for g, mask in zip(active, masks, strict=True):
+            if mask == 0:
+                self.stats.bad_binary_header += 1
+                return 1
+            sizes = GROUP_FIELD_SIZES[g]
+            for bit in range(16):
+                if mask >> bit & 1:
+                    if sizes[bit] == 0:
+                        self.stats.bad_binary_header += 1
+                        return 1
+                    length += sizes[bit]
+        total = head + length + 2
+        if n - i < total:
+            return 0
+        if crc16(buf[i + 1 : i + total]) != 0:  # the CRC over everything after 0xFA is 0
+            self.stats.bad_crc += 1
+            return 1
+        fields: dict[str, Any] = {}
+        pos = i + head
+        try:
+            for g, mask in zip(active, masks, strict=True):
+                for bit in range(16):
+                    if mask >> bit & 1:
+                        size = GROUP_FIELD_SIZES[g][bit]
+                        if (g, bit) in _FIELDS:
+                            name, value = _decode_field((g, bit), bytes(buf[pos : pos + size]))
+                            fields[name] = value
+                        pos += size
+        except struct.error:
+            self.stats.malformed += 1
+            return 1
+        out.append(BinaryPacket(groups, tuple(masks), fields))
+        self.stats.packets_ok += 1
+        self.stats.binary_ok += 1
+        return total
+
+
+# The sensor writes numbers as sign, digits, point, digits ("+170.786", "-00.1957"). Anything
+# else behind a valid checksum is corruption the XOR-8 check could not see (an even number
+# of flips of the same bit cancels out in XOR): it is refused, not guessed at.
+_NUMBER = re.compile(r"[+-]?\d+(\.\d+)?\Z")
+_HEADER = re.compile(r"VN[A-Z]{3}\Z")
+_VALUE = re.compile(r"[0-9A-Za-z+\-.]+\Z")
+_ECHOES = frozenset({"VNASY", "VNWNV", "VNRFS", "VNRST", "VNCMD", "VNTAR", "VNKMD", "VNKAD"})
+
+
+def _floats(fields: list[str], k: int) -> list[float]:
+    if not all(_NUMBER.match(f) for f in fields[:k]):
+        raise ValueError("a field is not a number as the sensor writes them")
+    return [float(f) for f in fields[:k]]
+
+
+def _parse_ascii(body: str) -> Any:
+    parts = body.split(",")
+    header = parts[0]
+    fields = parts[1:]
+    if not _HEADER.match(header):
+        raise ValueError(f"not a VectorNav header: {header!r}")
+    if header in _N_FIELDS:
+        if len(fields) != _N_FIELDS[header]:
+            raise ValueError(f"{header} with {len(fields)} fields")
+        v = _floats(fields, _N_FIELDS[header])
+        if header == "VNYMR":
+            return YmrMessage(
+                v[0], v[1], v[2], np.array(v[3:6]), np.array(v[6:9]), np.array(v[9:12])
+            )
+        if header == "VNQMR":
+            return QmrMessage(
+                np.array([v[3], v[0], v[1], v[2]]),
+                np.array(v[4:7]),
+                np.array(v[7:10]),
+                np.array(v[10:13]),
+            )
+        if header == "VNIMU":
+            return ImuMessage(np.array(v[0:3]), np.array(v[3:6]), np.array(v[6:9]), v[9], v[10])
+        return YprAccelRateMessage(header, v[0], v[1], v[2], np.array(v[3:6]), np.array(v[6:9]))
+    if header in ("VNRRG", "VNWRG"):
+        if not fields or not fields[0].isdigit() or not all(_VALUE.match(f) for f in fields):
+            raise ValueError("register reply without a register")
+        return RegisterReply(header, int(fields[0]), tuple(fields[1:]))
+    if header == "VNERR":
+        if len(fields) != 1 or not fields[0].isdigit():
+            raise ValueError("error reply without a code")
+        return ErrorReply(int(fields[0]))
+    if header not in _ECHOES or not all(_VALUE.match(f) for f in fields):
+        raise ValueError(f"unknown message {header}")
+    return AsciiMessage(header, tuple(fields))
+
+
+# ------------------------------------------------------------------------------- device
+
+#: binary output fields we ask for (common group): TimeStartup, YawPitchRoll, AngularRate,
+#: Accel — bits 0, 3, 5, 8
+COMMON_FIELDS = (1 << 0) | (1 << 3) | (1 << 5) | (1 << 8)
+
+
+class Vn100Error(RuntimeError):
+    """The VN-100 could not be reached or configured (the message says what happened)."""
+
+
+class Vn100CommandError(Vn100Error):
+    """The sensor answered ``$VNERR`` to a command."""
+
+    def __init__(self, command: str, code: int) -> None:
+        self.command = command
+        self.code = code
+        self.meaning = ERROR_CODES.get(code, f"unknown error {code}")
+        super().__init__(f"VN-100 refused {command!r}: error {code} ({self.meaning})")
+
+
+@dataclass
+class DriverStats:
+    samples: int = 0
+    reconnects: int = 0
+    reconfigurations: int = 0
+    read_errors: int = 0
+    last_error: str = ""
+    baudrate: int = 0
+
+
+def imu_sample_from(item: Any, host_ns: int, clock: ClockSync | None) -> ImuSample | None:
+    """An :class:`ImuSample` (IMU frame) from a parsed packet, or None if it carries no rate."""
+    host_s = host_ns * 1e-9
+    if isinstance(item, BinaryPacket):
+        gyro = item.get("AngularRate")
+        if gyro is None:
+            gyro = item.get("Imu.AngularRate")
+        if gyro is None:
+            return None
+        dev = item.get("TimeStartup", item.get("Time.TimeStartup"))
+        t = clock.update(dev, host_s) if (clock is not None and dev is not None) else host_s
+        accel = item.get("Accel", item.get("Imu.Accel"))
+        return ImuSample(t=t, gyro=gyro, accel=accel, device_time_ns=dev, host_time_ns=host_ns)
+    if isinstance(item, YmrMessage | QmrMessage | ImuMessage | YprAccelRateMessage):
+        return ImuSample(t=host_s, gyro=item.gyro, accel=item.accel, host_time_ns=host_ns)
+    return None
+
+
+class Vn100:
+    """The VN-100 on a serial port: configure, read in a thread, reconnect (see the module doc)."""
+
+    def __init__(
+        self,
+        port: str,
+        baudrate: int = 921600,
+        initial_baudrate: int = 115200,
+        rate_hz: int = 100,
+        output: str = "binary",
+        low_latency: bool = True,
+        reconnect_max_backoff_s: float = 5.0,
+        on_sample: Callable[[ImuSample], None] | None = None,
+        clock: ClockSync | None = None,
+        serial_factory: Callable[..., Any] | None = None,
+    ) -> None:
+        if baudrate not in BAUDRATES or initial_baudrate not in BAUDRATES:
+            raise ValueError(f"baud rates must be one of {BAUDRATES}")
+        if 800 % rate_hz:
+            raise ValueError("rate_hz must divide 800 (the VN-100's internal rate)")
+        self.port = port
+        self.baudrate = baudrate
+        self.initial_baudrate = initial_baudrate
+        self.rate_hz = rate_hz
+        self.output = output
+        self.low_latency = low_latency
+        self.reconnect_max_backoff_s = reconnect_max_backoff_s
+        self.on_sample = on_sample
+        self.clock = clock or ClockSync(device_unit_s=1e-9)
+        self.parser = Vn100Parser()
+        self.stats = DriverStats()
+        self._serial: Any = None
+        self._factory = serial_factory
+        self._pending: list[tuple[Any, int]] = []  # async packets read while waiting for replies
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._low_latency_warned = False
+        self._last_t = -math.inf
+
+    # -- connection -------------------------------------------------------------------------
+
+    def _open_port(self, baud: int) -> Any:
+        import serial
+
+        factory = self._factory or serial.Serial
+        ser = factory(self.port, baudrate=baud, timeout=0.02, write_timeout=1.0)
+        if self.low_latency and hasattr(ser, "set_low_latency_mode"):
+            try:
+                ser.set_low_latency_mode(True)
+            except (OSError, ValueError, AttributeError) as exc:
+                if not self._low_latency_warned:
+                    log.info("vn100: %s has no low-latency mode (%s)", self.port, exc)
+                    self._low_latency_warned = True
+        return ser
+
+    def open(self) -> None:
+        """Open the port at whichever baud rate the sensor answers, then configure it."""
+        self.close()
+        tried = []
+        for baud in dict.fromkeys((self.baudrate, self.initial_baudrate, *BAUDRATES)):
+            tried.append(baud)
+            try:
+                self._serial = self._open_port(baud)
+            except OSError as exc:
+                raise Vn100Error(f"cannot open {self.port}: {exc}") from exc
+            self.parser = Vn100Parser()
+            try:
+                self.command("VNASY,0", timeout=0.3, retries=1)
+                self.stats.baudrate = baud
+                break
+            except (Vn100Error, OSError):
+                self.close()
+        else:
+            raise Vn100Error(f"no VN-100 answers on {self.port} at {tried} baud")
+        self.configure()
+
+    def configure(self) -> None:
+        """Pause output, switch baud, set the output registers, verify, resume."""
+        self.command("VNASY,0")
+        if self.stats.baudrate != self.baudrate:
+            # the reply to the baud change comes at the old rate; then the port follows
+            self.command(f"VNWRG,05,{self.baudrate}", expect=("VNWRG", 5, (str(self.baudrate),)))
+            self._serial.baudrate = self.baudrate
+            self.stats.baudrate = self.baudrate
+            time.sleep(0.02)
+            self._serial.reset_input_buffer()
+        reply = self.command("VNRRG,05")
+        if not reply.values or int(reply.values[0]) != self.baudrate:
+            raise Vn100Error(
+                f"VN-100 reports baud {reply.values} after switching to {self.baudrate}"
+            )
+        divisor = 800 // self.rate_hz
+        if self.output == "binary":
+            self.command("VNWRG,06,0", expect=("VNWRG", 6, ("0",)))
+            self.command(
+                f"VNWRG,75,1,{divisor},01,{COMMON_FIELDS:04X}",
+                expect=("VNWRG", 75, ("1", str(divisor), "01", f"{COMMON_FIELDS:04X}")),
+            )
+        else:
+            self.command("VNWRG,75,0,0,00", expect=("VNWRG", 75, ("0", "0", "00")))
+            self.command("VNWRG,06,14", expect=("VNWRG", 6, ("14",)))
+            self.command(f"VNWRG,07,{self.rate_hz}", expect=("VNWRG", 7, (str(self.rate_hz),)))
+        self.command("VNASY,1")
+        self.stats.reconfigurations += 1
+
+    def close(self) -> None:
+        if self._serial is not None:
+            with contextlib.suppress(Exception):
+                self._serial.close()
+        self._serial = None
+
+    # -- commands ---------------------------------------------------------------------------
+
+    def command(
+        self,
+        body: str,
+        timeout: float = 0.5,
+        retries: int = 2,
+        expect: tuple[str, int, tuple[str, ...]] | None = None,
+    ) -> Any:
+        """Send ``$<body>*CS`` and wait for its reply; ``$VNERR`` raises
+        :class:`Vn100CommandError`; async packets meanwhile are kept for the reader."""
+        header = body.split(",")[0]
+        reg = int(body.split(",")[1]) if header in ("VNRRG", "VNWRG") else None
+        for _attempt in range(retries + 1):
+            self._serial.write(ascii_command(body))
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                data = self._serial.read(4096)
+                if not data:
+                    continue
+                now = time.monotonic_ns()
+                for item in self.parser.feed(data):
+                    if isinstance(item, ErrorReply):
+                        raise Vn100CommandError(body, item.code)
+                    if (
+                        isinstance(item, RegisterReply)
+                        and item.command == header
+                        and item.register == reg
+                    ):
+                        if expect is not None and item.values[: len(expect[2])] != expect[2]:
+                            raise Vn100Error(f"VN-100 answered {item} to {body!r}")
+                        return item
+                    if isinstance(item, AsciiMessage) and item.header == header:
+                        return item
+                    self._pending.append((item, now))
+        raise Vn100Error(f"no reply from the VN-100 on {self.port} to {body!r}")
+
+    # -- reading ----------------------------------------------------------------------------
+
+    def _deliver(self, batch: list[tuple[Any, int]]) -> None:
+        """Map a batch's device times (all of it updates the clock first, so packets that
+        arrived together are spread by their device stamps) and deliver its samples."""
+        for item, host_ns in batch:
+            dev = item.get("TimeStartup") if isinstance(item, BinaryPacket) else None
+            if dev is not None:
+                self.clock.update(dev, host_ns * 1e-9)
+        for item, host_ns in batch:
+            sample = imu_sample_from(item, host_ns, None)
+            if sample is None or not sample.finite:
+                continue
+            if sample.device_time_ns is not None and self.clock.synced:
+                t = self.clock.to_host(sample.device_time_ns)
+                t = max(t, self._last_t + 1e-6)  # never backwards, even while syncing
+                sample = ImuSample(
+                    t, sample.gyro, sample.accel, sample.device_time_ns, sample.host_time_ns
+                )
+            self._last_t = sample.t
+            self.stats.samples += 1
+            if self.on_sample is not None:
+                self.on_sample(sample)
+
+    def read_once(self) -> int:
+        """Read what has arrived and deliver its samples; returns the bytes read."""
+        if self._pending:
+            self._deliver(self._pending)
+            self._pending = []
+        data = self._serial.read(4096)
+        if data:
+            host_ns = time.monotonic_ns()
+            self._deliver([(item, host_ns) for item in self.parser.feed(data)])
+        return len(data)
+
+    def run(self) -> None:
+        """Read until :meth:`stop`; reconnect with exponential backoff when the port fails."""
+        backoff = 0.1
+        while not self._stop.is_set():
+            if self._serial is None:
+                try:
+                    self.open()
+                    backoff = 0.1
+                    log.info("vn100: connected on %s at %d baud", self.port, self.stats.baudrate)
+                except (Vn100Error, OSError) as exc:
+                    self.stats.last_error = str(exc)
+                    self._stop.wait(backoff)
+                    backoff = min(backoff * 2, self.reconnect_max_backoff_s)
+                    continue
+            try:
+                self.read_once()
+            except Exception as exc:  # serial.SerialException, OSError: the port went away
+                self.stats.read_errors += 1
+                self.stats.reconnects += 1
+                self.stats.last_error = f"{type(exc).__name__}: {exc}"
+                log.warning("vn100: %s lost (%s); reconnecting", self.port, exc)
+                self.close()
+
+    def start(self) -> None:
+        self._stop.clear()
+        self._thread = threading.Thread(target=self.run, name="vn100", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self.close()

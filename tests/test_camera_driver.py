@@ -1,0 +1,148 @@
+"""The camera interface: the V4L2 driver's reconnect logic (behind a capture that fails like a
+real device does), the mock camera, and the hand-over to asyncio."""
+
+import asyncio
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from drivers.camera_v4l2 import V4l2Camera, asyncio_sink, synthetic_frame
+from drivers.mock.camera import MockCamera
+
+
+def collect(source, seconds: float) -> list:
+    frames = []
+    source.start(frames.append)
+    time.sleep(seconds)
+    source.stop()
+    return frames
+
+
+def test_mock_camera_rate_timestamps_and_sequence():
+    frames = collect(MockCamera(fps=20.0, width=64, height=48), 0.55)
+    assert 9 <= len(frames) <= 13
+    assert all(f.shape == (48, 64) and f.image.dtype == np.uint8 for f in frames)
+    assert [f.sequence for f in frames] == list(range(1, len(frames) + 1))
+    dt = np.diff([f.t for f in frames])
+    assert np.all(dt > 0) and np.median(dt) == pytest.approx(0.05, abs=0.01)
+
+
+def test_mock_camera_freeze_delivers_nothing_then_resumes():
+    cam = MockCamera(fps=20.0, width=32, height=32, freeze=[(0.2, 0.3)])
+    frames = collect(cam, 0.8)
+    rel = np.array([f.device_time_s for f in frames])
+    assert not np.any((rel >= 0.2) & (rel < 0.5))
+    assert np.any(rel < 0.2) and np.any(rel >= 0.5)
+    assert np.max(np.diff([f.t for f in frames])) >= 0.3
+
+
+def test_a_missing_device_is_retried_never_raised():
+    cam = V4l2Camera("/dev/video-does-not-exist", width=64, height=48, fps=5)
+    collect(cam, 0.5)
+    assert cam.stats.frames == 0 and cam.stats.open_failures >= 2
+    assert not cam.stats.connected and "video-does-not-exist" in cam.stats.last_error
+
+
+class FlakyCapture:
+    """Behaves like ``cv2.VideoCapture`` on a USB camera: delivers frames with a driver
+    timestamp, then (when the device is unplugged) fails every read; a new one opens only while
+    the device is present."""
+
+    def __init__(self, device: "FakeDevice") -> None:
+        self.device = device
+        self.opened = device.present
+        self.props: dict[int, float] = {}
+        self.released = False
+
+    def isOpened(self) -> bool:
+        return self.opened
+
+    def set(self, prop: int, value: float) -> bool:
+        self.props[prop] = value
+        return True
+
+    def get(self, prop: int) -> float:
+        import cv2
+
+        if prop == cv2.CAP_PROP_POS_MSEC:
+            return self.device.device_ms
+        return self.props.get(prop, 0.0)
+
+    def read(self):
+        time.sleep(0.01)
+        if not self.device.present or self.released:
+            return False, None
+        self.device.device_ms = 5000.0 + 1000.0 * (time.monotonic() - self.device.t0)
+        return True, np.full((48, 64, 3), 128, np.uint8)
+
+    def release(self) -> None:
+        self.released = True
+
+
+class FakeDevice:
+    def __init__(self) -> None:
+        self.present = True
+        self.t0 = time.monotonic()
+        self.device_ms = 0.0
+        self.opens = 0
+
+    def open(self, path: str) -> FlakyCapture:
+        self.opens += 1
+        return FlakyCapture(self)
+
+
+def test_v4l2_driver_reconnects_when_the_device_returns():
+    import cv2
+
+    dev = FakeDevice()
+    cam = V4l2Camera("/dev/video0", width=64, height=48, fps=30, capture_factory=dev.open)
+    frames = []
+    cam.start(frames.append)
+    try:
+        time.sleep(0.3)
+        n_before = len(frames)
+        assert n_before > 5 and cam.stats.connected
+        dev.present = False  # unplugged
+        time.sleep(0.4)
+        assert cam.stats.reconnects >= 1 and not cam.stats.connected
+        assert cam.stats.open_failures >= 1
+        n_gone = len(frames)
+        dev.present = True  # plugged back in
+        time.sleep(1.0)
+        assert len(frames) > n_gone + 5 and cam.stats.connected
+    finally:
+        cam.stop()
+    assert dev.opens >= 3
+    # configured as asked, grey out, driver time mapped onto the host clock
+    cap = FlakyCapture(dev)
+    cam2 = V4l2Camera("x", width=64, height=48, fps=30, pixel_format="YUYV")
+    cam2._factory = lambda _: cap
+    cam2._open()
+    assert cap.props[cv2.CAP_PROP_FRAME_WIDTH] == 64 and cap.props[cv2.CAP_PROP_FPS] == 30
+    assert cap.props[cv2.CAP_PROP_FOURCC] == cv2.VideoWriter_fourcc(*"YUYV")
+    assert all(f.image.ndim == 2 for f in frames)
+    assert all(f.device_time_s is not None for f in frames)
+    host = np.array([f.t for f in frames[:n_before]])
+    assert np.all(np.diff(host) > 0)
+    assert abs(host[-1] - time.monotonic()) < 5.0  # host clock, not the device's 5000 s
+
+
+def test_asyncio_sink_hands_frames_over_and_drops_the_oldest():
+    async def main() -> list[int]:
+        loop = asyncio.get_running_loop()
+        q: asyncio.Queue = asyncio.Queue(maxsize=2)
+        sink = asyncio_sink(loop, q)
+        t = threading.Thread(target=lambda: [sink(i) for i in range(5)])
+        t.start()
+        t.join()
+        await asyncio.sleep(0.05)
+        return [q.get_nowait() for _ in range(q.qsize())]
+
+    assert asyncio.run(main()) == [3, 4]
+
+
+def test_test_pattern_moves():
+    a, b = synthetic_frame(0.0, 64, 48), synthetic_frame(0.2, 64, 48)
+    assert a.shape == (48, 64) and not np.array_equal(a, b)

@@ -1,0 +1,446 @@
+"""ISO 11783 on CAN: speed decoding rules, the permit/halt output and the mock mower controller
+on python-can's ``virtual`` bus (and ``vcan0`` when the kernel has it), DBC decoding, fuzzing."""
+
+import itertools
+import math
+import threading
+import time
+from pathlib import Path
+
+import can
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from drivers.isobus import PGN_GBSD, PGN_HEARTBEAT, PGN_ISB, PGN_WBSD, can_id, open_bus, parse_id
+from drivers.isobus_speed import SpeedReader, decode_speed, encode_speed
+from drivers.mock.mower import MockMowerController
+from drivers.mock.speed import MockSpeedSensor
+from drivers.permit import (
+    HB_INITIAL,
+    HB_SHUTDOWN,
+    PermitSender,
+    Status,
+    decode_isb,
+    decode_status,
+    encode_heartbeat,
+    encode_isb,
+    encode_status,
+)
+
+DBC = Path(__file__).resolve().parent.parent / "configs" / "mowerhw.dbc"
+GBSD_ID = can_id(3, PGN_GBSD, 0x80)
+_channels = itertools.count()
+
+
+def fresh_channel() -> str:
+    return f"test-isobus-{next(_channels)}-{time.monotonic_ns()}"
+
+
+# --- identifiers --------------------------------------------------------------------------
+
+
+def test_identifier_layout_of_design_section_7():
+    assert can_id(3, PGN_GBSD, 0x80) == 0x0CFE4980
+    assert can_id(3, PGN_ISB, 0x90) == 0x0CFD0290
+    assert can_id(3, PGN_HEARTBEAT, 0x90) == 0x0CF0E490  # PF 0xF0 ≥ 240: broadcast
+    # PF < 240 is addressed: PS is the destination, not part of the PGN
+    addressed = can_id(6, 0xEA00, 0x26, destination=0x81)
+    assert addressed == 0x18EA8126
+    ident = parse_id(addressed)
+    assert (ident.pgn, ident.source, ident.destination, ident.priority) == (0xEA00, 0x26, 0x81, 6)
+    assert parse_id(0x0CFE4980).pgn == PGN_GBSD
+
+
+# --- speed decoding rules -----------------------------------------------------------------
+
+
+def frame(speed_raw: int, dist_raw: int = 0, byte7: int = 0xFD) -> bytes:
+    return speed_raw.to_bytes(2, "little") + dist_raw.to_bytes(4, "little") + bytes([0xFF, byte7])
+
+
+def test_speed_scaling_and_direction():
+    s = decode_speed(GBSD_ID, frame(1234, 56789, 0xFD), t=1.0)
+    assert s.valid and s.speed_mps == pytest.approx(1.234) and s.distance_m == pytest.approx(56.789)
+    assert s.source == "ground" and s.source_address == 0x80 and s.t == 1.0
+    rev = decode_speed(GBSD_ID, frame(500, 0, 0xFC), t=1.0)
+    assert rev.valid and rev.speed_mps == pytest.approx(-0.5)
+    top = decode_speed(GBSD_ID, frame(64255), t=0.0)
+    assert top.valid and top.speed_mps == pytest.approx(64.255)
+    wheel = decode_speed(can_id(3, PGN_WBSD, 0x21), frame(100), t=0.0)
+    assert wheel.valid and wheel.source == "wheel" and wheel.source_address == 0x21
+
+
+def test_reserved_bits_are_masked_not_required():
+    # bits 3–8 of byte 7 and byte 6 are reserved: 1 on the wire, but 0 must not matter either
+    for byte7, byte6 in [(0xFD, 0xFF), (0x01, 0x00), (0x55, 0x12)]:
+        data = bytearray(frame(750, 0, byte7))
+        data[6] = byte6
+        s = decode_speed(GBSD_ID, bytes(data), t=0.0)
+        assert s.valid and s.speed_mps == pytest.approx(0.75)
+
+
+@pytest.mark.parametrize(
+    "data, why",
+    [
+        (frame(0xFE00), "speed error"),
+        (frame(0xFEFF), "speed error"),
+        (frame(0xFF00), "speed not available"),
+        (frame(0xFFFF), "speed not available"),
+        (frame(64256), "speed out of range"),
+        (frame(1000, 0, 0xFE), "direction error"),
+        (frame(1000, 0, 0xFF), "direction not available"),
+        (frame(1000)[:7], "frame has 7 bytes"),
+        (b"", "frame has 0 bytes"),
+    ],
+)
+def test_error_and_not_available_give_an_invalid_sample_never_a_number(data, why):
+    s = decode_speed(GBSD_ID, data, t=0.0)
+    assert s is not None and not s.valid and math.isnan(s.speed_mps)
+    assert s.reason.startswith(why)
+
+
+def test_distance_not_available_keeps_the_speed():
+    s = decode_speed(GBSD_ID, frame(300, 0xFFFFFFFF), t=0.0)
+    assert s.valid and s.distance_m is None and s.speed_mps == pytest.approx(0.3)
+    assert decode_speed(GBSD_ID, frame(300, 0xFE000000), t=0.0).distance_m is None
+
+
+def test_frames_that_are_not_speed_give_none():
+    assert decode_speed(can_id(3, PGN_ISB, 0x90), encode_isb(1, True)) is None
+    assert decode_speed(can_id(6, 0xFF10, 0x90), bytes(8)) is None
+
+
+def test_encode_decode_round_trip():
+    for v in (-2.5, -0.001, 0.0, 0.4, 1.25, 64.255):
+        ident, data = encode_speed(v, 10.0, source_address=0x44)
+        s = decode_speed(ident, data, t=0.0)
+        assert s.valid and s.speed_mps == pytest.approx(v, abs=5e-4)
+        assert s.source_address == 0x44
+    ident, data = encode_speed(1.0, error=True)
+    assert not decode_speed(ident, data, t=0.0).valid
+
+
+def test_speed_reader_filters_source_address_and_goes_stale():
+    r = SpeedReader(source="ground", sensor_address=0x80, stale_after_s=0.3)
+    assert r.stale(0.0)  # nothing heard yet
+    assert r.handle(*encode_speed(1.0, 0.0, 0x80), t=1.0).valid
+    assert r.handle(*encode_speed(9.0, 0.0, 0x81), t=1.05) is None  # another sensor
+    assert r.handle(*encode_speed(9.0, 0.0, 0x80, pgn=PGN_WBSD), t=1.05) is None  # wheel-based
+    assert r.stats.wrong_source == 1 and r.stats.other_frames == 1
+    assert not r.stale(1.2) and r.stale(1.31)
+    # an invalid sample does not refresh the speed
+    assert not r.handle(*encode_speed(1.0, 0.0, 0x80, error=True), t=1.25).valid
+    assert r.stale(1.31) and r.stats.invalid == 1
+    with pytest.raises(ValueError, match="ground, wheel, any"):
+        SpeedReader(source="gps")
+
+
+# --- fuzzing ------------------------------------------------------------------------------
+
+ids = st.integers(min_value=0, max_value=(1 << 29) - 1)
+payloads = st.binary(min_size=0, max_size=8)
+
+
+@settings(max_examples=400, deadline=None)
+@given(ids, payloads)
+def test_fuzz_decode_speed_never_raises_and_never_accepts_a_bad_value(arb, data):
+    s = decode_speed(arb, data, t=0.0)
+    if s is None:
+        assert parse_id(arb).pgn not in (PGN_GBSD, PGN_WBSD)
+        return
+    if s.valid:
+        raw = data[0] | data[1] << 8
+        assert len(data) == 8 and raw <= 64255 and data[7] & 3 in (0, 1)
+        assert math.isfinite(s.speed_mps) and abs(s.speed_mps) == pytest.approx(raw / 1000)
+    else:
+        assert math.isnan(s.speed_mps) and s.reason
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["isb", "hb", "status", "other"]), payloads)))
+def test_fuzz_mower_controller_never_runs_without_a_permit_frame(frames):
+    ctl = MockMowerController(bus=None)
+    pgn = {"isb": PGN_ISB, "hb": PGN_HEARTBEAT, "status": 0xFF10, "other": PGN_GBSD}
+    for i, (kind, data) in enumerate(frames):
+        ctl.handle(can_id(3, pgn[kind], 0x90), data, now=i * 0.01)
+        running = ctl.evaluate(now=i * 0.01)
+        if running:  # only ever on a well-formed ISB that says permit
+            assert ctl.state.isb_permit
+            assert any(k == "isb" and len(d) >= 8 and d[7] & 3 == 1 for k, d in frames[: i + 1])
+    for _, data in frames:
+        if len(data) >= 8:
+            decode_status(data)  # never raises on any 8 bytes
+
+
+def test_status_round_trip_and_not_available():
+    s = Status("NEAR_EDGE", True, "", 0.42, 12.35, -3.1, math.radians(90))
+    d = decode_status(encode_status(s))
+    assert (d.state, d.permit, d.reason) == ("NEAR_EDGE", True, "")
+    assert d.signed_distance_m == pytest.approx(0.42)
+    assert d.x_m == pytest.approx(12.35) and d.y_m == pytest.approx(-3.1)
+    assert d.heading_rad == pytest.approx(math.radians(90), abs=0.013)
+    na = decode_status(encode_status(Status()))
+    assert na.state == "UNKNOWN" and not na.permit and na.reason == "NOT_LOCALIZED"
+    assert math.isnan(na.signed_distance_m) and math.isnan(na.x_m) and math.isnan(na.heading_rad)
+
+
+# --- end to end on a virtual bus ------------------------------------------------------------
+
+
+def test_speed_decoded_end_to_end_on_a_virtual_bus():
+    ch = fresh_channel()
+    sensor_bus, other_bus, rx = (open_bus("virtual", ch) for _ in range(3))
+    profile = lambda t: 0.5 + 0.2 * math.sin(t)  # noqa: E731
+    sensor = MockSpeedSensor(sensor_bus, profile, source_address=0x80).start()
+    intruder = MockSpeedSensor(other_bus, lambda t: 9.0, source_address=0x81).start()
+    reader = SpeedReader(sensor_address=0x80, stale_after_s=0.3)
+    got = []
+    try:
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline:
+            msg = rx.recv(timeout=0.05)
+            if msg is not None:
+                s = reader.handle(msg.arbitration_id, bytes(msg.data), time.monotonic())
+                if s is not None:
+                    got.append(s)
+        assert len(got) >= 8  # 10 Hz for 1 s
+        assert all(s.valid and s.source_address == 0x80 for s in got)
+        assert all(0.3 - 1e-3 <= s.speed_mps <= 0.7 + 1e-3 for s in got)  # never the intruder's 9
+        assert reader.stats.wrong_source >= 8
+        sensor.paused.set()  # unplugged
+        t_pause = time.monotonic()
+        while time.monotonic() - t_pause < 0.5:
+            msg = rx.recv(timeout=0.05)
+            if msg is not None:
+                reader.handle(msg.arbitration_id, bytes(msg.data), time.monotonic())
+        assert reader.stale(time.monotonic())
+    finally:
+        sensor.stop()
+        intruder.stop()
+        for b in (sensor_bus, other_bus, rx):
+            b.shutdown()
+
+
+class AppLoop:
+    """The application's loop, as the daemon will run it: tick the permit sender every 10 ms.
+    ``kill()`` stops the loop dead (a hung or crashed application) without a shutdown."""
+
+    def __init__(self, sender: PermitSender) -> None:
+        self.sender = sender
+        self.permit = False
+        self.killed = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self.killed.is_set():
+            now = time.monotonic()
+            self.sender.set(self.permit, now, Status("INSIDE", self.permit, "", 1.0, 0.0, 0.0, 0.0))
+            self.sender.tick(now)
+            time.sleep(0.01)
+
+    def kill(self) -> float:
+        self.killed.set()
+        self.thread.join()
+        return time.monotonic()
+
+
+def wait_for(cond, timeout: float = 2.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.005)
+    return cond()
+
+
+@pytest.fixture
+def permit_link():
+    ch = fresh_channel()
+    tx, rx = open_bus("virtual", ch), open_bus("virtual", ch)
+    sender = PermitSender(tx, source_address=0x90)
+    mower = MockMowerController(rx, permit_source=0x90, timeout_s=0.3).start()
+    app = AppLoop(sender)
+    yield sender, mower, app
+    app.killed.set()
+    mower.stop()
+    tx.shutdown()
+    rx.shutdown()
+
+
+def test_the_default_is_halt(permit_link):
+    sender, mower, app = permit_link
+    app.thread.start()
+    assert wait_for(lambda: mower.state.isb_time is not None)
+    time.sleep(0.3)
+    assert not mower.deck_running and mower.why_not(time.monotonic()) == "ISB stop"
+    assert mower.state.hb_sequence is not None and sender.stats.heartbeats_sent >= 3
+
+
+def test_mower_stops_within_300_ms_when_the_permit_sender_is_killed(permit_link):
+    sender, mower, app = permit_link
+    app.permit = True
+    app.thread.start()
+    assert wait_for(lambda: mower.deck_running), "the mock mower never started the deck"
+    time.sleep(0.3)
+    assert mower.deck_running
+    t_kill = app.kill()
+    last_frame = sender.last_isb_time
+    assert wait_for(lambda: not mower.deck_running, timeout=1.0)
+    stop = mower.last_stop()
+    assert stop.reason in ("ISB timeout", "heartbeat timeout")
+    after_kill, after_last = stop.t - t_kill, stop.t - last_frame
+    print(
+        f"killed sender: deck stopped {after_kill * 1e3:.0f} ms after the kill, "
+        f"{after_last * 1e3:.0f} ms after the last ISB frame ({stop.reason})"
+    )
+    # The timeout runs from the last frame heard (≤ 10 ms before the kill): 300 ms, plus the
+    # controller's 5 ms poll and thread scheduling.
+    assert after_kill <= 0.3 + 0.05
+
+
+def test_mower_stops_on_a_counter_jump_and_recovers_on_a_proper_transition(permit_link):
+    sender, mower, app = permit_link
+    app.permit = True
+    app.thread.start()
+    assert wait_for(lambda: mower.deck_running)
+    t_jump = time.monotonic()
+    sender.counter = (sender.counter + 2) & 0xFF  # two transitions lost: the counter jumps by 2
+    assert wait_for(lambda: not mower.deck_running, timeout=0.5)
+    stop = mower.last_stop()
+    assert stop.reason == "ISB counter jump"
+    print(f"counter jump: deck stopped {(stop.t - t_jump) * 1e3:.0f} ms after the jump")
+    assert stop.t - t_jump <= 0.3
+    time.sleep(0.3)
+    assert not mower.deck_running  # stays stopped although ISB still says permit
+    app.permit = False  # a proper stop → permit transition re-synchronises
+    time.sleep(0.05)
+    app.permit = True
+    assert wait_for(lambda: mower.deck_running, timeout=0.5)
+
+
+def test_shutdown_sends_stop_then_heartbeat_255(permit_link):
+    sender, mower, app = permit_link
+    app.permit = True
+    app.thread.start()
+    assert wait_for(lambda: mower.deck_running)
+    app.kill()
+    t = time.monotonic()
+    sender.shutdown(t)
+    assert wait_for(lambda: not mower.deck_running, timeout=0.2)
+    assert wait_for(lambda: mower.state.hb_sequence == HB_SHUTDOWN, timeout=0.2)
+    assert not mower.state.isb_permit
+    assert mower.state.status.reason == "SHUTTING_DOWN"
+
+
+def test_heartbeat_sequence_and_isb_counter_on_the_wire():
+    ch = fresh_channel()
+    tx, rx = open_bus("virtual", ch), open_bus("virtual", ch)
+    try:
+        sender = PermitSender(tx, source_address=0x90, period_s=0.1, heartbeat_period_s=0.1)
+        for k in range(260):  # 26 s of simulated time, sent at once
+            sender.tick(k * 0.1)
+        sender.set(True, 26.0)
+        sender.set(False, 26.01)
+        frames = []
+        while (msg := rx.recv(timeout=0.05)) is not None:
+            frames.append(msg)
+        hb = [m.data[0] for m in frames if parse_id(m.arbitration_id).pgn == PGN_HEARTBEAT]
+        assert hb[0] == HB_INITIAL and hb[1:252] == list(range(251)) and hb[252] == 0
+        isb = [decode_isb(m.data) for m in frames if parse_id(m.arbitration_id).pgn == PGN_ISB]
+        assert isb[0] == (0, 0) and isb[-2] == (1, 1) and isb[-1] == (2, 0)
+        pgns = {PGN_ISB: 3, PGN_HEARTBEAT: 3, 0xFF10: 6}
+        assert all(
+            parse_id(m.arbitration_id).priority == pgns[parse_id(m.arbitration_id).pgn]
+            for m in frames
+        )
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+
+
+@pytest.mark.skipif(not Path("/sys/class/net/vcan0").exists(), reason="no vcan0 on this kernel")
+def test_permit_over_socketcan_vcan0():  # pragma: no cover - needs the vcan kernel module
+    tx, rx = open_bus("socketcan", "vcan0"), open_bus("socketcan", "vcan0")
+    try:
+        sender = PermitSender(tx, source_address=0x90)
+        mower = MockMowerController(rx, permit_source=0x90).start()
+        for _ in range(30):
+            now = time.monotonic()
+            sender.set(True, now)
+            sender.tick(now)
+            time.sleep(0.01)
+        assert mower.deck_running
+        time.sleep(0.4)
+        assert not mower.deck_running and mower.last_stop().reason.endswith("timeout")
+        mower.stop()
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+
+
+# --- DBC ---------------------------------------------------------------------------------
+
+
+def test_every_frame_decodes_with_cantools_against_the_shipped_dbc():
+    cantools = pytest.importorskip("cantools")
+    db = cantools.database.load_file(str(DBC), frame_id_mask=0x03FFFF00)
+
+    def decode(arb: int, data: bytes) -> tuple[str, dict]:
+        msg = db.get_message_by_frame_id(arb)  # masked: any source address, any priority
+        return msg.name, msg.decode(data, decode_choices=True)
+
+    name, sig = decode(*encode_speed(1.234, 56.789, source_address=0x33))
+    assert name == "GBSD" and sig["GroundBasedMachineSpeed"] == pytest.approx(1.234)
+    assert sig["GroundBasedMachineDistance"] == pytest.approx(56.789)
+    assert sig["GroundBasedDirection"] == "Forward"
+    name, sig = decode(*encode_speed(-0.5, 1.0, pgn=PGN_WBSD))
+    assert name == "WBSD" and sig["WheelBasedMachineDirection"] == "Reverse"
+    assert sig["WheelBasedMachineSpeed"] == pytest.approx(0.5)
+
+    name, sig = decode(can_id(3, PGN_ISB, 0x90), encode_isb(7, True))
+    assert name == "ISB" and sig["IsbTransitionCounter"] == 7
+    assert sig["IsbStopAllImplementOperations"] == "Permit"
+    assert (
+        decode(can_id(3, PGN_ISB, 0x90), encode_isb(8, False))[1]["IsbStopAllImplementOperations"]
+        == "Stop"
+    )
+
+    name, sig = decode(can_id(3, PGN_HEARTBEAT, 0x90), encode_heartbeat(HB_SHUTDOWN))
+    assert name == "Heartbeat" and sig["HeartbeatSequenceNumber"] == "ShuttingDown"
+    assert decode(can_id(3, PGN_HEARTBEAT, 0x90), encode_heartbeat(17))[1] == {
+        "HeartbeatSequenceNumber": 17
+    }
+
+    st_ = Status("NEAR_EDGE", False, "UNCERTAIN", -0.37, 20.5, -7.25, math.radians(45))
+    name, sig = decode(can_id(6, 0xFF10, 0x90), encode_status(st_))
+    assert name == "MowerhwStatus"
+    assert sig["ContainmentState"] == "NEAR_EDGE" and sig["HaltReason"] == "UNCERTAIN"
+    assert sig["MowingPermitted"] == 0
+    assert sig["SignedDistanceToEdge"] == pytest.approx(-0.37)
+    assert sig["PositionX"] == pytest.approx(20.5) and sig["PositionY"] == pytest.approx(-7.25)
+    assert sig["Heading"] == pytest.approx(45.0)
+    print(f"cantools decoded GBSD, WBSD, ISB, Heartbeat, MowerhwStatus: {sig}")
+
+
+def test_dbc_lists_the_identifiers_the_drivers_build():
+    cantools = pytest.importorskip("cantools")
+    db = cantools.database.load_file(str(DBC))
+    ids = {m.name: m.frame_id for m in db.messages}
+    assert ids["GBSD"] == can_id(3, PGN_GBSD, 0x80)
+    assert ids["WBSD"] == can_id(3, PGN_WBSD, 0x80)
+    assert ids["ISB"] == can_id(3, PGN_ISB, 0x90)
+    assert ids["Heartbeat"] == can_id(3, PGN_HEARTBEAT, 0x90)
+    assert ids["MowerhwStatus"] == can_id(6, 0xFF10, 0x90)
+    assert all(m.is_extended_frame for m in db.messages)
+
+
+def test_a_failing_bus_is_counted_not_raised():
+    class BrokenBus:
+        def send(self, msg, timeout=None):
+            raise can.CanOperationError("bus-off")
+
+    sender = PermitSender(BrokenBus())
+    sender.set(True, 0.0)
+    sender.tick(0.0)
+    assert sender.stats.send_errors >= 3

@@ -1,0 +1,277 @@
+"""VN-100 wire protocol: real captures, checks, binary packets, resynchronisation, fuzzing."""
+
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from drivers.mock.vn100 import MockVn100, still_source
+from drivers.vn100 import (
+    BinaryPacket,
+    ErrorReply,
+    QmrMessage,
+    RegisterReply,
+    Vn100Parser,
+    YmrMessage,
+    YprAccelRateMessage,
+    ascii_command,
+    crc16,
+    imu_sample_from,
+    xor8,
+)
+
+DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "vn100"
+CAPTURE_A = DATA / "vn100-rugged-capture-a.txt"
+CAPTURE_B = DATA / "vn100-rugged-capture-b.txt"
+needs_data = pytest.mark.skipif(not CAPTURE_A.exists(), reason="shared/data not present")
+
+
+YMR_A = (
+    b"VNYMR,+010.000,-001.000,+002.000,+00.1000,+00.2000,+00.3000,-00.100,+00.200,-09.810,"
+    b"+00.010000,-00.020000,+00.030000"
+)
+YMR_B = (
+    b"VNYMR,+030.000,+000.000,+000.000,+00.2000,+00.0500,+00.4500,+00.000,+00.000,-09.810,"
+    b"+00.001000,-00.002000,+00.001500"
+)
+
+
+def binary_packet(groups: int, masks: list[int], payload: bytes) -> bytes:
+    body = bytes([groups]) + struct.pack(f"<{len(masks)}H", *masks) + payload
+    return b"\xfa" + body + struct.pack(">H", crc16(body))
+
+
+def test_check_algorithms():
+    assert crc16(b"123456789") == 0x31C3  # XMODEM check value (DESIGN.md §7)
+    assert xor8(b"VNRRG,05") == int(ascii_command("VNRRG,05")[10:12], 16)
+    assert ascii_command("VNRRG,05", crc=True).endswith(f"*{crc16(b'VNRRG,05'):04X}\r\n".encode())
+
+
+@needs_data
+def test_capture_a_every_line_parses():
+    p = Vn100Parser()
+    items = p.feed(CAPTURE_A.read_bytes())
+    p.close()
+    assert len(items) == 975 and all(isinstance(i, YmrMessage) for i in items)
+    assert p.stats.packets_ok == 975 and p.stats.rejected == 0 and p.stats.garbage_bytes == 0
+    first = items[0]  # $VNYMR,+170.786,-005.153,+009.880,-00.1957,…,-01.272982*68
+    assert (first.yaw, first.pitch, first.roll) == (170.786, -5.153, 9.880)
+    assert np.allclose(first.mag, [-0.1957, 0.2218, 0.6401])
+    assert np.allclose(first.accel, [-0.952, -2.181, -9.775])
+    assert np.allclose(first.gyro, [-0.074567, 0.621957, -1.272982])
+
+
+@needs_data
+def test_capture_b_cut_first_and_last_lines_are_rejected_and_counted():
+    data = CAPTURE_B.read_bytes()
+    first_line = data.split(b"\n", 1)[0] + b"\n"
+    p = Vn100Parser()
+    items = []
+    for k in range(0, len(data), 777):  # arbitrary chunking, as a serial port delivers
+        items += p.feed(data[k : k + 777])
+    p.close()
+    complete = data.count(b"$") - 1  # every line but the cut last one
+    assert len(items) == complete == p.stats.packets_ok
+    assert p.stats.garbage_bytes == len(first_line)  # the cut first line
+    assert p.stats.truncated == 1  # the cut last line
+    assert p.stats.bad_checksum == p.stats.malformed == 0
+
+
+def test_crlf_and_lf_and_crc16_lines():
+    body = YMR_A
+    crlf = b"$" + body + b"*%02X\r\n" % xor8(body)
+    lf = b"$" + body + b"*%02X\n" % xor8(body)
+    crc = b"$" + body + b"*%04X\r\n" % crc16(body)
+    p = Vn100Parser()
+    out = p.feed(crlf + lf + crc)
+    assert len(out) == 3 and all(isinstance(m, YmrMessage) for m in out)
+    assert out[2].gyro.tolist() == [0.01, -0.02, 0.03]
+
+
+def test_other_ascii_messages_and_replies():
+    msgs = [
+        "VNQMR,+0.000,+0.000,+0.383,+0.924,+0.2,+0.0,+0.4,+0.0,+0.0,-9.8,+0.1,+0.0,+0.0",
+        "VNYBA,+1.0,+2.0,+3.0,+0.1,+0.2,+0.3,+0.01,+0.02,+0.03",
+        "VNYIA,+1.0,+2.0,+3.0,+0.1,+0.2,+0.3,+0.01,+0.02,+0.03",
+        "VNRRG,05,921600",
+        "VNERR,07",
+    ]
+    data = b"".join(b"$" + m.encode() + b"*%02X\r\n" % xor8(m.encode()) for m in msgs)
+    out = Vn100Parser().feed(data)
+    assert isinstance(out[0], QmrMessage) and np.allclose(
+        out[0].quaternion_wxyz, [0.924, 0, 0, 0.383]
+    )
+    assert isinstance(out[1], YprAccelRateMessage) and out[1].header == "VNYBA"
+    assert out[2].header == "VNYIA"
+    assert out[3] == RegisterReply("VNRRG", 5, ("921600",))
+    assert isinstance(out[4], ErrorReply) and out[4].meaning == "invalid parameter"
+
+
+def test_binary_common_group_fields_in_si():
+    payload = (
+        struct.pack("<Q", 123_456_789_000)
+        + struct.pack("<3f", 90.0, -10.0, 5.0)
+        + struct.pack("<4f", 0.0, 0.0, 0.70710678, 0.70710678)
+        + struct.pack("<3f", 0.1, -0.2, 0.3)
+        + struct.pack("<3f", 0.0, 0.0, -9.81)
+        + struct.pack("<6f", 0.1, 0.2, -9.7, 0.01, 0.02, 0.03)
+        + struct.pack("<5f", 0.2, 0.1, 0.4, 21.5, 101.3)
+    )
+    mask = (1 << 0) | (1 << 3) | (1 << 4) | (1 << 5) | (1 << 8) | (1 << 9) | (1 << 10)
+    (pkt,) = Vn100Parser().feed(binary_packet(0x01, [mask], payload))
+    assert isinstance(pkt, BinaryPacket)
+    assert pkt["TimeStartup"] == 123_456_789_000
+    assert np.allclose(pkt["YawPitchRoll"], np.radians([90.0, -10.0, 5.0]))
+    assert np.allclose(pkt["AngularRate"], [0.1, -0.2, 0.3], atol=1e-7)
+    assert np.allclose(pkt["Accel"], [0, 0, -9.81], atol=1e-6)
+    assert np.allclose(pkt["Imu"], [0.1, 0.2, -9.7, 0.01, 0.02, 0.03], atol=1e-6)
+    assert np.allclose(pkt["MagPres"], [0.2e-4, 0.1e-4, 0.4e-4, 21.5, 101300.0], rtol=1e-6)
+    assert np.allclose(pkt["Quaternion"], [0, 0, 0.70710678, 0.70710678])
+
+
+def test_binary_with_several_groups():
+    # common: TimeStartup; IMU group: Temp, Pres, AngularRate; attitude: YawPitchRoll
+    payload = (
+        struct.pack("<Q", 5)
+        + struct.pack("<ff", 30.0, 100.0)
+        + struct.pack("<3f", 1.0, 2.0, 3.0)
+        + struct.pack("<3f", 10.0, 0.0, 0.0)
+    )
+    pkt_bytes = binary_packet(
+        0x01 | 0x04 | 0x10, [1, (1 << 4) | (1 << 5) | (1 << 10), 1 << 1], payload
+    )
+    (pkt,) = Vn100Parser().feed(pkt_bytes)
+    assert pkt["TimeStartup"] == 5
+    assert pkt["Imu.Temp"] == pytest.approx(30.0) and pkt["Imu.Pres"] == pytest.approx(100000.0)
+    assert np.allclose(pkt["Imu.AngularRate"], [1, 2, 3])
+    assert np.allclose(pkt["Attitude.YawPitchRoll"], np.radians([10, 0, 0]))
+
+
+def test_resynchronisation_after_garbage_and_false_syncs():
+    body = b"VNRRG,05,115200"
+    good = b"$" + body + b"*%02X\r\n" % xor8(body)
+    bin_good = binary_packet(0x01, [1 << 5], struct.pack("<3f", 0.1, 0.2, 0.3))
+    stream = (
+        b"\x00\x13garbage"
+        + b"$VNXXX,junk"
+        + b"\xfa\x01\x20\x00junk"
+        + good
+        + b"$VN"
+        + bin_good
+        + good[:-5]
+        + b"Z"
+        + good[-4:]
+        + good
+    )
+    p = Vn100Parser()
+    out = []
+    for b in stream:  # one byte at a time
+        out += p.feed(bytes([b]))
+    kinds = [type(o).__name__ for o in out]
+    assert kinds == ["RegisterReply", "BinaryPacket", "RegisterReply"]
+    assert p.stats.rejected >= 3 and p.stats.garbage_bytes > 0
+
+
+def _same(a, b):
+    return type(a) is type(b) and all(
+        np.array_equal(np.asarray(x), np.asarray(y))
+        for x, y in zip(
+            vars(a).values() if not isinstance(a, BinaryPacket) else a.fields.values(),
+            vars(b).values() if not isinstance(b, BinaryPacket) else b.fields.values(),
+            strict=True,
+        )
+    )
+
+
+def _sent_packets():
+    s = still_source(0.0)
+    ascii_pkt = MockVn100._ascii_packet(type("M", (), {"registers": {6: ["14"]}})(), s)
+    regs = {75: ["1", "8", "01", "0129"]}
+    bin_pkt = MockVn100._binary_packet(type("M", (), {"registers": regs})(), 1.5, s)
+    return ascii_pkt, bin_pkt
+
+
+@pytest.mark.parametrize("which", [0, 1], ids=["ascii-xor8", "binary-crc16"])
+def test_every_single_bit_flip_is_rejected(which):
+    pkt = _sent_packets()[which]
+    for k in range(1, len(pkt)):
+        for bit in range(8):
+            bad = bytearray(pkt)
+            bad[k] ^= 1 << bit
+            out = Vn100Parser().feed(bytes(bad) + pkt)
+            # the intact copy always; the damaged one only if its content was untouched (a
+            # hex digit of the check changing case, 'A' → 'a', still checks out)
+            good = Vn100Parser().feed(pkt)[0]
+            assert 1 <= len(out) <= 2 and all(_same(o, good) for o in out)
+
+
+def test_xor8_blind_spot_is_narrowed_by_field_validation():
+    """XOR-8 cannot see the same bit flipped twice; the field rules catch most of those."""
+    body = YMR_B
+    bad = bytearray(body)
+    bad[3] ^= 0x10  # 'Y' → 'I'
+    bad[6] ^= 0x10  # '+' → ';'
+    assert xor8(bytes(bad)) == xor8(body)  # the checksum still matches
+    p = Vn100Parser()
+    assert p.feed(b"$" + bytes(bad) + b"*%02X\r\n" % xor8(bytes(bad))) == []
+    assert p.stats.malformed == 1
+
+
+@settings(max_examples=300)
+@given(st.binary(max_size=600), st.integers(1, 64))
+def test_fuzz_arbitrary_bytes_never_raise(data, chunk):
+    p = Vn100Parser()
+    for k in range(0, len(data), chunk):
+        p.feed(data[k : k + chunk])
+    p.close()
+    assert p.stats.bytes_in == len(data)
+
+
+@settings(max_examples=200)
+@given(st.lists(st.tuples(st.integers(0, 2), st.binary(max_size=12)), min_size=1, max_size=8))
+def test_fuzz_damaged_binary_stream_accepts_only_what_was_sent(edits):
+    """Inserted, flipped and dropped bytes: a CRC-16 packet accepted is one really sent."""
+    _, sent = _sent_packets()
+    good = Vn100Parser().feed(sent)[0]
+    stream = bytearray(sent * 6)
+    for op, junk in edits:
+        k = len(junk) % max(len(stream), 1)
+        if op == 0:
+            stream[k:k] = junk
+        elif op == 1 and stream:
+            stream[k] ^= 0x10
+        elif op == 2 and stream:
+            del stream[k]
+    p = Vn100Parser()
+    out = p.feed(bytes(stream))
+    p.close()
+    assert all(_same(item, good) for item in out)
+    assert p.stats.binary_ok == len(out)
+
+
+@settings(max_examples=200)
+@given(st.integers(0, 10**6), st.binary(min_size=1, max_size=4))
+def test_fuzz_ascii_damage_never_yields_malformed_samples(pos, junk):
+    """ASCII (XOR-8): whatever is accepted parses into finite, well-formed values."""
+    sent, _ = _sent_packets()
+    stream = bytearray(sent * 4)
+    k = pos % len(stream)
+    stream[k : k + len(junk)] = junk
+    for item in Vn100Parser().feed(bytes(stream)):
+        if isinstance(item, YmrMessage):
+            assert np.all(np.isfinite(item.gyro)) and np.all(np.isfinite(item.accel))
+
+
+def test_imu_samples_from_packets():
+    body = YMR_A
+    (ymr,) = Vn100Parser().feed(b"$" + body + b"*%02X\n" % xor8(body))
+    s = imu_sample_from(ymr, 2_000_000_000, None)
+    assert s.t == 2.0 and s.gyro.tolist() == [0.01, -0.02, 0.03]
+    (pkt,) = Vn100Parser().feed(
+        binary_packet(1, [(1 << 0) | (1 << 5)], struct.pack("<Q3f", 10**9, 0.1, 0.2, 0.3))
+    )
+    s = imu_sample_from(pkt, 3_000_000_000, None)
+    assert s.device_time_ns == 10**9 and np.allclose(s.gyro, [0.1, 0.2, 0.3])

@@ -1,0 +1,109 @@
+"""The real VN-100 driver against the mock VN-100 on a real pseudo-terminal (pyserial)."""
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from drivers.mock.vn100 import Faults, MockImuState, MockVn100
+from drivers.vn100 import Vn100, Vn100CommandError
+
+
+def moving_source(t: float) -> MockImuState:
+    """A sensor turning in a known way, so every sample can be checked against its time."""
+    gyro = np.array([0.1 * math.sin(t), 0.2 * math.cos(t), 0.3 + 0.01 * t])
+    return MockImuState(
+        gyro,
+        np.array([0.0, 0.0, -9.81]),
+        np.array([10 * t % 360, 0, 0]),
+        np.array([0, 0, 0, 1.0]),
+        np.array([0.2, 0.0, 0.4]),
+    )
+
+
+def run_for(drv: Vn100, seconds: float) -> None:
+    drv.start()
+    time.sleep(seconds)
+    drv.stop()
+
+
+@pytest.fixture
+def link(tmp_path):
+    return tmp_path / "vn100"
+
+
+def test_driver_configures_the_mock_from_factory_settings(link):
+    with MockVn100(link) as mock:
+        assert mock.baud == 115200 and mock.registers[6] == ["14"]
+        drv = Vn100(str(link), baudrate=921600, rate_hz=100, output="binary")
+        drv.open()
+        assert mock.baud == 921600 and drv.stats.baudrate == 921600
+        assert mock.registers[75] == ["1", "8", "01", "0129"]
+        assert mock.registers[6] == ["0"]
+        assert mock.async_on
+        drv.close()
+
+
+def test_ten_seconds_of_100_hz_binary_with_one_percent_garbage(link):
+    faults = Faults(garbage=0.01, bit_flip=0.005, drop_byte=0.005)
+    samples = []
+    with MockVn100(link, source=moving_source, faults=faults, seed=3) as mock:
+        drv = Vn100(str(link), on_sample=samples.append)
+        drv.open()
+        sent_before = mock.stats.samples
+        run_for(drv, 10.0)
+        sent = mock.stats.samples - sent_before
+        corrupted_sent = mock.stats.corrupted
+    stats = drv.parser.stats
+    # every accepted sample is exactly what the sensor measured at its own TimeStartup
+    bad = [
+        s
+        for s in samples
+        if not np.allclose(s.gyro, moving_source(s.device_time_ns * 1e-9).gyro, atol=1e-6)
+    ]
+    print(
+        f"\nsent {sent} samples ({corrupted_sent} corrupted, {mock.stats.garbage_bytes} garbage "
+        f"bytes); accepted {len(samples)}; rejected {stats.rejected} "
+        f"(bad CRC {stats.bad_crc}, bad header {stats.bad_binary_header}); garbage bytes "
+        f"skipped {stats.garbage_bytes}; corrupted samples accepted {len(bad)}"
+    )
+    assert bad == []
+    assert 990 <= sent <= 1010  # 100 Hz for 10 s
+    assert len(samples) >= sent - corrupted_sent - 10  # only damaged packets are lost
+    assert stats.rejected >= corrupted_sent // 2
+    t = np.array([s.t for s in samples])
+    assert np.all(np.diff(t) > 0)  # clock-synced, monotonic
+
+
+def test_vnerr_is_a_failed_command_with_its_meaning(link):
+    with MockVn100(link) as _mock:
+        drv = Vn100(str(link))
+        drv.open()
+        with pytest.raises(Vn100CommandError, match=r"error 7 \(invalid parameter\)"):
+            drv.command("VNWRG,75,9,8,01,0129")
+        with pytest.raises(Vn100CommandError, match=r"error 8 \(invalid register\)"):
+            drv.command("VNRRG,99")
+        drv.close()
+
+
+@pytest.mark.parametrize("power_cycle", [False, True], ids=["usb-link", "power-cycle"])
+def test_reconnects_when_the_port_vanishes_and_returns(link, power_cycle):
+    samples = []
+    with MockVn100(
+        link,
+        source=moving_source,
+        faults=Faults(vanish=[(2.0, 1.5)]),
+        power_cycle_on_vanish=power_cycle,
+    ) as mock:
+        drv = Vn100(str(link), on_sample=samples.append, reconnect_max_backoff_s=0.5)
+        drv.start()
+        time.sleep(6.0)
+        drv.stop()
+        assert mock.stats.vanished == 1
+    assert drv.stats.reconnects >= 1
+    assert drv.stats.reconfigurations >= 2
+    t = np.array([s.host_time_ns for s in samples]) * 1e-9
+    gaps = np.diff(t)
+    assert gaps.max() > 1.0  # the outage
+    assert t[-1] - t[0] > 5.0 and (t[-1] - t[np.argmax(gaps) + 1]) > 1.5  # data after it

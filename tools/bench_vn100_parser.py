@@ -1,0 +1,90 @@
+#!/usr/bin/env python3
+"""Benchmark: VN-100 parser throughput on the real VN-100 Rugged captures and on binary output.
+
+Feeds each stream to :class:`drivers.vn100.Vn100Parser` in chunks the size a serial read
+returns (64 B and 4 KiB), best of ``--repeat`` runs, and prints one JSON object: MB/s,
+packets/s, µs per packet, and the headroom over the fastest serial link (921600 baud ≈
+92 kB/s) — how many times faster than the wire the parser is. The binary stream is what the
+driver configures (TimeStartup + YawPitchRoll + AngularRate + Accel, 50 bytes per packet),
+with 1 % of the packets damaged so the resynchronisation path is part of the measurement.
+
+Run: ``.venv/bin/python tools/bench_vn100_parser.py`` (``--repeat 5``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import struct
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+from drivers.vn100 import COMMON_FIELDS, Vn100Parser, crc16
+
+DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "vn100"
+WIRE_BYTES_PER_S = 921600 / 10  # 8N1: 10 bits per byte
+
+
+def binary_stream(n_packets: int, damaged: float = 0.01, seed: int = 0) -> bytes:
+    """``n_packets`` 100 Hz common-group packets as the driver configures them."""
+    rng = random.Random(seed)
+    head = bytes([0x01]) + struct.pack("<H", COMMON_FIELDS)
+    out = bytearray()
+    for k in range(n_packets):
+        t_ns = 1_000_000_000 + k * 10_000_000
+        payload = struct.pack("<Q", t_ns)
+        payload += struct.pack("<3f", 10.0 + 0.01 * k, 0.5, -1.5)  # YawPitchRoll
+        payload += struct.pack("<3f", 0.01, -0.02, 0.3)  # AngularRate
+        payload += struct.pack("<3f", 0.1, 0.0, -9.81)  # Accel
+        body = head + payload
+        pkt = bytearray(b"\xfa" + body + struct.pack(">H", crc16(body)))
+        if rng.random() < damaged:
+            pkt[rng.randrange(1, len(pkt))] ^= 1 << rng.randrange(8)
+        out += pkt
+    return bytes(out)
+
+
+def run(stream: bytes, chunk: int, repeat: int) -> dict[str, float]:
+    best, stats = float("inf"), None
+    for _ in range(repeat):
+        parser = Vn100Parser()
+        t0 = time.perf_counter()
+        for i in range(0, len(stream), chunk):
+            parser.feed(stream[i : i + chunk])
+        parser.close()
+        dt = time.perf_counter() - t0
+        if dt < best:
+            best, stats = dt, parser.stats
+    mb_s = len(stream) / best / 1e6
+    return {
+        "chunk_bytes": chunk,
+        "mb_per_s": round(mb_s, 2),
+        "packets_per_s": round(stats.packets_ok / best),
+        "us_per_packet": round(best / max(stats.packets_ok, 1) * 1e6, 2),
+        "headroom_over_921600_baud": round(len(stream) / best / WIRE_BYTES_PER_S, 1),
+        "counts": {k: v for k, v in asdict(stats).items() if v} | {"rejected": stats.rejected},
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args()
+    streams = {
+        "capture_a_ascii": (DATA / "vn100-rugged-capture-a.txt").read_bytes(),
+        "capture_b_ascii": (DATA / "vn100-rugged-capture-b.txt").read_bytes(),
+        "binary_100hz_common_group": binary_stream(20000),
+    }
+    out: dict[str, object] = {}
+    for name, data in streams.items():
+        out[name] = {
+            "bytes": len(data),
+            "results": [run(data, chunk, args.repeat) for chunk in (64, 4096)],
+        }
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
