@@ -270,6 +270,7 @@ class ParserStats:
     too_long: int = 0  # a ``$`` with no line end within the longest message
     bad_binary_header: int = 0  # 0xFA followed by group bits or fields that do not exist
     truncated: int = 0  # a packet cut short at the end of the stream (``close``)
+    headless_line: int = 0  # the end of an ASCII line whose start was lost (``…*CS\r\n``)
 
     @property
     def rejected(self) -> int:
@@ -280,10 +281,15 @@ class ParserStats:
             + self.too_long
             + self.bad_binary_header
             + self.truncated
+            + self.headless_line
         )
 
 
 _ASCII_MAX = 512
+# The end of an ASCII message: its check and line end. Seen inside garbage, it is a line whose
+# start was lost (the stream was opened mid-line, or the ``$`` was corrupted).
+_LINE_TAIL = re.compile(rb"\*(?:[0-9A-Fa-f]{4}|[0-9A-Fa-f]{2})\r?\n")
+_TAIL_KEEP = 7  # longest tail ``*XXXX\r\n``
 _HEX = set(b"0123456789ABCDEFabcdef")
 _N_FIELDS = {"VNYMR": 12, "VNQMR": 13, "VNIMU": 11, "VNYBA": 9, "VNYIA": 9}
 
@@ -293,6 +299,9 @@ class Vn100Parser:
 
     def __init__(self) -> None:
         self._buf = bytearray()
+        self._garbage_tail = b""  # the last garbage bytes, to find a line tail split by feeds
+        self._base = 0  # stream offset of ``_buf[0]``
+        self._rejected_line_end = -1  # stream offset of the LF of the last rejected ASCII line
         self.stats = ParserStats()
 
     def feed(self, data: bytes) -> list[Any]:
@@ -310,14 +319,30 @@ class Vn100Parser:
                 while j < n and buf[j] != 0x24 and buf[j] != 0xFA:
                     j += 1
                 self.stats.garbage_bytes += j - i
+                self._count_headless(bytes(buf[i:j]), self._base + j)
                 i = j
                 continue
+            self._garbage_tail = b""
             step = self._ascii(buf, i, n, out) if b == 0x24 else self._binary(buf, i, n, out)
             if step == 0:  # need more bytes
                 break
             i += step
         del buf[:i]
+        self._base += i
         return out
+
+    def _count_headless(self, run: bytes, run_end: int) -> None:
+        """Count line tails in a garbage run ending at stream offset ``run_end`` (with the end
+        of the previous run, if any), except the tail of a line already counted as rejected."""
+        text = self._garbage_tail + run
+        first = len(self._garbage_tail)  # tails ending before this were counted last time
+        start = run_end - len(text)  # stream offset of text[0]
+        self.stats.headless_line += sum(
+            1
+            for m in _LINE_TAIL.finditer(text)
+            if m.end() > first and start + m.end() - 1 > self._rejected_line_end
+        )
+        self._garbage_tail = text[-_TAIL_KEEP:]
 
     def close(self) -> list[Any]:
         """End of stream: a pending partial packet is counted as truncated and dropped."""
@@ -327,6 +352,7 @@ class Vn100Parser:
                 self.stats.truncated += 1
             else:
                 self.stats.garbage_bytes += len(buf)
+                self._count_headless(bytes(buf), self._base + len(buf))
             buf.clear()
         return []
 
@@ -339,6 +365,12 @@ class Vn100Parser:
                 return 0
             self.stats.too_long += 1
             return 1  # resume at the byte after the false sync
+        step = self._ascii_line(buf, i, end, out)
+        if step == 1:  # rejected: the rest of this line is not a separate headless line
+            self._rejected_line_end = self._base + end
+        return step
+
+    def _ascii_line(self, buf: bytearray, i: int, end: int, out: list[Any]) -> int:
         line = bytes(buf[i + 1 : end])
         if line.endswith(b"\r"):
             line = line[:-1]

@@ -75,9 +75,22 @@ def test_capture_b_cut_first_and_last_lines_are_rejected_and_counted():
     p.close()
     complete = data.count(b"$") - 1  # every line but the cut last one
     assert len(items) == complete == p.stats.packets_ok
-    assert p.stats.garbage_bytes == len(first_line)  # the cut first line
+    assert p.stats.garbage_bytes == len(first_line)  # the cut first line: skipped bytes …
+    assert p.stats.headless_line == 1  # … counted as one line whose start was lost
     assert p.stats.truncated == 1  # the cut last line
+    assert p.stats.rejected == 2
     assert p.stats.bad_checksum == p.stats.malformed == 0
+
+
+def test_a_line_rejected_by_its_check_is_counted_once():
+    line = b"$VNYMR,+1.0*00\r\n"  # wrong checksum
+    p = Vn100Parser()
+    for chunk in (line[:5], line[5:12], line[12:] + line):
+        p.feed(chunk)
+    assert p.stats.bad_checksum == 2 and p.stats.headless_line == 0 and p.stats.rejected == 2
+    p = Vn100Parser()
+    p.feed(b"MR,+1.0*4F\r\nPR,+1*3A\n")  # two line ends without their start
+    assert p.stats.headless_line == 2 and p.stats.packets_ok == 0
 
 
 def test_crlf_and_lf_and_crc16_lines():
