@@ -166,6 +166,49 @@ class PermitConfig:
 
 
 @dataclass(frozen=True)
+class FrontendConfig:
+    """Vision front end: features, KLT tracking, outlier rejection, re-identification."""
+
+    max_features: int = opt(120, "features tracked at once", ge=8, le=2000)
+    min_distance_px: float = opt(16.0, "closest two features may be", gt=0.0, le=200.0)
+    quality_level: float = opt(
+        0.05, "Shi–Tomasi corner strength, relative to the strongest corner", gt=0.0, lt=1.0
+    )
+    block_size: int = opt(5, "Shi–Tomasi window (px, at the detection scale)", ge=3, le=31)
+    detect_level: int = opt(
+        0, "pyramid level detection runs on (0 = full size: no blobs taken for corners)", ge=0, le=3
+    )
+    grid: int = opt(8, "detection grid (cells per side); spreads features", ge=1, le=64)
+    min_elevation_deg: float = opt(
+        -25.0, "detect nothing lower (grass near the deck is not a landmark)", ge=-90.0, le=90.0
+    )
+    max_elevation_deg: float = opt(60.0, "detect nothing higher", ge=-90.0, le=90.0)
+    klt_window_px: int = opt(21, "Lucas–Kanade window (px)", ge=5, le=101)
+    klt_levels: int = opt(3, "Lucas–Kanade pyramid levels above full size", ge=0, le=6)
+    fb_max_px: float = opt(0.7, "largest forward–backward tracking error kept (px)", gt=0.0)
+    subpixel: bool = opt(True, "refine tracked corners to sub-pixel (stops KLT drift)")
+    max_refine_px: float = opt(1.5, "drop a track whose refinement moves it further (px)", gt=0.0)
+    epipolar_threshold_deg: float = opt(
+        0.35, "largest distance from its epipolar plane a track may have (deg)", gt=0.0, le=10.0
+    )
+    ransac_iterations: int = opt(64, "epipolar RANSAC hypotheses per frame", ge=8, le=4096)
+    descriptor_refresh_frames: int = opt(
+        8, "add a fresh descriptor to a track this often (frames)", ge=1
+    )
+    max_descriptors: int = opt(4, "descriptors kept per track / map landmark", ge=1, le=16)
+    max_hamming: int = opt(50, "largest ORB distance (of 256 bits) for a re-identification", ge=1)
+    association_gate: float = opt(
+        0.999, "χ² probability of the predicted-bearing gate for re-identification", gt=0.5, lt=1.0
+    )
+    reid_angle_deg: float = opt(
+        0.75, "teach: predicted-bearing gate for re-identifying a lost landmark (deg)", gt=0.0
+    )
+    drop_after_rejections: int = opt(
+        2, "mow: drop an association the localizer rejects this many frames running", ge=1
+    )
+
+
+@dataclass(frozen=True)
 class TeachConfig:
     """Teach phase: landmark observers (eqs 2–8) and robot-centric EKF (eqs 14–20)."""
 
@@ -201,6 +244,12 @@ class TeachConfig:
         "weighted",
         "observer depth gain: weighted (eq. 7 capped by precision) or contraction (eq. 7 only)",
         choices=("weighted", "contraction"),
+    )
+    max_landmark_sigma_m: float = opt(
+        0.05, "map only landmarks known better than this (largest position σ)", gt=0.0
+    )
+    landmark_residual_factor: float = opt(
+        3.0, "drop landmarks whose bearing residual is this many times the typical one", gt=1.0
     )
 
 
@@ -267,6 +316,7 @@ class Config:
     can: CanConfig = section(CanConfig, "CAN bus")
     speed: SpeedConfig = section(SpeedConfig, "ground speed")
     camera: CameraConfig = section(CameraConfig, "omnidirectional camera")
+    frontend: FrontendConfig = section(FrontendConfig, "vision front end")
     permit: PermitConfig = section(PermitConfig, "permit / halt output")
     teach: TeachConfig = section(TeachConfig, "teach-phase estimators")
     mow: MowConfig = section(MowConfig, "mow-phase localizer")

@@ -129,7 +129,15 @@ def horizontal_errors(traj: FloatArray, run: TeachRun) -> FloatArray:
     return np.linalg.norm(traj[:, 1:3] - run.truth.xy[idx], axis=1)
 
 
-def teach_metrics(run: TeachRun, result: TeachResult, wall_s: float, finish_s: float) -> dict:
+def teach_metrics(
+    run: TeachRun,
+    result: TeachResult,
+    wall_s: float,
+    finish_s: float,
+    landmark_truth: dict[int, FloatArray] | None = None,
+) -> dict:
+    """Scores of a teach run. ``landmark_truth`` (id → true world xyz) replaces the world's
+    landmark list when ids are not the world's (pixel level: ids are tracks)."""
     moving = run.truth.speed[
         np.clip(np.searchsorted(run.truth.t, result.trajectory[:, 0]), 0, run.truth.t.size - 1)
     ]
@@ -137,8 +145,13 @@ def teach_metrics(run: TeachRun, result: TeachResult, wall_s: float, finish_s: f
     e = horizontal_errors(result.trajectory, run)[first:]
     e0 = horizontal_errors(result.trajectory_no_closure, run)[first:]
     ids = np.array(sorted(result.landmarks), dtype=np.int64)
+    if landmark_truth is not None:  # only landmarks whose true point is known (not the sky)
+        ids = np.array([i for i in ids.tolist() if i in landmark_truth], dtype=np.int64)
+        true_xyz = np.array([landmark_truth[i] for i in ids.tolist()]).reshape(-1, 3)
+    else:
+        true_xyz = run.landmarks_w[ids]
     est = np.array([result.landmarks[i] for i in ids]).reshape(-1, 3)
-    lm_err = np.linalg.norm(est - run.landmarks_w[ids], axis=1) if ids.size else np.zeros(0)
+    lm_err = np.linalg.norm(est - true_xyz, axis=1) if ids.size else np.zeros(0)
     boundary_rmse = float(np.sqrt(np.mean(e**2)))
     landmark_rmse = float(np.sqrt(np.mean(lm_err**2))) if lm_err.size else float("nan")
     finite = bool(np.all(np.isfinite(result.trajectory)) and np.all(np.isfinite(est)))

@@ -28,13 +28,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mowerhw.config import Config
+from mowerhw.config import Config, FrontendConfig
+from mowerhw.evaluate_pixel import frontend_figures, sees_point
 from mowerhw.geometry import yaw_to_quat
 from mowerhw.map import LawnMap
 from mowerhw.mow import LawnGeometry, Localizer
 from mowerhw.sim import make_world
 from mowerhw.sim.controller import BangBangMower
 from mowerhw.sim.plant import MowerPlant
+from mowerhw.sim.render import OmniRenderer
+from mowerhw.vision import MowVision
 
 FloatArray = NDArray[np.float64]
 
@@ -68,14 +71,31 @@ def run_mow(
     vision_dropout: tuple[float, float] | None = None,
     frame_latency_s: float = 0.15,
     mow_seed: int | None = None,
+    level: str = "bearing",
 ) -> MowOutcome:
-    """Mow a simulated yard (the world of ``scenario``/``seed``) with the given map."""
+    """Mow a simulated yard (the world of ``scenario``/``seed``) with the given map.
+
+    ``level="pixel"``: the camera delivers rendered images, and landmarks are found and
+    re-identified by the front end (:class:`mowerhw.vision.MowVision`); the map must come
+    from a pixel-level teach (its landmarks carry descriptors)."""
     world = make_world(scenario, seed)
     run_seed = seed if mow_seed is None else mow_seed
+    renderer = OmniRenderer(world, run_seed) if level == "pixel" else None
     plant = MowerPlant(
-        world, run_seed * 7919 + 13, frame_latency_s=frame_latency_s, vision_dropout=vision_dropout
+        world,
+        run_seed * 7919 + 13,
+        frame_latency_s=frame_latency_s,
+        vision_dropout=vision_dropout,
+        renderer=renderer,
     )
     loc = Localizer(lawn_map, config)
+    vision = None
+    if renderer is not None:
+        fe_cfg = config.frontend if isinstance(config, Config) else FrontendConfig()
+        px_sigma = config.camera.pixel_sigma if isinstance(config, Config) else 1.0
+        vision = MowVision(loc, world.camera, world.q_bc, fe_cfg, run_seed, px_sigma)
+        truth = _association_truth(lawn_map)
+        verdicts: list[bool] = []
     geom = loc.geometry
     controller = BangBangMower(geom.inward_direction, np.random.default_rng([run_seed, 30]))
     truth_geom = LawnGeometry(
@@ -112,10 +132,16 @@ def run_mow(
         v, w = controller.command(plant.t, float(x[0]), float(x[1]), yaw, res.state)
         out = plant.step(v, w)
         loc.imu(*out.imu)
+        if vision is not None:
+            vision.imu(*out.imu)
         if out.speed is not None:
             loc.speed(*out.speed)
         for f in out.frames:
-            loc.bearings(f.t, f.ids, f.bearings)
+            if vision is None:
+                loc.bearings(f.t, f.ids, f.bearings)
+                continue
+            vision.frame(f.t, f.image)
+            verdicts += _judge(vision, plant, f, truth)
     wall = time.perf_counter() - wall0
     # -- scoring against the truth ----------------------------------------------------------
     s_true = truth_geom.signed_distances(true_xy)
@@ -148,6 +174,15 @@ def run_mow(
     }
     if vision_dropout is not None:
         metrics["vision_dropout"] = _dropout_timeline(vision_dropout, t_arr, permit, reason, sigma)
+    if vision is not None:
+        metrics.update(
+            level="pixel",
+            associations_judged=len(verdicts),
+            association_precision=round(float(np.mean(verdicts)), 5) if verdicts else None,
+            reidentifications=vision.stats.reidentified,
+            associations_dropped=vision.stats.dropped_associations,
+            **frontend_figures(vision),
+        )
     return MowOutcome(
         metrics,
         t_arr,
@@ -162,6 +197,37 @@ def run_mow(
         plant.landmarks_w,
         dict(reasons),
     )
+
+
+def _association_truth(lawn_map: LawnMap) -> dict[int, FloatArray]:
+    """True world position of each map landmark, as the simulated teach run recorded it."""
+    sim = lawn_map.teach.get("sim") or {}
+    raw = sim.get("landmark_truth") or {}
+    return {int(k): np.asarray(v, dtype=np.float64) for k, v in raw.items()}
+
+
+def _judge(vision: Any, plant: MowerPlant, frame: Any, truth: dict[int, FloatArray]) -> list[bool]:
+    """For each association of this frame: did the localizer get a bearing of that map
+    landmark? Judged from the true pose at the frame: the bearing's ray must pass within
+    ``SAME_POINT_M`` of the landmark's true position (landmarks without a known true
+    position — features that are not fixed points — are not judged)."""
+    _, lm, _ = vision.last_associated
+    if lm.size == 0:
+        return []
+    f = plant.frame
+    x, y, yaw_map = frame.map_pose
+    c, s = np.cos(f.origin_yaw), np.sin(f.origin_yaw)
+    d = np.array([x, y]) - f.origin_xy
+    xy_w = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+    yaw_w = yaw_map - f.origin_yaw
+    bearings = vision.last_bearings
+    out = []
+    nan = np.full(3, np.nan)
+    for k, lid in enumerate(lm.tolist()):
+        verdict = sees_point(xy_w, yaw_w, bearings[k], truth.get(lid, nan))
+        if verdict is not None:
+            out.append(verdict)
+    return out
 
 
 def _dropout_timeline(dropout, t, permit, reason, sigma) -> dict[str, Any]:

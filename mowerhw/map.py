@@ -16,6 +16,8 @@ frame at its first sample: x forward, y left, z up, origin at the camera centre)
                                          holes in the lawn (flower beds, ponds, a sandpit)
       "landmarks": [{"id": 7, "xyz": [x, y, z], "covariance": [[...], [...], [...]],
                      "descriptor": null | "<base64>", "keyframe": null | k}, ...],
+                                         descriptor: one or more 32-byte ORB descriptors
+                                         (views of the landmark), keyframe: where first seen
       "dock": {"position": [x, y, z], "quaternion_wxyz": [w, x, y, z]},
                                          where teach started: the default start of mow
       "camera": {Kalibr camchain entry} | null,   the calibration the map was made with
@@ -62,6 +64,7 @@ FRAME_DESCRIPTION = (
 )
 MIN_AREA_M2 = 4.0
 MIN_LANDMARKS = 4
+DESCRIPTOR_BYTES = 32  # one ORB descriptor (mowerhw.frontend.descriptors)
 
 
 class MapError(ValueError):
@@ -224,6 +227,7 @@ class LawnMap:
                 xyz=np.asarray(xyz, dtype=np.float64),
                 covariance=np.asarray(result.landmark_covariances[i], dtype=np.float64),
                 descriptor=result.descriptors.get(i) if result.descriptors else None,
+                keyframe=getattr(result, "landmark_keyframes", {}).get(i),
             )
             for i, xyz in sorted(result.landmarks.items())
         ]
@@ -341,6 +345,11 @@ def from_document(doc: Any, source: str = "map") -> LawnMap:
             desc_bytes = base64.b64decode(desc, validate=True) if desc is not None else None
         except (ValueError, TypeError):
             raise MapError(f"{where}: descriptor is not base64") from None
+        if desc_bytes is not None and (not desc_bytes or len(desc_bytes) % DESCRIPTOR_BYTES):
+            raise MapError(
+                f"{where}: descriptor has {len(desc_bytes)} bytes; it must be one or more "
+                f"{DESCRIPTOR_BYTES}-byte ORB descriptors"
+            )
         kf = lm.get("keyframe")
         landmarks.append(
             Landmark(

@@ -63,8 +63,9 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--level",
         default="bearing",
-        choices=("bearing",),
-        help="bench level (DESIGN.md §9): bearing = ids + noisy bearings",
+        choices=("bearing", "pixel"),
+        help="bench level (DESIGN.md §9): bearing = ids + noisy bearings; pixel = rendered "
+        "1540x1540 images through the front end (KLT tracking, re-identification)",
     )
     p.add_argument(
         "--out", type=Path, help="output folder (default build/sim/<phase>-<scenario>-<seed>)"
@@ -80,19 +81,34 @@ def _out_dir(args: argparse.Namespace, phase: str) -> Path:
 
 
 def _teach(args: argparse.Namespace) -> int:
-    from mowerhw.evaluate import run_teach
     from mowerhw.map import MapError
 
     cfg = load_config_or_exit(args.config)
     out = _out_dir(args, "teach")
-    outcome = run_teach(
-        args.scenario, args.seed, cfg.teach, n_landmarks=args.landmarks, record_history=args.plot
-    )
+    truth = None
+    if args.level == "pixel":
+        from mowerhw.evaluate_pixel import run_teach_pixel
+
+        if args.landmarks is not None:
+            print("mowerhw: --landmarks is for the bearing level only", file=sys.stderr)
+            return 2
+        outcome = run_teach_pixel(args.scenario, args.seed, cfg)
+        truth = outcome.landmark_truth
+    else:
+        from mowerhw.evaluate import run_teach
+
+        outcome = run_teach(
+            args.scenario,
+            args.seed,
+            cfg.teach,
+            n_landmarks=args.landmarks,
+            record_history=args.plot,
+        )
     metrics = dict(outcome.metrics)
     map_path = out / "map.json"
     if outcome.result is not None:
         try:
-            _save_sim_map(outcome.result, map_path, args.scenario, args.seed)
+            _save_sim_map(outcome.result, map_path, args.scenario, args.seed, args.level, truth)
             metrics["map"] = str(map_path)
         except MapError as exc:
             metrics["map"] = None
@@ -101,9 +117,14 @@ def _teach(args: argparse.Namespace) -> int:
     else:
         metrics["map"] = None
     if args.plot:
-        from mowerhw.plots import teach_figures
+        if args.level == "pixel":
+            from mowerhw.plots import frontend_figures
 
-        metrics["figures"] = [str(f) for f in teach_figures(outcome, out)]
+            metrics["figures"] = [str(f) for f in frontend_figures(outcome, out)]
+        else:
+            from mowerhw.plots import teach_figures
+
+            metrics["figures"] = [str(f) for f in teach_figures(outcome, out)]
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
     if args.json:
@@ -115,12 +136,18 @@ def _teach(args: argparse.Namespace) -> int:
     return 1 if metrics.get("diverged") else 0
 
 
-def _save_sim_map(result, path: Path, scenario: str, seed: int):
-    """Save a simulated teach map, remembering which simulated yard it belongs to."""
+def _save_sim_map(result, path: Path, scenario: str, seed: int, level: str = "bearing", truth=None):
+    """Save a simulated teach map, remembering which simulated yard it belongs to (and, at
+    pixel level, each landmark's true position, to score re-identification when mowing)."""
     from mowerhw.map import LawnMap
 
     lawn_map = LawnMap.from_teach_result(result)
-    lawn_map.teach["sim"] = {"scenario": scenario, "seed": seed}
+    sim = {"scenario": scenario, "seed": seed, "level": level}
+    if truth is not None:
+        sim["landmark_truth"] = {
+            str(i): [round(float(v), 5) for v in truth[i]] for i in result.landmarks if i in truth
+        }
+    lawn_map.teach["sim"] = sim
     lawn_map.save(path)
     return lawn_map
 
@@ -146,11 +173,20 @@ def _mow(args: argparse.Namespace) -> int:
             return 2
         dropout = (start, dur)
     if args.map is None:
-        taught = run_teach(args.scenario, args.seed, cfg.teach)
+        if args.level == "pixel":
+            from mowerhw.evaluate_pixel import run_teach_pixel
+
+            taught = run_teach_pixel(args.scenario, args.seed, cfg)
+            truth = taught.landmark_truth
+        else:
+            taught = run_teach(args.scenario, args.seed, cfg.teach)
+            truth = None
         if taught.result is None:
             print(f"mowerhw: teaching the map failed: {taught.error}", file=sys.stderr)
             return 1
-        lawn_map = _save_sim_map(taught.result, out / "map.json", args.scenario, args.seed)
+        lawn_map = _save_sim_map(
+            taught.result, out / "map.json", args.scenario, args.seed, args.level, truth
+        )
         map_path = out / "map.json"
     else:
         map_path = args.map
@@ -175,6 +211,13 @@ def _mow(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             return 2
+        if args.level == "pixel" and sim.get("level") != "pixel":
+            print(
+                f"mowerhw: {map_path} was taught at the bearing level (landmark ids, no "
+                "descriptors); mow --level pixel needs a map from `sim teach --level pixel`",
+                file=sys.stderr,
+            )
+            return 2
     outcome = run_mow(
         lawn_map,
         args.scenario,
@@ -183,6 +226,7 @@ def _mow(args: argparse.Namespace) -> int:
         cfg,
         vision_dropout=dropout,
         frame_latency_s=args.latency,
+        level=args.level,
     )
     metrics = {**outcome.metrics, "map": str(map_path)}
     if args.plot:

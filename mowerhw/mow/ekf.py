@@ -103,6 +103,27 @@ class WorldPoseEKF:
             self.x.copy(), self.q.copy(), self.bg.copy(), self.P.copy(), self.pxl.copy()
         )
 
+    def snapshot_view(self) -> EkfState:
+        """The current state without copying (read only)."""
+        return EkfState(self.x, self.q, self.bg, self.P, self.pxl)
+
+    def predict_bearings(
+        self,
+        rows: NDArray[np.int64],
+        landmarks_w: FloatArray,
+        sigma: float,
+        state: EkfState | None = None,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Where map landmarks ``rows`` should be seen from ``state`` (default: now): unit
+        bearings (N, 3) and the covariance (N, 2, 2) of a measurement about them, in the
+        tangent basis of each predicted bearing (eq. 22 linearised, map and pose
+        uncertainty and bearing noise ``sigma``); for gating re-identification."""
+        st = state if state is not None else self.snapshot_view()
+        if rows.size == 0:
+            return np.zeros((0, 3)), np.zeros((0, 2, 2))
+        h, _, _, _, s_each = _bearing_model(st, self.landmark_cov, rows, landmarks_w, None, sigma)
+        return h, s_each
+
     def restore(self, s: EkfState) -> None:
         self.x, self.q, self.bg = s.x.copy(), s.q.copy(), s.bg.copy()
         self.P, self.pxl = s.P.copy(), s.pxl.copy()
@@ -179,30 +200,10 @@ class WorldPoseEKF:
         n = rows.size
         if n == 0:
             return UpdateOutcome(np.zeros(0, bool), np.zeros(0))
-        r = self.R
-        d = landmarks_w - self.x
-        ell = d @ r  # R(q)ᵀ (L − x)
-        norm = np.linalg.norm(ell, axis=1)
-        h = ell / norm[:, None]
-        dh = (np.eye(3)[None] - np.einsum("ni,nj->nij", h, h)) / norm[:, None, None]
-        bt = np.swapaxes(tangent_basis(bearings), 1, 2)
-        a = np.einsum("nij,njk->nik", bt, dh) @ r.T  # (N, 2, 3): ∂r/∂(world vector)
-        hx = np.zeros((n, 2, 9))
-        hx[:, :, TH] = np.einsum("nij,njk->nik", a, skew(d))  # ∂ℓ/∂δθ = Rᵀ [d]×
-        hx[:, :, X] = -a
-        hl = a  # ∂/∂L
-        res = np.einsum("nij,nj->ni", bt, bearings - h)
-        # per-landmark innovation covariance, with the consider terms of that landmark
-        cols = 3 * rows[:, None] + np.arange(3)[None, :]  # (N, 3) columns in P_xL
-        pxl_i = self.pxl[:, cols]  # (9, N, 3)
-        cov_l = self.landmark_cov[rows]
-        s_each = (
-            np.einsum("nij,jk,nlk->nil", hx, self.P, hx)
-            + np.einsum("nij,jnk,nlk->nil", hx, pxl_i, hl)
-            + np.einsum("nij,knj,nlk->nil", hl, pxl_i, hx)
-            + np.einsum("nij,njk,nlk->nil", hl, cov_l, hl)
-            + sigma**2 * np.eye(2)[None]
+        h, bt, hx, hl, s_each = _bearing_model(
+            self.snapshot_view(), self.landmark_cov, rows, landmarks_w, bearings, sigma
         )
+        res = np.einsum("nij,nj->ni", bt, bearings - h)
         nis = np.einsum("ni,nij,nj->n", res, np.linalg.inv(s_each), res)
         ok = np.isfinite(nis) & (nis <= self.gate)
         out = UpdateOutcome(ok, nis, int(ok.sum()), int((~ok).sum()))
@@ -231,3 +232,41 @@ class WorldPoseEKF:
         self.x = self.x + dx[X]
         self.bg = self.bg + dx[BG]
         return out
+
+
+def _bearing_model(
+    st: EkfState,
+    landmark_cov: FloatArray,
+    rows: NDArray[np.int64],
+    landmarks_w: FloatArray,
+    bearings: FloatArray | None,
+    sigma: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Eq. (22) linearised at ``st``: predicted bearings ``h``, the residual basis (that of
+    the measured bearings, or of ``h`` for a prediction), ``H_x`` (N, 2, 9), ``H_L`` (N, 2, 3)
+    and each landmark's innovation covariance with its consider terms (N, 2, 2)."""
+    n = rows.size
+    r = quat_to_rotmat(st.q)
+    d = landmarks_w - st.x
+    ell = d @ r  # R(q)ᵀ (L − x)
+    norm = np.linalg.norm(ell, axis=1)
+    h = ell / norm[:, None]
+    dh = (np.eye(3)[None] - np.einsum("ni,nj->nij", h, h)) / norm[:, None, None]
+    bt = np.swapaxes(tangent_basis(h if bearings is None else bearings), 1, 2)
+    a = np.einsum("nij,njk->nik", bt, dh) @ r.T  # (N, 2, 3): ∂r/∂(world vector)
+    hx = np.zeros((n, 2, 9))
+    hx[:, :, TH] = np.einsum("nij,njk->nik", a, skew(d))  # ∂ℓ/∂δθ = Rᵀ [d]×
+    hx[:, :, X] = -a
+    hl = a  # ∂/∂L
+    # per-landmark innovation covariance, with the consider terms of that landmark
+    cols = 3 * rows[:, None] + np.arange(3)[None, :]  # (N, 3) columns in P_xL
+    pxl_i = st.pxl[:, cols]  # (9, N, 3)
+    cov_l = landmark_cov[rows]
+    s_each = (
+        np.einsum("nij,jk,nlk->nil", hx, st.P, hx)
+        + np.einsum("nij,jnk,nlk->nil", hx, pxl_i, hl)
+        + np.einsum("nij,knj,nlk->nil", hl, pxl_i, hx)
+        + np.einsum("nij,njk,nlk->nil", hl, cov_l, hl)
+        + sigma**2 * np.eye(2)[None]
+    )
+    return h, bt, hx, hl, s_each

@@ -152,6 +152,7 @@ class Localizer:
         self._gyro_n = 0
         self._resets = 0
         self.calibrating = True
+        self.last_rejected = np.zeros(0, np.int64)  # map ids the last frame's χ² gate refused
         if start_pose is None:
             start_pose = (self.map.dock_position, self.map.dock_quaternion)
         self.reinitialise(start_pose)
@@ -324,6 +325,7 @@ class Localizer:
     def _frame_update(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
         c = self.cfg
         out = self.ekf.update(rows, self.landmarks[rows], u, c.bearing_sigma_rad)
+        self.last_rejected = self.ids[rows[~out.accepted]]
         self.counters.bearings_used += out.used
         self.counters.bearings_rejected += out.rejected
         # a fix: enough landmarks, and most of those in view agree with the estimate
@@ -388,6 +390,24 @@ class Localizer:
         self.reinitialise(None, 1.0, math.radians(30.0))
 
     # ----------------------------------------------------------------------------- outputs
+
+    def predict_bearings(
+        self, t: float | None = None
+    ) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+        """Every map landmark as the filter expects to see it in a frame taken at ``t``
+        (default: now): map ids, unit bearings (body frame) and the covariance of a measured
+        bearing about each (tangent basis of the prediction). For re-identification."""
+        state = None
+        if t is not None and self.t_imu is not None and t < self.t_imu:
+            hist = self._history
+            k = next((i for i in range(len(hist) - 1, -1, -1) if hist[i].t1 <= t), None)
+            if k is not None:
+                state = hist[k].state
+        rows = np.arange(self.ids.size)
+        h, cov = self.ekf.predict_bearings(
+            rows, self.landmarks, self.cfg.bearing_sigma_rad, state=state
+        )
+        return self.ids.copy(), h, cov
 
     def pose(self) -> Pose:
         """The newest estimate: t, position, q_wb, covariance (position then rotation)."""

@@ -11,6 +11,7 @@ camera). Camera frames are *late*: a frame taken at ``t`` is delivered at
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,13 +50,22 @@ class WorldFrame:
         return self.map_to_world(np.column_stack([pts, np.zeros(len(pts))]))[:, :2]
 
 
+@dataclass(frozen=True)
+class PixelFrame:
+    """A rendered camera frame (pixel level), taken at ``t`` from ``map_pose``."""
+
+    t: float
+    image: NDArray[np.uint8]
+    map_pose: tuple[float, float, float]  # x, y, ψ in the simulator's map frame (truth)
+
+
 @dataclass
 class PlantOutput:
     """What the sensors produced during one step (arrival order within the step)."""
 
     imu: tuple[float, FloatArray]
     speed: tuple[float, float] | None = None
-    frames: list[BearingObservation] = field(default_factory=list)
+    frames: list[Any] = field(default_factory=list)  # BearingObservation or PixelFrame
 
 
 class MowerPlant:
@@ -73,8 +83,13 @@ class MowerPlant:
         vision_dropout: tuple[float, float] | None = None,
         max_accel: float = 1.0,
         max_yaw_accel: float = 4.0,
+        renderer: Any = None,
     ) -> None:
+        """With a ``renderer`` (:class:`mowerhw.sim.render.OmniRenderer`) the camera delivers
+        rendered images (:class:`PixelFrame`, pixel level); without, noisy bearings of known
+        landmark ids (bearing level)."""
         self.world = world
+        self.renderer = renderer
         self.max_accel = max_accel  # m/s²: a mower cannot stop or start in no time
         self.max_yaw_accel = max_yaw_accel  # rad/s²
         self.w = 0.0
@@ -93,7 +108,7 @@ class MowerPlant:
         self.v = 0.0
         self.bias = self.rng.normal(0.0, self.noise.gyro_bias, size=3)
         self.vision_dropout = vision_dropout
-        self._pending: list[BearingObservation] = []  # taken, not yet delivered
+        self._pending: list[Any] = []  # taken, not yet delivered
         self._speed_every = round(self.rates.imu_hz / self.rates.speed_hz)
         self._frame_every = round(self.rates.imu_hz / self.rates.camera_hz)
 
@@ -137,15 +152,31 @@ class MowerPlant:
             self._take_frame()
         due = [f for f in self._pending if f.t + self.frame_latency_s <= self.t + 1e-9]
         if due:
-            self._pending = [f for f in self._pending if f not in due]
+            self._pending = self._pending[len(due) :]  # taken in time order
             out.frames = due
         return out
 
+    def map_pose(self) -> tuple[float, float, float]:
+        """The true pose in the simulator's map frame (what the renderer takes)."""
+        f = self.frame
+        c, s = np.cos(f.origin_yaw), np.sin(f.origin_yaw)
+        x = f.origin_xy[0] + c * self.xy[0] - s * self.xy[1]
+        y = f.origin_xy[1] + s * self.xy[0] + c * self.xy[1]
+        return float(x), float(y), float(self.yaw + f.origin_yaw)
+
     def _take_frame(self) -> None:
+        d = self.vision_dropout
+        dark = d is not None and d[0] <= self.t < d[0] + d[1]
+        if self.renderer is not None:
+            pose = self.map_pose()
+            image = self.renderer.render(*pose)
+            if dark:  # the lens is covered: the camera still delivers, but sees nothing
+                image = np.zeros_like(image)
+            self._pending.append(PixelFrame(self.t, image, pose))
+            return
         obs, _ = observe_at(
             self.world, self.t, self.xy, self.yaw, self.landmarks_w, self.cam_rng, self.noise.pixel
         )
-        d = self.vision_dropout
-        if d is not None and d[0] <= self.t < d[0] + d[1]:  # the camera sees nothing it knows
+        if dark:  # the camera sees nothing it knows
             obs = BearingObservation(t=obs.t, ids=np.zeros(0, np.int64), bearings=np.zeros((0, 3)))
         self._pending.append(obs)

@@ -68,6 +68,50 @@ def _anchor_pose_variance(anchor_cov: FloatArray, depth: FloatArray) -> FloatArr
     return rot + pos / np.maximum(depth, 0.1) ** 2
 
 
+def _landmark_rms(problem: Any, r_wb: FloatArray, t_wb: FloatArray, lms: FloatArray) -> FloatArray:
+    """RMS angle (rad) between each landmark's observed bearings and where the final poses
+    and position put it (NaN for a landmark without observations)."""
+    fi, li = problem.obs_frame, problem.obs_landmark
+    ell = np.einsum("nji,nj->ni", r_wb[fi], lms[li] - t_wb[fi])  # R_wbᵀ (L − t)
+    ell /= np.linalg.norm(ell, axis=1, keepdims=True)
+    ang = np.arccos(np.clip(np.einsum("ni,ni->n", ell, problem.obs_bearing), -1.0, 1.0))
+    n = lms.shape[0]
+    sq = np.bincount(li, weights=ang**2, minlength=n)
+    cnt = np.bincount(li, minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sqrt(sq / cnt)
+
+
+def _outliers(rms: FloatArray, factor: float) -> NDArray[np.bool_]:
+    """Which residuals exceed ``factor`` times the median (with at least 8 to judge by)."""
+    fin = np.isfinite(rms)
+    if fin.sum() < 8:
+        return np.zeros(rms.shape, bool)
+    return fin & (rms > factor * float(np.median(rms[fin])))
+
+
+def _inconsistent(landmarks: dict[int, dict[str, Any]], factor: float) -> list[int]:
+    """Landmarks whose bearings disagree with their own position ``factor`` times more than
+    the typical landmark's do: not a fixed point (a corner formed by one thing passing in
+    front of another) or two points taken for one (a wrong re-identification)."""
+    ids = [i for i, r in landmarks.items() if not np.isnan(r.get("rms", np.nan))]
+    rms = np.array([landmarks[i]["rms"] for i in ids])
+    fin = np.isfinite(rms)
+    if fin.sum() < 8:
+        return [i for i, v in zip(ids, rms, strict=True) if not np.isfinite(v)]
+    typical = float(np.median(rms[fin]))
+    return [i for i, v in zip(ids, rms, strict=True) if not v <= factor * typical]
+
+
+def _well_located(cov: FloatArray, sigma_max: float) -> bool:
+    """True if a landmark's largest position σ is finite and at most ``sigma_max``."""
+    if not np.all(np.isfinite(cov)):
+        return False
+    eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))
+    # a covariance that is not positive semi-definite is numerically unknown, not small
+    return bool(eig[0] >= -1e-9 and eig[-1] <= sigma_max**2)
+
+
 class TeachError(RuntimeError):
     """The teach run cannot produce a map (the message says why and what to do)."""
 
@@ -96,7 +140,8 @@ class TeachResult:
     closure: LoopClosure
     keyframes: list[Keyframe]
     diagnostics: dict[str, Any] = field(default_factory=dict)
-    descriptors: dict[int, bytes] = field(default_factory=dict)
+    descriptors: dict[int, bytes] = field(default_factory=dict)  # id → ORB descriptor(s)
+    landmark_keyframes: dict[int, int] = field(default_factory=dict)  # id → keyframe first seen
     camera: Any = None  # the calibration the map was made with (OmniRadtanCamera)
 
     @property
@@ -149,6 +194,9 @@ class Teacher:
     CONVERGED_REL_SIGMA = 0.15
     #: the loop-closure smoother keeps one gyro bias per this much driving
     BIAS_SEGMENT_S = 10.0
+    #: landmarks the smoother refines: seen in at least this many frames, σ below this
+    SMOOTHER_MIN_FRAMES = 5
+    SMOOTHER_MAX_SIGMA_M = 1.0
 
     def __init__(
         self,
@@ -291,6 +339,17 @@ class Teacher:
         row[8] = self.distance_m
         row[9] = kf
         self._traj.append(row)
+
+    def known_landmarks(self) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+        """Ids, world positions and covariances of every landmark located so far, tracked
+        or retired (what re-identification can match a new feature against)."""
+        recs = self._all_landmarks()
+        ids = np.array(sorted(recs), dtype=np.int64)
+        if ids.size == 0:
+            return ids, np.zeros((0, 3)), np.zeros((0, 3, 3))
+        xyz = np.stack([recs[i]["xyz"] for i in ids.tolist()])
+        cov = np.stack([recs[i]["cov"] for i in ids.tolist()])
+        return ids, xyz, cov
 
     def landmark_snapshot(self) -> tuple[NDArray[np.int64], FloatArray]:
         """Ids and current world positions (eq. 20) of the tracked landmarks seen so far."""
@@ -611,6 +670,19 @@ class Teacher:
             return LoopClosure(False, "no landmark was mapped")
         try:
             out = smooth(problem)
+            # A landmark that is not one fixed point (an occlusion corner sliding along an
+            # edge, two features taken for one) drags the poses towards its own error:
+            # smooth again without the ones that fit badly.
+            rms = _landmark_rms(problem, out.r_wb, out.t_wb, out.landmarks)
+            bad = _outliers(rms, self.cfg.landmark_residual_factor)
+            if bad.any():
+                for j in np.flatnonzero(bad):
+                    landmarks[lm_ids[j]]["rms"] = float("inf")
+                keep = {lid: landmarks[lid] for j, lid in enumerate(lm_ids) if not bad[j]}
+                problem2, lm_ids2, reobserved2 = self._smoother_problem(keep)
+                if problem2 is not None:
+                    out = smooth(problem2)
+                    problem, lm_ids, reobserved = problem2, lm_ids2, reobserved2
         except (np.linalg.LinAlgError, ValueError, RuntimeError) as exc:
             log.warning("teach: loop closure failed (%s); keeping the filter's estimate", exc)
             return LoopClosure(False, f"smoother failed: {exc}")
@@ -628,6 +700,9 @@ class Teacher:
         for j, lid in enumerate(lm_ids):
             landmarks[lid]["xyz"] = out.landmarks[j].copy()
             landmarks[lid]["cov"] = out.landmark_cov[j].copy()
+        rms = _landmark_rms(problem, out.r_wb, out.t_wb, out.landmarks)
+        for j, lid in enumerate(lm_ids):
+            landmarks[lid]["rms"] = float(rms[j])
         self.ekf_bias_smoothed = out.bias[-1]
         closed = reobserved >= 4
         return LoopClosure(
@@ -658,7 +733,19 @@ class Teacher:
         """Poses at frames (the filter's), odometry between them, bearings, initial map."""
         c = self.cfg
         frames = self._frames
-        lm_ids = sorted(landmarks)
+        # Only landmarks the smoother can locate: seen often enough, and already roughly
+        # known. A landmark seen twice makes the normal equations (nearly) singular, and
+        # its marginal covariance numerically meaningless; it is not mapped anyway.
+        seen: dict[int, int] = {}
+        for _, ids, *_rest in frames:
+            for lid in ids.tolist():
+                seen[lid] = seen.get(lid, 0) + 1
+        lm_ids = sorted(
+            lid
+            for lid, rec in landmarks.items()
+            if seen.get(lid, 0) >= self.SMOOTHER_MIN_FRAMES
+            and _well_located(rec["cov"], self.SMOOTHER_MAX_SIGMA_M)
+        )
         if not lm_ids:
             return None, [], 0
         index = {lid: j for j, lid in enumerate(lm_ids)}
@@ -715,6 +802,16 @@ class Teacher:
         landmarks = self._all_landmarks()
         raw = traj9[:, :8].copy()
         closure = self._close_loop(traj9, landmarks)
+        # The map keeps only landmarks located well enough to localize against (a feature
+        # tracked briefly, or seen with too little parallax, has a poorly known depth).
+        limit = self.cfg.max_landmark_sigma_m
+        loose = [i for i, r in landmarks.items() if not _well_located(r["cov"], limit)]
+        for i in loose:
+            del landmarks[i]
+        # ... and only fixed points: bearings that fit one position
+        inconsistent = _inconsistent(landmarks, self.cfg.landmark_residual_factor)
+        for i in inconsistent:
+            del landmarks[i]
         c = self.cfg
         boundary = boundary_from_path(
             traj9[:, 1:3], c.boundary_simplify_m, c.min_area_m2, distance=traj9[:, 8]
@@ -727,6 +824,8 @@ class Teacher:
             "ekf_updates": self.ekf.stats.used,
             "ekf_gated": self.ekf.stats.gated,
             **self.counters,
+            "landmarks_too_uncertain": len(loose),
+            "landmarks_inconsistent": len(inconsistent),
             **{f"observer_{k}": v for k, v in vars(self.obs.stats).items()},
         }
         return TeachResult(

@@ -1,0 +1,302 @@
+"""Pixel-level vision wired to the estimators: front end + re-identification → teach / mow.
+
+These two classes turn camera images into the ``(t, ids, bearings)`` the estimators take,
+with landmark ids that mean the same thing across track losses (teach) and sessions (mow):
+
+* :class:`TeachVision` — every new track is first offered to the landmarks the
+  :class:`~mowerhw.teach.Teacher` has already located but does not see now (predicted
+  bearing from the teacher's pose and map, gate, ORB distance); a match continues that
+  landmark (it comes back into view, the loop closes on it); otherwise the track starts a
+  new landmark. Descriptors and the keyframe of first sight are kept for the map.
+* :class:`MowVision` — a track becomes a map landmark only through re-identification
+  against the :class:`~mowerhw.mow.Localizer`'s prediction for the frame's time (bearing and
+  its covariance, χ² gate) plus ORB distance to the map's descriptors; an association the
+  localizer's own χ² gate keeps refusing is dropped and that pair is not tried again.
+
+Pure computation (no device I/O): the runtime feeds it frames from the camera driver, the
+bench from the renderer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from mowerhw.config import FrontendConfig
+from mowerhw.frontend import FrameTracks, FrontEnd, RotationHistory
+from mowerhw.frontend.association import Candidates, associate, isotropic_candidates
+from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, hamming, stack_sets
+from mowerhw.geometry import quat_to_rotmat
+
+FloatArray = NDArray[np.float64]
+#: radians per pixel of the omni camera near the horizon (Table I: ~470 px/rad there)
+_RAD_PER_PX = 1.0 / 470.0
+
+
+@dataclass
+class VisionStats:
+    frames: int = 0
+    tracks_per_frame: list[int] = field(default_factory=list)
+    observations: int = 0  # bearings handed to the estimator
+    reidentified: int = 0  # tracks matched to a known landmark
+    dropped_associations: int = 0
+    frontend_ms: list[float] = field(default_factory=list)
+
+
+def merge_descriptors(
+    have: NDArray[np.uint8] | None, new: NDArray[np.uint8], limit: int, min_bits: int = 12
+) -> NDArray[np.uint8]:
+    """Add the descriptors of ``new`` that differ from all of ``have`` (up to ``limit``)."""
+    out = np.zeros((0, DESCRIPTOR_BYTES), np.uint8) if have is None else have
+    for d in new.reshape(-1, DESCRIPTOR_BYTES):
+        if out.shape[0] >= limit:
+            break
+        if out.shape[0] == 0 or hamming(d[None], out).min() > min_bits:
+            out = np.vstack([out, d[None]])
+    return out
+
+
+class _VisionBase:
+    def __init__(self, camera: Any, q_bc: Any, config: FrontendConfig | None, seed: int) -> None:
+        self.cfg = config or FrontendConfig()
+        self.frontend = FrontEnd(camera, q_bc, self.cfg, seed)
+        self.camera = camera
+        self.r_bc = quat_to_rotmat(np.asarray(q_bc, dtype=np.float64))
+        self.rotations = RotationHistory()
+        self.stats = VisionStats()
+        self._t_prev: float | None = None
+
+    def imu(self, t: float, gyro_xyz: Any) -> None:
+        self.rotations.add(t, gyro_xyz)
+
+    def _track(self, t: float, image: NDArray[np.uint8]) -> FrameTracks:
+        r = None
+        if self._t_prev is not None:
+            r = self.rotations.rotation_between(self._t_prev, t)
+        tracks = self.frontend.process(t, image, r)
+        self._t_prev = t
+        self.stats.frames += 1
+        self.stats.tracks_per_frame.append(int(tracks.ids.size))
+        self.stats.frontend_ms.append(tracks.ms)
+        return tracks
+
+    def _track_descriptors(self, tracks: FrameTracks) -> tuple[NDArray[np.uint8], NDArray]:
+        """The newest descriptor of every track, and which tracks have one."""
+        desc = np.zeros((tracks.ids.size, DESCRIPTOR_BYTES), np.uint8)
+        has = np.zeros(tracks.ids.size, bool)
+        for k, tid in enumerate(tracks.ids.tolist()):
+            dd = self.frontend.descriptors(tid)
+            if dd.shape[0]:
+                desc[k], has[k] = dd[-1], True
+        return desc, has
+
+    def _in_view(self, bearings: FloatArray) -> NDArray[np.bool_]:
+        """Predicted bearings that land inside the camera's mask."""
+        if bearings.shape[0] == 0:
+            return np.zeros(0, bool)
+        _, ok = self.camera.visible(bearings @ self.r_bc)
+        return ok
+
+
+class TeachVision(_VisionBase):
+    """Images → a :class:`~mowerhw.teach.Teacher` (see the module doc)."""
+
+    def __init__(
+        self,
+        teacher: Any,
+        camera: Any,
+        q_bc: Any = (0.0, 1.0, 0.0, 0.0),
+        config: FrontendConfig | None = None,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(camera, q_bc, config, seed)
+        self.teacher = teacher
+        self.landmark_of: dict[int, int] = {}  # track id → landmark id
+        self.descriptors: dict[int, NDArray[np.uint8]] = {}  # landmark id → (K, 32)
+        self.first_keyframe: dict[int, int] = {}
+        # (t, track id, landmark id, bearing) of every re-identification
+        self.reidentifications: list[tuple[float, int, int, FloatArray]] = []
+        self.gate = float(chi2.ppf(self.cfg.association_gate, df=2))
+
+    def frame(self, t: float, image: NDArray[np.uint8]) -> FrameTracks:
+        tracks = self._track(t, image)
+        new = np.flatnonzero(tracks.ages == 0)
+        if new.size:
+            self._reidentify(tracks, new)
+        lm = np.array([self.landmark_of[int(i)] for i in tracks.ids], dtype=np.int64)
+        self._keep_descriptors(tracks, lm)
+        self.teacher.bearings(t, lm, tracks.bearings)
+        self.stats.observations += int(lm.size)
+        kf = self.teacher.keyframes[-1].index if self.teacher.keyframes else 0
+        for i in lm.tolist():
+            self.first_keyframe.setdefault(i, kf)
+        return tracks
+
+    def _reidentify(self, tracks: FrameTracks, new: NDArray[np.int64]) -> None:
+        for k in new.tolist():  # by default a new track is a new landmark
+            self.landmark_of[int(tracks.ids[k])] = int(tracks.ids[k])
+        if self.teacher.phase != "driving":
+            return
+        ids, xyz, cov = self.teacher.known_landmarks()
+        if ids.size == 0:
+            return
+        seen = {self.landmark_of[int(i)] for i in tracks.ids[tracks.ages > 0]}
+        pos, q_wb = self.teacher.world_pose()
+        d = (xyz - pos) @ quat_to_rotmat(q_wb)  # R_wbᵀ (L − x)
+        dist = np.linalg.norm(d, axis=1)
+        sigma_l = np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, -1], 0.0))
+        pred = d / np.maximum(dist, 1e-9)[:, None]
+        ok = (
+            ~np.isin(ids, list(seen))
+            & (sigma_l < 0.1)
+            & (dist > 0.5)
+            & np.array([i in self.descriptors for i in ids.tolist()], dtype=bool)
+        )
+        ok[ok] = self._in_view(pred[ok])
+        if not ok.any():
+            return
+        sig_b = self.teacher.sigma
+        sigma = np.sqrt(sig_b**2 + (sigma_l[ok] / dist[ok]) ** 2)
+        stacked, owner = stack_sets([self.descriptors[i] for i in ids[ok].tolist()])
+        cand = isotropic_candidates(ids[ok], pred[ok], sigma, stacked, owner)
+        self._match(tracks, new, cand, np.radians(self.cfg.reid_angle_deg))
+
+    def _match(
+        self, tracks: FrameTracks, new: NDArray[np.int64], cand: Candidates, max_angle: float
+    ) -> None:
+        desc, has = self._track_descriptors(tracks)
+        assignable = np.zeros(tracks.ids.size, bool)
+        assignable[new] = True
+        pairs = associate(
+            tracks.bearings, desc, has, cand, self.gate, self.cfg.max_hamming, assignable
+        )
+        for k, c in pairs:
+            angle = float(np.arccos(np.clip(tracks.bearings[k] @ cand.bearings[c], -1.0, 1.0)))
+            if angle > max_angle:
+                continue
+            tid = int(tracks.ids[k])
+            self.landmark_of[tid] = int(cand.ids[c])
+            self.reidentifications.append(
+                (tracks.t, tid, int(cand.ids[c]), tracks.bearings[k].copy())
+            )
+            self.stats.reidentified += 1
+
+    def _keep_descriptors(self, tracks: FrameTracks, lm: NDArray[np.int64]) -> None:
+        due = (tracks.ages % self.cfg.descriptor_refresh_frames) == 0
+        for k in np.flatnonzero(due).tolist():
+            dd = self.frontend.descriptors(int(tracks.ids[k]))
+            if dd.shape[0]:
+                i = int(lm[k])
+                self.descriptors[i] = merge_descriptors(
+                    self.descriptors.get(i), dd, self.cfg.max_descriptors
+                )
+
+    def annotate(self, result: Any) -> Any:
+        """Put the descriptors and first keyframes of the mapped landmarks in a TeachResult."""
+        result.descriptors = {
+            i: self.descriptors[i].tobytes() for i in result.landmarks if i in self.descriptors
+        }
+        result.landmark_keyframes = {
+            i: self.first_keyframe[i] for i in result.landmarks if i in self.first_keyframe
+        }
+        return result
+
+
+class MowVision(_VisionBase):
+    """Images → a :class:`~mowerhw.mow.Localizer` by re-identification against the map."""
+
+    def __init__(
+        self,
+        localizer: Any,
+        camera: Any,
+        q_bc: Any = (0.0, 1.0, 0.0, 0.0),
+        config: FrontendConfig | None = None,
+        seed: int = 0,
+        pixel_sigma: float = 1.0,
+    ) -> None:
+        super().__init__(camera, q_bc, config, seed)
+        self.loc = localizer
+        self.gate = float(chi2.ppf(self.cfg.association_gate, df=2))
+        self.sigma_px_rad = pixel_sigma * _RAD_PER_PX
+        lms = localizer.map.landmarks
+        self._map_ids = np.array([lm.id for lm in lms], dtype=np.int64)
+        sets = [
+            np.frombuffer(lm.descriptor, np.uint8).reshape(-1, DESCRIPTOR_BYTES)
+            if lm.descriptor
+            else np.zeros((0, DESCRIPTOR_BYTES), np.uint8)
+            for lm in lms
+        ]
+        self._has_desc = np.array([s.shape[0] > 0 for s in sets], dtype=bool)
+        self._desc_sets = sets
+        self.landmark_of: dict[int, int] = {}  # live track id → map landmark id
+        self._refusals: dict[int, int] = {}  # track id → consecutive χ² refusals
+        self._banned: set[tuple[int, int]] = set()
+        # the last frame's associations: track ids, map ids, pixels
+        self.last_associated = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+        self.last_bearings = np.zeros((0, 3))
+
+    def frame(self, t: float, image: NDArray[np.uint8]) -> FrameTracks:
+        tracks = self._track(t, image)
+        live = set(tracks.ids.tolist())
+        for tid in [k for k in self.landmark_of if k not in live]:
+            del self.landmark_of[tid]
+            self._refusals.pop(tid, None)
+        free = np.array([int(i) not in self.landmark_of for i in tracks.ids], dtype=bool)
+        if free.any():
+            self._associate(t, tracks, np.flatnonzero(free))
+        rows = np.array([int(i) in self.landmark_of for i in tracks.ids], dtype=bool)
+        tids = tracks.ids[rows]
+        lm = np.array([self.landmark_of[int(i)] for i in tids], dtype=np.int64)
+        self.loc.bearings(t, lm, tracks.bearings[rows])
+        self.stats.observations += int(lm.size)
+        self.last_associated = (tids, lm, tracks.pixels[rows])
+        self.last_bearings = tracks.bearings[rows]
+        self._review(tids, lm)
+        return tracks
+
+    def _associate(self, t: float, tracks: FrameTracks, free: NDArray[np.int64]) -> None:
+        ids, pred, cov = self.loc.predict_bearings(t)
+        # The localizer weighs bearings with a conservative σ; a re-identification is judged
+        # at the front end's own precision (``camera.pixel_sigma``), or two features a few
+        # pixels apart — a window's corner and the pane next to it — would both pass.
+        cov = cov + (self.sigma_px_rad**2 - self.loc.cfg.bearing_sigma_rad**2) * np.eye(2)
+        taken = set(self.landmark_of.values())
+        ok = self._has_desc & ~np.isin(ids, list(taken))
+        ok[ok] = self._in_view(pred[ok])
+        if not ok.any():
+            return
+        sel = np.flatnonzero(ok)
+        stacked, owner = stack_sets([self._desc_sets[k] for k in sel.tolist()])
+        cand = Candidates(ids[sel], pred[sel], cov[sel], stacked, owner)
+        # every track takes part (for ambiguity); only free ones may be paired
+        desc, has = self._track_descriptors(tracks)
+        assignable = np.zeros(tracks.ids.size, bool)
+        assignable[free] = True
+        pairs = associate(
+            tracks.bearings, desc, has, cand, self.gate, self.cfg.max_hamming, assignable
+        )
+        for k, c in pairs:
+            tid, lid = int(tracks.ids[k]), int(cand.ids[c])
+            if (tid, lid) in self._banned:
+                continue
+            self.landmark_of[tid] = lid
+            self.stats.reidentified += 1
+
+    def _review(self, tids: NDArray[np.int64], lm: NDArray[np.int64]) -> None:
+        """Drop associations the localizer's χ² gate refuses ``drop_after_rejections`` times
+        running; a refused pair is not tried again."""
+        refused = set(np.asarray(self.loc.last_rejected).tolist())
+        for tid, i in zip(tids.tolist(), lm.tolist(), strict=True):
+            if i in refused:
+                self._refusals[tid] = self._refusals.get(tid, 0) + 1
+                if self._refusals[tid] >= self.cfg.drop_after_rejections:
+                    del self.landmark_of[tid]
+                    self._refusals.pop(tid, None)
+                    self._banned.add((tid, i))
+                    self.stats.dropped_associations += 1
+            else:
+                self._refusals.pop(tid, None)
