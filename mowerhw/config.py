@@ -174,6 +174,13 @@ class FrontendConfig:
     quality_level: float = opt(
         0.05, "Shi–Tomasi corner strength, relative to the strongest corner", gt=0.0, lt=1.0
     )
+    detector: str = opt(
+        "fast",
+        "fast: FAST corners scored by Shi–Tomasi on small patches (quick); shi-tomasi: "
+        "cv2.goodFeaturesToTrack over the image",
+        choices=("fast", "shi-tomasi"),
+    )
+    fast_threshold: int = opt(20, "FAST intensity threshold (grey levels)", ge=1, le=255)
     block_size: int = opt(5, "Shi–Tomasi window (px, at the detection scale)", ge=3, le=31)
     detect_level: int = opt(
         0, "pyramid level detection runs on (0 = full size: no blobs taken for corners)", ge=0, le=3

@@ -154,8 +154,8 @@ class PixelTeachOutcome:
     vision: TeachVision
     truth: TrackTruth
     landmark_truth: dict[int, FloatArray]
-    last_image: NDArray[np.uint8] | None = None
     error: str = ""
+    images: dict[float, Any] = field(default_factory=dict)  # t → (image, tracks, extras)
 
 
 def run_teach_pixel(
@@ -174,7 +174,8 @@ def run_teach_pixel(
     teacher = Teacher(teach_cfg, camera=world.camera)
     vision = TeachVision(teacher, world.camera, world.q_bc, fe_cfg, seed)
     track_truth = TrackTruth()
-    images: dict[float, tuple[NDArray[np.uint8], Any]] = {}
+    images: dict[float, tuple[NDArray[np.uint8], Any, dict[int, list]]] = {}
+    trails: dict[int, list[FloatArray]] = {}  # recent pixels of every live track (figures)
     wall_render = 0.0
     t0 = time.perf_counter()
     for kind, payload in run.streams.events():
@@ -192,8 +193,14 @@ def run_teach_pixel(
             wall_render += time.perf_counter() - r0
             tracks = vision.frame(t, image)
             track_truth.record(renderer, pose, truth.map_to_world, tracks)
-            if any(abs(t - ti) < 0.125 for ti in keep_images_at):
-                images[t] = (image, tracks)
+            if keep_images_at:
+                trails = {
+                    tid: ([*trails.get(tid, []), px])[-12:]
+                    for tid, px in zip(tracks.ids.tolist(), tracks.pixels, strict=True)
+                }
+                if any(abs(t - ti) < 0.125 for ti in keep_images_at):
+                    lm = {tid: vision.landmark_of[tid] for tid in tracks.ids.tolist()}
+                    images[t] = (image, tracks, {"trails": dict(trails), "landmark_of": lm})
     wall = time.perf_counter() - t0 - wall_render
     # a landmark's truth is what the track that created it saw (landmark id = its track id)
     landmark_truth = {}
@@ -207,7 +214,7 @@ def run_teach_pixel(
     except (BoundaryError, TeachError) as exc:
         metrics = {"diverged": True, "error": str(exc), **frontend_figures(vision)}
         return PixelTeachOutcome(
-            run, None, metrics, vision, track_truth, landmark_truth, error=str(exc)
+            run, None, metrics, vision, track_truth, landmark_truth, error=str(exc), images=images
         )
     finish = time.perf_counter() - f0
     metrics = teach_metrics(run, result, wall, finish, landmark_truth)
@@ -229,6 +236,6 @@ def run_teach_pixel(
         render_wall_s=round(wall_render, 3),
         **frontend_figures(vision),
     )
-    out = PixelTeachOutcome(run, result, metrics, vision, track_truth, landmark_truth)
-    out.images = images  # type: ignore[attr-defined]
-    return out
+    return PixelTeachOutcome(
+        run, result, metrics, vision, track_truth, landmark_truth, images=images
+    )

@@ -189,3 +189,39 @@ def mow_figures(outcome: Any, out_dir: str | Path) -> list[Path]:
     fig.savefig(files[-1], dpi=90)
     plt.close(fig)
     return files
+
+
+def frontend_figures(outcome: Any, out_dir: str | Path, size_px: int = 900) -> list[Path]:
+    """Rendered omni frames with the front end's tracks drawn (pixel-level teach run): the
+    picture to look at when checking that a camera works. Each track is a dot with its last
+    few positions as a trail; green: re-identified with a landmark seen before; orange:
+    tracked for a second or more; blue: new. Returns the files written."""
+    import cv2
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    for t, (image, tracks, extra) in sorted(outcome.images.items()):
+        img = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        trails, lm_of = extra["trails"], extra["landmark_of"]
+        for tid, px, age in zip(tracks.ids.tolist(), tracks.pixels, tracks.ages, strict=True):
+            reid = lm_of.get(tid, tid) != tid
+            color = (60, 200, 60) if reid else ((0, 150, 255) if age >= 4 else (255, 120, 0))
+            pts = np.round(np.asarray(trails.get(tid, [px]))).astype(np.int32)
+            if len(pts) > 1:
+                cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, color, 2, cv2.LINE_AA)
+            cv2.circle(img, (round(float(px[0])), round(float(px[1]))), 7, color, 2, cv2.LINE_AA)
+        scale = size_px / img.shape[1]
+        small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        label = (
+            f"t = {t:.1f} s   {tracks.ids.size} tracks   (rendered 1540x1540, shown {size_px} px)"
+        )
+        cv2.putText(
+            small, label, (12, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA
+        )
+        path = out / f"frontend_t{t:05.1f}.png"
+        ok, data = cv2.imencode(".png", small)
+        if ok:
+            path.write_bytes(data.tobytes())
+            files.append(path)
+    return files

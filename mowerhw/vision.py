@@ -30,7 +30,7 @@ from mowerhw.config import FrontendConfig
 from mowerhw.frontend import FrameTracks, FrontEnd, RotationHistory
 from mowerhw.frontend.association import Candidates, associate, isotropic_candidates
 from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, hamming, stack_sets
-from mowerhw.geometry import quat_to_rotmat
+from mowerhw.geometry import quat_to_rotmat, tangent_basis
 
 FloatArray = NDArray[np.float64]
 #: radians per pixel of the omni camera near the horizon (Table I: ~470 px/rad there)
@@ -245,9 +245,11 @@ class MowVision(_VisionBase):
         for tid in [k for k in self.landmark_of if k not in live]:
             del self.landmark_of[tid]
             self._refusals.pop(tid, None)
+        prediction = self._predict(t)
+        self._confirm(tracks, prediction)
         free = np.array([int(i) not in self.landmark_of for i in tracks.ids], dtype=bool)
         if free.any():
-            self._associate(t, tracks, np.flatnonzero(free))
+            self._associate(tracks, np.flatnonzero(free), prediction)
         rows = np.array([int(i) in self.landmark_of for i in tracks.ids], dtype=bool)
         tids = tracks.ids[rows]
         lm = np.array([self.landmark_of[int(i)] for i in tids], dtype=np.int64)
@@ -258,12 +260,41 @@ class MowVision(_VisionBase):
         self._review(tids, lm)
         return tracks
 
-    def _associate(self, t: float, tracks: FrameTracks, free: NDArray[np.int64]) -> None:
+    def _predict(self, t: float) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+        """Every map landmark as the localizer expects it in the frame taken at ``t``, with a
+        covariance at the front end's precision. The localizer weighs bearings with a
+        conservative σ; an association is judged at the front end's own (``pixel_sigma``),
+        or two features a few pixels apart — a board's corner and the pane next to it —
+        would both pass, and a track sliding off its corner would keep its landmark."""
         ids, pred, cov = self.loc.predict_bearings(t)
-        # The localizer weighs bearings with a conservative σ; a re-identification is judged
-        # at the front end's own precision (``camera.pixel_sigma``), or two features a few
-        # pixels apart — a window's corner and the pane next to it — would both pass.
         cov = cov + (self.sigma_px_rad**2 - self.loc.cfg.bearing_sigma_rad**2) * np.eye(2)
+        return ids, pred, cov
+
+    def _confirm(self, tracks: FrameTracks, prediction: tuple) -> None:
+        """Every frame, each associated track must still be where its landmark is predicted
+        (χ² gate at the front end's precision); one that is not (it slid off the corner, was
+        occluded and jumped) loses the landmark, and the pair is not tried again."""
+        if not self.landmark_of:
+            return
+        ids, pred, cov = prediction
+        row_of = {int(i): k for k, i in enumerate(ids.tolist())}
+        ks = [k for k, tid in enumerate(tracks.ids.tolist()) if tid in self.landmark_of]
+        if not ks:
+            return
+        rows = np.array([row_of[self.landmark_of[int(tracks.ids[k])]] for k in ks])
+        b = tracks.bearings[ks]
+        basis = tangent_basis(pred[rows])
+        r = np.einsum("nk,nkj->nj", b - pred[rows], basis)
+        d2 = np.einsum("ni,nij,nj->n", r, np.linalg.inv(cov[rows]), r)
+        for k, dist2 in zip(ks, d2.tolist(), strict=True):
+            if not dist2 <= self.gate:
+                tid = int(tracks.ids[k])
+                self._banned.add((tid, self.landmark_of.pop(tid)))
+                self._refusals.pop(tid, None)
+                self.stats.dropped_associations += 1
+
+    def _associate(self, tracks: FrameTracks, free: NDArray[np.int64], prediction: tuple) -> None:
+        ids, pred, cov = prediction
         taken = set(self.landmark_of.values())
         ok = self._has_desc & ~np.isin(ids, list(taken))
         ok[ok] = self._in_view(pred[ok])

@@ -92,7 +92,8 @@ def _teach(args: argparse.Namespace) -> int:
         if args.landmarks is not None:
             print("mowerhw: --landmarks is for the bearing level only", file=sys.stderr)
             return 2
-        outcome = run_teach_pixel(args.scenario, args.seed, cfg)
+        keep = (4.0, 22.0, 45.0) if args.plot else ()
+        outcome = run_teach_pixel(args.scenario, args.seed, cfg, keep_images_at=keep)
         truth = outcome.landmark_truth
     else:
         from mowerhw.evaluate import run_teach

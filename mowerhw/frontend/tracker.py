@@ -68,11 +68,45 @@ class FrontendStats:
     track_lengths: list[int] = field(default_factory=list)  # frames, of every ended track
 
 
+def shi_tomasi(image: NDArray[np.uint8], pts: FloatArray, half: int = 3) -> FloatArray:
+    """Shi–Tomasi corner strength (smaller eigenvalue of the structure tensor over a
+    (2·half+1)² window) at each pixel of ``pts``, computed on small patches only."""
+    n = pts.shape[0]
+    if n == 0:
+        return np.zeros(0)
+    h, w = image.shape
+    r = half + 1
+    u = np.clip(np.round(pts[:, 0]).astype(int), r, w - r - 1)
+    v = np.clip(np.round(pts[:, 1]).astype(int), r, h - r - 1)
+    off = np.arange(-r, r + 1)
+    patch = image[(v[:, None] + off)[:, :, None], (u[:, None] + off)[:, None, :]].astype(np.float32)
+    gx = 0.5 * (patch[:, 1:-1, 2:] - patch[:, 1:-1, :-2])
+    gy = 0.5 * (patch[:, 2:, 1:-1] - patch[:, :-2, 1:-1])
+    sxx, syy, sxy = (gx * gx).sum((1, 2)), (gy * gy).sum((1, 2)), (gx * gy).sum((1, 2))
+    return 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy**2)
+
+
+def spread(pts: FloatArray, min_distance: float, limit: int) -> FloatArray:
+    """Greedy non-maximum suppression: ``pts`` (strongest first) at least ``min_distance``
+    apart, at most ``limit`` of them."""
+    chosen = np.zeros((0, 2))
+    for p in pts:
+        if chosen.shape[0] and np.min(np.sum((chosen - p) ** 2, axis=1)) < min_distance**2:
+            continue
+        chosen = np.vstack([chosen, p])
+        if chosen.shape[0] >= limit:
+            break
+    return chosen
+
+
 class FrontEnd:
     """Detection, KLT tracking, outlier rejection, description (see the module doc)."""
 
     #: undo an image rotation larger than this before tracking (deg)
     DEROTATE_ABOVE_DEG = 2.0
+    #: a detector's corner (FAST: a pixel next to it) may move this much more when first
+    #: refined; from then on a tracked corner may move only ``max_refine_px``
+    BIRTH_SLACK_PX = 2.0
 
     def __init__(
         self,
@@ -102,6 +136,8 @@ class FrontEnd:
         self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
         self._subpix = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
         self._refine_win = (3, 3)  # a 7×7 window: small enough to see one corner only
+        self._fast = cv2.FastFeatureDetector_create(threshold=c.fast_threshold)
+        self._strongest = 0.0  # Shi–Tomasi strength of the strongest candidate just seen
         self._center = np.array(center, dtype=np.float32)
 
     # ------------------------------------------------------------------------------ masks
@@ -291,8 +327,20 @@ class FrontEnd:
         self._end(~inl)
         self._keep(inl)
 
-    def _detect(self, image: NDArray[np.uint8], pyr: NDArray[np.uint8]) -> None:
+    def _candidates(self, image: NDArray[np.uint8]) -> FloatArray:
+        """Corner candidates (full-size pixels), strongest first, at least
+        ``min_distance_px`` apart, inside the detection mask."""
         c = self.cfg
+        if c.detector == "fast":
+            kps = self._fast.detect(image, self.detect_mask)
+            if not kps:
+                return np.zeros((0, 2))
+            pts = np.array([kp.pt for kp in kps], dtype=np.float64)
+            score = shi_tomasi(image, pts)
+            self._strongest = float(score.max())
+            keep = score >= c.quality_level * self._strongest
+            pts, score = pts[keep], score[keep]
+            return spread(pts[np.argsort(-score)], c.min_distance_px, 4 * c.max_features)
         lv = c.detect_level
         scale = 2**lv
         small = image
@@ -305,7 +353,6 @@ class FrontEnd:
                 self.detect_mask, (small.shape[1], small.shape[0]), interpolation=cv2.INTER_NEAREST
             )
         )
-        need = c.max_features - self._ids.size
         corners = cv2.goodFeaturesToTrack(
             small,
             maxCorners=4 * c.max_features,
@@ -315,8 +362,18 @@ class FrontEnd:
             blockSize=c.block_size,
         )
         if corners is None:
-            return
+            return np.zeros((0, 2))
         cand = corners.reshape(-1, 2) * scale + (scale - 1) / 2.0  # level → full-size pixels
+        self._strongest = float(shi_tomasi(image, cand).max())
+        return cand
+
+    def _detect(self, image: NDArray[np.uint8], pyr: NDArray[np.uint8]) -> None:
+        c = self.cfg
+        scale = 2**c.detect_level if c.detector == "shi-tomasi" else 1
+        need = c.max_features - self._ids.size
+        cand = self._candidates(image)
+        if cand.size == 0:
+            return
         if self._pts.size:
             d2 = ((cand[:, None, :] - self._pts[None, :, :]) ** 2).sum(-1)
             cand = cand[d2.min(axis=1) >= c.min_distance_px**2]
@@ -350,9 +407,12 @@ class FrontEnd:
         # the same test after its first tracked frame)
         ok = (
             np.all(np.isfinite(pts), axis=1)
-            & (np.linalg.norm(pts - raw, axis=1) <= c.max_refine_px + (scale - 1) / 2.0)
+            & (np.linalg.norm(pts - raw, axis=1) <= c.max_refine_px + self.BIRTH_SLACK_PX * scale)
             & self.camera.valid(pts.astype(np.float64))
         )
+        # ... nor is a point the refinement pulled into a blob's flat middle
+        strength = shi_tomasi(image, np.nan_to_num(pts.astype(np.float64)))
+        ok &= strength >= c.quality_level * self._strongest
         self.stats.rejected_at_birth += int((~ok).sum())
         pts = pts[ok]
         n = len(pts)

@@ -302,12 +302,10 @@ class OmniRenderer:
         r_bc = quat_to_rotmat(np.asarray(self.world.q_bc))
         return self.camera.visible(pb @ r_bc)
 
-    def _draw_panels(self, img: NDArray[np.float32], x: float, y: float, yaw: float) -> None:
-        cam = self._camera_center(x, y)
-        r_bm = self._to_body(yaw)
-        r_mb = r_bm.T.astype(np.float32)
-        hh, ww = img.shape
-        order = []
+    def _drawn_panels(self, cam: FloatArray) -> list[tuple[int, float]]:
+        """(index, distance) of the panels drawn from camera centre ``cam``: in range, not
+        edge-on, not so close that the camera is inside them."""
+        out = []
         for k, p in enumerate(self.panels):
             d = cam - p.center
             dist = float(np.linalg.norm(d))
@@ -315,7 +313,15 @@ class OmniRenderer:
                 continue
             if abs(float(p.normal @ d)) / dist < self.settings.min_panel_cos:
                 continue
-            order.append((dist, k))
+            out.append((k, dist))
+        return out
+
+    def _draw_panels(self, img: NDArray[np.float32], x: float, y: float, yaw: float) -> None:
+        cam = self._camera_center(x, y)
+        r_bm = self._to_body(yaw)
+        r_mb = r_bm.T.astype(np.float32)
+        hh, ww = img.shape
+        order = [(dist, k) for k, dist in self._drawn_panels(cam)]
         for dist, k in sorted(order, reverse=True):  # far first: near panels cover them
             p = self.panels[k]
             half = p.size / 2
@@ -371,7 +377,8 @@ class OmniRenderer:
     # ------------------------------------------------------------------------ ground truth
 
     def landmark_pixels(self, x: float, y: float, yaw: float) -> tuple[FloatArray, NDArray]:
-        """Exact pixels of every landmark point and whether it is visible in this frame."""
+        """Exact pixels of every landmark point and whether it is visible in this frame (in
+        range, in the annulus, its panel not edge-on, not hidden behind a nearer panel)."""
         cam = self._camera_center(x, y)
         centers = np.array([p.center for p in self.panels]).reshape(-1, 3)
         d = cam - centers
@@ -380,6 +387,9 @@ class OmniRenderer:
         facing = np.abs(np.einsum("ij,ij->i", normals, d)) / np.maximum(dist, 1e-9)
         pix, ok = self._project_body((centers - cam) @ self._to_body(yaw).T)
         ok &= (dist <= self.world.scenario.max_range_m) & (facing >= self.settings.min_panel_cos)
+        if ok.any():  # hidden behind a nearer panel: not visible
+            seen = self.true_points(x, y, yaw, pix[ok])
+            ok[ok] = np.linalg.norm(seen - centers[ok], axis=1) < 0.02
         return pix, ok
 
     def true_points(self, x: float, y: float, yaw: float, pixels: FloatArray) -> FloatArray:
@@ -402,13 +412,8 @@ class OmniRenderer:
         hit = np.isfinite(s_ground)
         best[hit] = s_ground[hit]
         pts[hit] = cam + rays[hit] * s_ground[hit, None]
-        for p in self.panels:
-            d = cam - p.center
-            dist = float(np.linalg.norm(d))
-            if dist > self.world.scenario.max_range_m:
-                continue
-            if abs(float(p.normal @ d)) / dist < self.settings.min_panel_cos:
-                continue
+        for k, _ in self._drawn_panels(cam):
+            p = self.panels[k]
             denom = rays @ p.normal
             with np.errstate(divide="ignore", invalid="ignore"):
                 s = (p.normal @ (p.center - cam)) / denom

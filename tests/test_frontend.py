@@ -1,0 +1,154 @@
+"""The vision front end: tracking through turns, outlier rejection, descriptors, association."""
+
+import numpy as np
+import pytest
+
+from mowerhw.frontend import FrontEnd, RotationHistory
+from mowerhw.frontend.association import Candidates, associate, isotropic_candidates
+from mowerhw.frontend.descriptors import OrbDescriber, hamming, min_hamming, stack_sets
+from mowerhw.frontend.epipolar import epipolar_inliers
+from mowerhw.geometry import rotmat_exp
+from mowerhw.sim import make_world
+from mowerhw.sim.render import OmniRenderer
+
+
+@pytest.fixture(scope="module")
+def scene():
+    world = make_world("paper", 1)
+    r = OmniRenderer(world, seed=1)
+    c = world.lawn.outline(360).mean(axis=0)
+    return world, r, c
+
+
+def test_rotation_history_integrates_the_gyro():
+    h = RotationHistory()
+    for k in range(101):
+        h.add(k * 0.01, [0.0, 0.0, 0.5])  # 0.5 rad/s about z for 1 s
+    r = h.rotation_between(0.2, 0.7)
+    assert np.allclose(r, rotmat_exp(np.array([0.0, 0.0, 0.25])), atol=1e-9)
+    assert h.rotation_between(0.2, 5.0) is None  # not covered
+
+
+@pytest.mark.parametrize("turn_deg", [3.0, 25.0, -45.0])
+def test_tracks_survive_a_turn(scene, turn_deg):
+    """A turn rotates the whole omni image; with the gyro's rotation the tracker undoes it
+    first, and the features are still there afterwards, at their true places."""
+    world, r, c = scene
+    fe = FrontEnd(world.camera, world.q_bc)
+    yaw = np.radians(turn_deg)
+    a = fe.process(0.0, r.render(c[0], c[1], 0.3))
+    b = fe.process(0.25, r.render(c[0], c[1], 0.3 + yaw), rotmat_exp(np.array([0, 0, yaw])))
+    kept = np.isin(a.ids, b.ids)
+    assert a.ids.size >= 15 and kept.mean() >= 0.8
+    # a feature that did not move in the world keeps its bearing in the world: rotated by yaw
+    rz = rotmat_exp(np.array([0, 0, -yaw]))
+    before = a.bearings[kept]
+    after = b.bearings[np.searchsorted(b.ids, a.ids[kept])]
+    err = np.degrees(np.arccos(np.clip(np.sum(after * (before @ rz.T), axis=1), -1, 1)))
+    assert np.median(err) < 0.15
+
+
+def test_without_the_gyro_a_fast_turn_loses_tracks(scene):
+    """The check above can fail: the same 45° turn without the gyro loses most tracks."""
+    world, r, c = scene
+    fe = FrontEnd(world.camera, world.q_bc)
+    a = fe.process(0.0, r.render(c[0], c[1], 0.3))
+    b = fe.process(0.25, r.render(c[0], c[1], 0.3 + np.radians(45)), None)
+    assert np.isin(a.ids, b.ids).mean() < 0.5
+
+
+def test_epipolar_ransac_finds_the_outliers():
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-8, 8, (80, 3)) + np.array([0, 0, 1.0])
+    r21 = rotmat_exp(np.array([0.0, 0.0, 0.2]))
+    t21 = np.array([-0.12, 0.01, 0.0])  # moved 12 cm forward
+    y1 = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    p2 = pts @ r21.T + t21
+    y2 = p2 / np.linalg.norm(p2, axis=1, keepdims=True)
+    bad = np.arange(0, 80, 8)
+    # a wrong track: 1.7° off, across its epipolar plane (along it no two views can tell)
+    normal = np.cross(t21, y1[bad] @ r21.T)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    y2[bad] = y2[bad] + 0.03 * normal
+    y2[bad] /= np.linalg.norm(y2[bad], axis=1, keepdims=True)
+    inl, t = epipolar_inliers(y1, y2, r21, np.radians(0.35), 64, rng)
+    assert not inl[bad].any() and inl[np.setdiff1d(np.arange(80), bad)].mean() > 0.95
+    assert abs(abs(t @ t21 / np.linalg.norm(t21)) - 1) < 1e-3
+    # standing still and turning: every track must follow the rotation alone
+    inl0, t0 = epipolar_inliers(y1, y1 @ r21.T, r21, np.radians(0.35))
+    assert inl0.all() and t0 is None
+
+
+def test_descriptors_do_not_change_with_heading(scene):
+    """ORB in the radial frame: the same corner after a 69° turn is a few bits away; other
+    landmarks are far."""
+    world, r, c = scene
+    d = OrbDescriber((world.camera.cu, world.camera.cv))
+    p0, ok0 = r.landmark_pixels(c[0], c[1], 0.3)
+    p1, ok1 = r.landmark_pixels(c[0], c[1], 1.5)
+    ok = ok0 & ok1
+    d0, g0 = d.describe(r.render(c[0], c[1], 0.3), p0[ok])
+    d1, g1 = d.describe(r.render(c[0], c[1], 1.5), p1[ok])
+    assert g0.all() and g1.all()
+    h = hamming(d0, d1)
+    assert np.all(np.diag(h) <= 30)
+    assert np.median(h[~np.eye(len(h), dtype=bool)]) > 60
+
+
+def test_hamming_helpers_match_brute_force():
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 256, (5, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (7, 32), dtype=np.uint8)
+    brute = np.array([[np.unpackbits(x ^ y).sum() for y in b] for x in a])
+    assert np.array_equal(hamming(a, b), brute)
+    stacked, owner = stack_sets([b[:3], b[3:4], np.zeros((0, 32), np.uint8), b[4:]])
+    m = min_hamming(a, stacked, owner, 4)
+    assert np.array_equal(m[:, 0], brute[:, :3].min(1)) and np.all(m[:, 2] == 256)
+
+
+def _candidates(bearings, sigma=0.002, desc=None):
+    n = len(bearings)
+    desc = np.zeros((n, 32), np.uint8) if desc is None else desc
+    return isotropic_candidates(
+        np.arange(100, 100 + n), np.asarray(bearings), sigma, desc, np.arange(n)
+    )
+
+
+def unit(v):
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def test_association_by_gate_and_descriptor():
+    cand = _candidates(unit([[1, 0, 0], [0, 1, 0.1]]))
+    meas = unit([[1, 0.003, 0], [0, 1, 0.1 + 0.002], [0, 0, 1]])
+    desc = np.zeros((3, 32), np.uint8)
+    pairs = associate(meas, desc, np.ones(3, bool), cand, 13.8, 50)
+    assert sorted(pairs) == [(0, 0), (1, 1)]
+    # a descriptor 64 bits away is not that landmark, however well it fits
+    far = desc.copy()
+    far[0, :8] = 0xFF
+    assert (0, 0) not in associate(meas, far, np.ones(3, bool), cand, 13.8, 50)
+    # outside the gate: 0.02 rad with σ 0.002 is 10σ
+    off = unit([[1, 0.02, 0]])
+    assert associate(off, desc[:1], np.ones(1, bool), cand, 13.8, 50) == []
+    # undescribed features are never associated
+    assert associate(meas, desc, np.zeros(3, bool), cand, 13.8, 50) == []
+
+
+def test_ambiguous_associations_are_not_made():
+    """Two features inside one landmark's gate: neither is taken for it. A feature inside
+    two landmarks' gates: it is taken for neither."""
+    cand = _candidates(unit([[1, 0, 0]]), sigma=0.003)
+    two = unit([[1, 0.002, 0], [1, -0.003, 0]])
+    assert associate(two, np.zeros((2, 32), np.uint8), np.ones(2, bool), cand, 13.8, 50) == []
+    # ... even when the competitor is a track already associated elsewhere (not assignable)
+    assignable = np.array([True, False])
+    assert (
+        associate(two, np.zeros((2, 32), np.uint8), np.ones(2, bool), cand, 13.8, 50, assignable)
+        == []
+    )
+    near_both = _candidates(unit([[1, 0.003, 0], [1, -0.003, 0]]), sigma=0.003)
+    one = unit([[1, 0.0, 0]])
+    assert associate(one, np.zeros((1, 32), np.uint8), np.ones(1, bool), near_both, 13.8, 50) == []
+    assert isinstance(near_both, Candidates)

@@ -1,0 +1,86 @@
+"""The pixel-level bench end to end, short cases (the full ones: tools/montecarlo_pixel.py).
+
+Teach on rendered images of the paper's scenario: the front end finds its own landmarks,
+the Teacher maps them; then mow a short while with that map, re-identifying landmarks in
+rendered images. Scored against the renderer's ground truth.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mowerhw.cli import main
+from mowerhw.cli.sim_cmd import _save_sim_map
+from mowerhw.config import Config
+from mowerhw.evaluate_mow import run_mow
+from mowerhw.evaluate_pixel import run_teach_pixel
+from mowerhw.map import MapError, load
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def taught(tmp_path_factory):
+    out = run_teach_pixel("paper", 2, Config())
+    path = tmp_path_factory.mktemp("pixel") / "map.json"
+    _save_sim_map(out.result, path, "paper", 2, "pixel", out.landmark_truth)
+    return out, path
+
+
+def test_teach_on_rendered_images_maps_its_own_landmarks(taught):
+    out, _ = taught
+    m = out.metrics
+    assert not m["diverged"]
+    assert m["boundary_rmse_m"] <= 0.05
+    assert m["landmark_rmse_m"] <= 0.15
+    assert m["landmarks_mapped"] >= 20  # far more than the 15 panels: their corners
+    assert m["tracks_per_frame"] >= 20 and m["track_length_median"] >= 4
+    assert m["association_precision"] is None or m["association_precision"] >= 0.75
+
+
+def test_map_landmarks_carry_descriptors_and_keyframes(taught):
+    _, path = taught
+    lawn_map = load(path)
+    assert lawn_map.teach["sim"]["level"] == "pixel"
+    assert all(lm.descriptor and len(lm.descriptor) % 32 == 0 for lm in lawn_map.landmarks)
+    assert all(lm.keyframe is not None for lm in lawn_map.landmarks)
+    # a descriptor that is not whole ORB descriptors is refused, with the reason
+    lawn_map.landmarks[0] = dataclasses.replace(lawn_map.landmarks[0], descriptor=b"x" * 20)
+    bad = path.with_name("bad.json")
+    lawn_map.save(bad)
+    with pytest.raises(MapError, match="32-byte ORB descriptors"):
+        load(bad)
+
+
+def test_mow_re_identifies_map_landmarks_in_rendered_images(taught):
+    _, path = taught
+    out = run_mow(load(path), "paper", 2, 25.0, Config(), level="pixel")
+    m = out.metrics
+    assert m["missed_halts"] == 0
+    assert m["position_rmse_m"] <= 0.10
+    assert m["associations_judged"] > 200
+    assert m["association_precision"] >= 0.95
+    assert m["localizer"]["frames_with_fix"] >= 0.9 * m["localizer"]["frames"]
+    assert np.isfinite(m["frontend_ms_per_frame"])
+
+
+def test_cli_refuses_a_bearing_level_map_for_pixel_mowing(tmp_path, capsys):
+    rc = main(["sim", "teach", "--seed", "3", "--out", str(tmp_path), "--json"])
+    assert rc == 0
+    capsys.readouterr()
+    rc = main(
+        [
+            "sim",
+            "mow",
+            "--seed",
+            "3",
+            "--level",
+            "pixel",
+            "--map",
+            str(tmp_path / "map.json"),
+            "--json",
+        ]
+    )
+    assert rc == 2
+    assert "needs a map from `sim teach --level pixel`" in capsys.readouterr().err
