@@ -219,8 +219,8 @@ def frontend_figures(outcome: Any, out_dir: str | Path, size_px: int = 900) -> l
         cv2.putText(
             small, label, (12, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA
         )
-        path = out / f"frontend_t{t:05.1f}.png"
-        ok, data = cv2.imencode(".png", small)
+        path = out / f"frontend_t{t:05.1f}.jpg"  # a camera picture: JPEG, not PNG (noise)
+        ok, data = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 88])
         if ok:
             path.write_bytes(data.tobytes())
             files.append(path)
