@@ -730,8 +730,13 @@ class Vn100:
         if self._pending:
             self._deliver(self._pending)
             self._pending = []
-        data = self._serial.read(4096)
+        # wait for the first byte only (up to the port timeout), then take what is there:
+        # read(4096) would wait for 4096 bytes or the timeout, delaying every packet
+        data = self._serial.read(1)
         if data:
+            waiting = self._serial.in_waiting
+            if waiting:
+                data += self._serial.read(min(waiting, 65536))
             host_ns = time.monotonic_ns()
             self._deliver([(item, host_ns) for item in self.parser.feed(data)])
         return len(data)

@@ -134,9 +134,14 @@ class CameraConfig:
     """Omnidirectional camera through V4L2 (``drivers.camera_v4l2``)."""
 
     driver: str = opt(
-        "v4l2", "v4l2 (real device) or mock (rendered frames)", choices=("v4l2", "mock")
+        "v4l2",
+        "v4l2 (real device), stream (frames over a Unix socket: the bench's camera), "
+        "or mock (synthetic frames in-process)",
+        choices=("v4l2", "stream", "mock"),
     )
-    device: str = opt("/dev/video0", "V4L2 device path", nonempty=True)
+    device: str = opt(
+        "/dev/video0", "V4L2 device path (stream: the Unix socket path)", nonempty=True
+    )
     width: int = opt(1540, "frame width (px)", ge=16, le=8192)
     height: int = opt(1540, "frame height (px)", ge=16, le=8192)
     fps: float = opt(4.0, "frame rate", gt=0.0, le=120.0)
@@ -313,6 +318,16 @@ class RuntimeConfig:
     mode: str = opt("idle", "start-up mode", choices=("idle", "teach", "mow"))
     control_socket: Path = opt(Path("/run/mowerhw/control.sock"), "control socket path")
     log_level: str = opt("INFO", "log level", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    socket_mode: int = opt(0o660, "permissions of the control socket", ge=0, le=0o777)
+    auto_finish_teach: bool = opt(
+        True, "finish teach by itself when the mower stops back at its start after a loop"
+    )
+    map_check_period_s: float = opt(
+        0.1, "how often mow mode checks the map file for changes", gt=0.0, le=10.0
+    )
+    fault_injection: bool = opt(
+        False, "accept the control socket's `fault` command (test bench only)"
+    )
 
 
 @dataclass(frozen=True)

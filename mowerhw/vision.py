@@ -73,16 +73,30 @@ class _VisionBase:
     def imu(self, t: float, gyro_xyz: Any) -> None:
         self.rotations.add(t, gyro_xyz)
 
-    def _track(self, t: float, image: NDArray[np.uint8]) -> FrameTracks:
+    def frame(self, t: float, image: NDArray[np.uint8]) -> FrameTracks:
+        """One image, start to end: :meth:`prepare`, :meth:`track`, :meth:`use`."""
+        return self.use(self.track(t, image, self.prepare(t)))
+
+    def prepare(self, t: float) -> FloatArray | None:
+        """The gyro's body rotation from the previous frame to the one taken at ``t`` (call on
+        the estimator's thread: it reads the IMU history)."""
         r = None
         if self._t_prev is not None:
             r = self.rotations.rotation_between(self._t_prev, t)
-        tracks = self.frontend.process(t, image, r)
         self._t_prev = t
+        return r
+
+    def track(self, t: float, image: NDArray[np.uint8], r_prev_cur: FloatArray | None):
+        """Detection and tracking, the costly part: touches only the front end, so a runtime
+        may run it on a worker thread (one frame at a time)."""
+        tracks = self.frontend.process(t, image, r_prev_cur)
         self.stats.frames += 1
         self.stats.tracks_per_frame.append(int(tracks.ids.size))
         self.stats.frontend_ms.append(tracks.ms)
         return tracks
+
+    def use(self, tracks: FrameTracks) -> FrameTracks:  # pragma: no cover - overridden
+        raise NotImplementedError
 
     def _track_descriptors(self, tracks: FrameTracks) -> tuple[NDArray[np.uint8], NDArray]:
         """The newest descriptor of every track, and which tracks have one."""
@@ -122,8 +136,9 @@ class TeachVision(_VisionBase):
         self.reidentifications: list[tuple[float, int, int, FloatArray]] = []
         self.gate = float(chi2.ppf(self.cfg.association_gate, df=2))
 
-    def frame(self, t: float, image: NDArray[np.uint8]) -> FrameTracks:
-        tracks = self._track(t, image)
+    def use(self, tracks: FrameTracks) -> FrameTracks:
+        """Landmark ids for the tracks (re-identification) → the Teacher."""
+        t = tracks.t
         new = np.flatnonzero(tracks.ages == 0)
         if new.size:
             self._reidentify(tracks, new)
@@ -239,8 +254,9 @@ class MowVision(_VisionBase):
         self.last_associated = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
         self.last_bearings = np.zeros((0, 3))
 
-    def frame(self, t: float, image: NDArray[np.uint8]) -> FrameTracks:
-        tracks = self._track(t, image)
+    def use(self, tracks: FrameTracks) -> FrameTracks:
+        """Associations of the tracks with map landmarks → the Localizer."""
+        t = tracks.t
         live = set(tracks.ids.tolist())
         for tid in [k for k in self.landmark_of if k not in live]:
             del self.landmark_of[tid]

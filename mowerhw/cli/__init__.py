@@ -13,9 +13,17 @@ import sys
 from collections.abc import Sequence
 
 from mowerhw import __version__
-from mowerhw.cli import camera_cmd, config_cmd, demo_cmd, map_cmd, sim_cmd
+from mowerhw.cli import (
+    bench_cmd,
+    camera_cmd,
+    config_cmd,
+    demo_cmd,
+    map_cmd,
+    run_cmd,
+    sim_cmd,
+)
 
-COMMAND_MODULES = (config_cmd, camera_cmd, sim_cmd, map_cmd, demo_cmd)
+COMMAND_MODULES = (run_cmd, bench_cmd, config_cmd, camera_cmd, sim_cmd, map_cmd, demo_cmd)
 
 DESCRIPTION = """\
 Wire-free, GPS-free containment for a robotic mower: VN-100 IMU + ISO 11783 ground speed +

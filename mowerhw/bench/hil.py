@@ -1,0 +1,592 @@
+"""``mowerhw bench``: the real daemon, its real drivers, mock hardware, one simulated world.
+
+What runs (DESIGN.md §9, level 3):
+
+* the mock VN-100 (:class:`drivers.mock.vn100.MockVn100`) on a pseudo-terminal, measuring the
+  simulated mower (:class:`.world.RealTimeMower`);
+* a CAN bus shared between processes (python-can ``udp_multicast`` on the loopback, a random
+  group per run) carrying the mock speed sensor's GBSD frames and the daemon's ISB /
+  heartbeat / status frames, which the mock mower controller reads;
+* the camera: frames rendered from the true pose (:class:`mowerhw.sim.render.OmniRenderer`)
+  and served on a Unix socket (:mod:`drivers.camera_stream`);
+* the daemon itself, ``mowerhw run`` in its own process, configured like the real mower
+  except for device paths.
+
+Timeline: the daemon starts in teach mode; the mower stands still (gyro calibration), the
+"operator" drives the lawn edge once; the daemon detects the loop (or is told
+``finish-teach``), saves the map; the bench switches it to ``mow`` over the control socket,
+and the mower mows by itself for ``duration_s`` — steering by the daemon's CAN status frame,
+stopping when the deck is halted — while faults are injected on schedule.
+
+Scores against the truth: ``boundary_rmse_m`` (the taught boundary against the true lawn edge,
+both ways), ``position_rmse_m`` (the daemon's pose, polled over the control socket, against
+the true pose at its time stamp), ``missed_halts`` (world steps with the deck running while
+the mower is truly more than 0.10 m outside), ``false_halt_fraction`` (share of steps more
+than 1 m inside with the deck stopped, outside fault windows), ``halt_latency_ms`` (measured
+by the daemon: arrival of the revealing sample → ISB stop sent), ``permit_gaps``, and the
+daemon's ``cpu_percent`` and ``peak_rss_mb`` from ``/proc``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import shapely
+import yaml
+
+from mowerhw.runtime.control import request
+
+log = logging.getLogger("mowerhw.bench")
+
+FAULT_KINDS = (
+    "imu-unplug",
+    "speed-stop",
+    "camera-freeze",
+    "nan",
+    "exception",
+    "corrupt-map",
+    "sigterm",
+    "sigkill",
+)
+MISSED_HALT_M = 0.10
+SAFE_INSIDE_M = 1.0
+RECOVERY_WINDOW_S = 30.0
+
+
+@dataclass
+class FaultSpec:
+    kind: str
+    at_s: float  # after the start of mowing
+    duration_s: float = 3.0
+
+    @classmethod
+    def parse(cls, text: str) -> FaultSpec:
+        """``KIND@T[:D]`` — e.g. ``imu-unplug@20:2`` (at 20 s of mowing, for 2 s)."""
+        try:
+            kind, rest = text.split("@", 1)
+            at, _, dur = rest.partition(":")
+            spec = cls(kind, float(at), float(dur) if dur else 3.0)
+        except ValueError:
+            raise ValueError(f"fault {text!r}: expected KIND@SECONDS[:DURATION]") from None
+        if spec.kind not in FAULT_KINDS:
+            raise ValueError(f"fault kind {spec.kind!r}; allowed: {', '.join(FAULT_KINDS)}")
+        if spec.at_s < 0 or spec.duration_s <= 0:
+            raise ValueError(f"fault {text!r}: time must be ≥ 0 and duration > 0")
+        return spec
+
+
+@dataclass
+class FaultResult:
+    kind: str
+    injected_at_s: float
+    duration_s: float
+    deck_was_running: bool
+    stop_after_ms: float | None = None  # injection → the mock controller's deck stop
+    reason: str = ""
+    recovered: bool = False
+    recovered_after_s: float | None = None  # the fault cleared → deck running again
+    how: str = ""
+    notes: list[str] = field(default_factory=list)
+
+
+class Bench:
+    """One bench run (see the module doc)."""
+
+    def __init__(
+        self,
+        duration_s: float = 120.0,
+        seed: int = 7,
+        scenario: str = "paper",
+        out_dir: str | Path | None = None,
+        faults: list[FaultSpec] | None = None,
+        map_path: str | Path | None = None,
+        config_path: str | Path | None = None,
+    ) -> None:
+        self.duration_s = duration_s
+        self.seed = seed
+        self.scenario = scenario
+        self.out = Path(out_dir or tempfile.mkdtemp(prefix="mowerhw-bench-"))
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.faults = sorted(faults or [], key=lambda f: f.at_s)
+        self.given_map = Path(map_path) if map_path else None
+        self.base_config = Path(config_path) if config_path else _shipped("bench.yaml")
+        self.proc: subprocess.Popen | None = None
+        self.daemon_log = self.out / "daemon.log"
+        self.results: list[FaultResult] = []
+        self.pose_samples: list[tuple[float, float, float, bool]] = []
+        self.cpu_s_total = 0.0  # CPU seconds of daemons that have exited (restarts)
+        self.peak_rss_mb = 0.0
+        self.restarts = 0
+
+    # ----------------------------------------------------------------------------- set-up
+
+    def _write_config(self) -> Path:
+        raw = yaml.safe_load(self.base_config.read_text()) or {}
+        group = f"239.{random.randint(1, 254)}.{random.randint(1, 254)}.{random.randint(1, 254)}"
+        self.can_channel = group
+        raw.setdefault("imu", {}).update(driver="mock", port=str(self.out / "vn100"))
+        raw.setdefault("can", {}).update(interface="udp_multicast", channel=group)
+        cal = _shipped("camera/paper-table1.yaml")
+        raw.setdefault("camera", {}).update(
+            driver="stream", device=str(self.out / "camera.sock"), calibration=str(cal)
+        )
+        raw.setdefault("map", {})["path"] = str(self.out / "lawn.json")
+        raw.setdefault("runtime", {}).update(
+            control_socket=str(self.out / "control.sock"), fault_injection=True
+        )
+        path = self.out / "bench-config.yaml"
+        path.write_text(yaml.safe_dump(raw, sort_keys=False))
+        return path
+
+    def _spawn(self, mode: str) -> None:
+        cmd = [sys.executable, "-m", "mowerhw", "run", "--config", str(self.cfg_path)]
+        cmd += ["--mode", mode]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        with open(self.daemon_log, "ab") as logf:
+            self.proc = subprocess.Popen(
+                cmd, stdout=subprocess.DEVNULL, stderr=logf, env=env, start_new_session=True
+            )
+        self._wait(lambda s: s.get("sensor_age_s", {}).get("imu") is not None, 30.0, "IMU data")
+
+    def _status(self, timeout: float = 2.0) -> dict[str, Any]:
+        try:
+            return request(self.sock, "status", timeout=timeout)
+        except (OSError, ConnectionError, json.JSONDecodeError):
+            return {}
+
+    def _wait(self, pred, timeout: float, what: str) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc is not None and self.proc.poll() is not None:
+                raise RuntimeError(
+                    f"the daemon exited ({self.proc.returncode}) waiting for {what}; "
+                    f"see {self.daemon_log}"
+                )
+            st = self._status()
+            if st and pred(st):
+                return st
+            time.sleep(0.05)
+        raise TimeoutError(f"bench: no {what} within {timeout} s (daemon log: {self.daemon_log})")
+
+    def _proc_cpu_rss(self) -> tuple[float, float]:
+        """(CPU seconds, peak RSS MB) of the running daemon."""
+        if self.proc is None or self.proc.poll() is not None:
+            return 0.0, 0.0
+        pid = self.proc.pid
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            tick = os.sysconf("SC_CLK_TCK")
+            cpu = (int(fields[11]) + int(fields[12])) / tick
+            rss = 0.0
+            for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+                if line.startswith("VmHWM:"):
+                    rss = int(line.split()[1]) / 1024.0
+            return cpu, rss
+        except (OSError, ValueError, IndexError):
+            return 0.0, 0.0
+
+    # -------------------------------------------------------------------------------- run
+
+    def run(self) -> dict[str, Any]:
+        import can
+
+        from drivers.mock.camera_server import MockCameraServer
+        from drivers.mock.mower import MockMowerController
+        from drivers.mock.speed import MockSpeedSensor
+        from drivers.mock.vn100 import MockVn100
+        from mowerhw.bench.world import RealTimeMower
+        from mowerhw.config import load_config
+        from mowerhw.sim import make_world
+        from mowerhw.sim.motion import teach_loop
+        from mowerhw.sim.render import OmniRenderer
+
+        t_wall0 = time.monotonic()
+        self.cfg_path = self._write_config()
+        cfg = load_config(self.cfg_path)
+        self.sock = cfg.runtime.control_socket
+        world = make_world(self.scenario, self.seed)
+        sc = world.scenario
+        truth = teach_loop(world.lawn, sc.speed_mps, sc.camera_height_m, standstill_s=1.0)
+        mower = RealTimeMower(world, truth, self.seed, q_bi=cfg.imu.q_bi)
+        renderer = OmniRenderer(world, self.seed)
+        bus = can.Bus(interface="udp_multicast", channel=self.can_channel)
+        vn = MockVn100(self.out / "vn100", source=mower.imu_source, seed=self.seed)
+        speed = MockSpeedSensor(bus, mower.speed_source)
+        controller = MockMowerController(
+            bus, cfg.can.source_address, status_pgn=cfg.permit.status_pgn
+        )
+        mower.deck_running = lambda: controller.deck_running
+        camera = MockCameraServer(
+            cfg.camera.device, lambda t: renderer.render(*mower.map_pose_at(t)), cfg.camera.fps
+        )
+        self.mower, self.controller, self.vn, self.speed, self.camera = (
+            mower,
+            controller,
+            vn,
+            speed,
+            camera,
+        )
+        started = [mower.start(), vn.start(), speed.start(), controller.start(), camera.start()]
+        metrics: dict[str, Any] = {}
+        try:
+            if self.given_map is None:
+                metrics.update(self._teach(world, truth))
+            else:
+                Path(cfg.map.path).write_bytes(self.given_map.read_bytes())
+                self._spawn("idle")
+            metrics.update(self._mow(world, cfg))
+        finally:
+            cpu, rss = self._proc_cpu_rss()
+            self.peak_rss_mb = max(self.peak_rss_mb, rss)
+            self.cpu_s_total += cpu
+            self._stop_daemon()
+            for dev in reversed(started):
+                with contextlib.suppress(Exception):
+                    dev.stop()
+            bus.shutdown()
+        metrics["wall_s"] = round(time.monotonic() - t_wall0, 1)
+        metrics["out_dir"] = str(self.out)
+        return metrics
+
+    def _stop_daemon(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(10.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5.0)
+
+    # ------------------------------------------------------------------------------ teach
+
+    def _teach(self, world: Any, truth: Any) -> dict[str, Any]:
+        from mowerhw.map import load as load_map
+
+        self._spawn("teach")
+        time.sleep(2.0)  # standing: the teacher calibrates the gyro
+        self.mower.start_teach()
+        log.info("bench: teach drive (%.0f s)", truth.t[-1])
+        self.mower.teach_done.wait(truth.t[-1] + 30.0)
+        try:  # the daemon usually notices the closed loop by itself
+            st = self._wait(
+                lambda s: s.get("teach", {}).get("state") in ("finishing", "saved"),
+                4.0,
+                "automatic loop detection",
+            )
+            auto = True
+        except TimeoutError:
+            request(self.sock, "finish-teach", timeout=120.0)
+            auto = False
+        st = self._wait(
+            lambda s: (
+                s.get("teach", {}).get("state") == "saved"
+                or str(s.get("teach", {}).get("state", "")).startswith("failed")
+            ),
+            180.0,
+            "saved map",
+        )
+        teach = st["teach"]
+        if teach["state"] != "saved":
+            raise RuntimeError(f"teach failed in the daemon: {teach['state']}")
+        lawn_map = load_map(teach["map"])
+        true_edge = self.mower.frame.outline_world(world.lawn)
+        err = _boundary_errors(lawn_map.boundary, true_edge)
+        return {
+            "boundary_rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
+            "boundary_max_m": round(float(err.max()), 4),
+            "teach": {
+                "drive_s": round(float(truth.t[-1]), 1),
+                "finished_by": "loop detection" if auto else "finish-teach command",
+                "landmarks": teach.get("landmarks"),
+                "area_m2": teach.get("area_m2"),
+                "true_area_m2": round(float(shapely.Polygon(true_edge).area), 2),
+                "loop_closure": teach.get("loop_closure"),
+                "finish_s": teach.get("finish_s"),
+                "map": teach.get("map"),
+                "png": teach.get("png"),
+            },
+        }
+
+    # -------------------------------------------------------------------------------- mow
+
+    def _mow(self, world: Any, cfg: Any) -> dict[str, Any]:
+        from mowerhw.map import load as load_map
+        from mowerhw.mow import LawnGeometry
+        from mowerhw.sim.controller import BangBangMower
+
+        lawn_map = load_map(cfg.map.path)
+        self.map_bytes = Path(cfg.map.path).read_bytes()
+        geom = LawnGeometry(lawn_map.boundary, [(z.name, z.polygon) for z in lawn_map.keepouts])
+        bang = BangBangMower(geom.inward_direction, np.random.default_rng([self.seed, 30]))
+        ctl = self.controller
+        t_mow0 = time.monotonic()
+
+        def drive(now: float, _xy: Any, _yaw: float) -> tuple[float, float]:
+            st = ctl.state.status
+            if st is None or ctl.why_not(now) in ("ISB timeout", "heartbeat timeout"):
+                return 0.0, 0.0  # the daemon is silent: stand
+            if not math.isfinite(st.x_m) or not math.isfinite(st.heading_rad):
+                return 0.0, 0.0
+            state = (
+                st.state
+                if (ctl.deck_running or st.state in ("NEAR_EDGE", "OUTSIDE"))
+                else ("UNKNOWN")
+            )
+            return bang.command(now - t_mow0, st.x_m, st.y_m, st.heading_rad, state)
+
+        reply = request(self.sock, "mow", timeout=10.0)
+        if not reply.get("ok"):
+            raise RuntimeError(f"daemon refused mow: {reply}")
+        cpu0, _ = self._proc_cpu_rss()
+        self.cpu_s_total -= cpu0
+        t_mow0 = time.monotonic()
+        self.mower.start_mow(drive)
+        pending = list(self.faults)
+        windows: list[tuple[float, float]] = []
+        end = t_mow0 + self.duration_s
+        next_poll = t_mow0
+        latencies: list[dict[str, Any]] = []
+        while time.monotonic() < end:
+            now = time.monotonic()
+            if pending and now - t_mow0 >= pending[0].at_s:
+                spec = pending.pop(0)
+                res = self._inject(spec, t_mow0)
+                self.results.append(res)
+                windows.append(
+                    (t_mow0 + res.injected_at_s, t_mow0 + res.injected_at_s + spec.duration_s + 15)
+                )
+                continue
+            if now >= next_poll:
+                next_poll = now + 0.2
+                st = self._status(timeout=1.0)
+                pose = st.get("pose")
+                if pose and st.get("localizer", {}).get("localized"):
+                    self.pose_samples.append((pose["t"], pose["x"], pose["y"], bool(st["permit"])))
+                if st:
+                    latencies = _merge_latencies(latencies, st.get("halt_latencies", []))
+            time.sleep(0.02)
+        st = self._status(timeout=2.0)
+        latencies = _merge_latencies(latencies, st.get("halt_latencies", []))
+        cpu1, rss = self._proc_cpu_rss()
+        self.cpu_s_total += cpu1
+        self.peak_rss_mb = max(self.peak_rss_mb, rss)
+        mow_s = time.monotonic() - t_mow0
+        metrics = self._score_mow(world, t_mow0, windows, latencies, mow_s)
+        metrics["halts_by_reason"] = dict(
+            sorted(_count(d["reason"] for d in latencies).items())  # type: ignore[arg-type]
+        )
+        metrics["daemon_counts"] = st.get("counts", {})
+        metrics["daemon_restarts"] = self.restarts
+        if self.results:
+            metrics["faults"] = [vars(r) for r in self.results]
+        self._cpu_rss_done = True
+        return metrics
+
+    def _score_mow(self, world, t_mow0, windows, latencies, mow_s) -> dict[str, Any]:
+        from mowerhw.mow import LawnGeometry
+
+        log_arr = self.mower.log_array()
+        sel = log_arr[:, 6] == 2  # mowing phase
+        t, x, y, deck = log_arr[sel, 0], log_arr[sel, 1], log_arr[sel, 2], log_arr[sel, 5] > 0
+        true_geom = LawnGeometry(self.mower.frame.outline_world(world.lawn), [])
+        s_true = true_geom.signed_distances(np.column_stack([x, y]))
+        missed = deck & (s_true < -MISSED_HALT_M)
+        first_permit = t[np.argmax(deck)] if deck.any() else math.inf
+        in_fault = np.zeros(t.size, bool)
+        for a, b in windows:
+            in_fault |= (t >= a) & (t < b)
+        safe = (t >= first_permit) & (s_true > SAFE_INSIDE_M) & ~in_fault
+        # the daemon's estimate against the truth at its own time stamps
+        errs = []
+        for tp, xp, yp, _ in self.pose_samples:
+            k = int(np.searchsorted(t, tp))
+            if 0 < k < t.size and t[k] - t[k - 1] < 0.05:
+                f = (tp - t[k - 1]) / (t[k] - t[k - 1])
+                xt = x[k - 1] + f * (x[k] - x[k - 1])
+                yt = y[k - 1] + f * (y[k] - y[k - 1])
+                errs.append(math.hypot(xp - xt, yp - yt))
+        lat = np.array([d["latency_ms"] for d in latencies]) if latencies else np.zeros(0)
+        gaps = _permit_gaps(t, deck, first_permit)
+        cpu_percent = 100.0 * self.cpu_s_total / max(mow_s, 1e-9)
+        return {
+            "position_rmse_m": round(float(np.sqrt(np.mean(np.square(errs)))), 4) if errs else None,
+            "position_max_m": round(float(np.max(errs)), 4) if errs else None,
+            "pose_samples": len(errs),
+            "missed_halts": int(missed.sum()),
+            "false_halt_fraction": round(float(np.mean(~deck[safe])), 4) if safe.any() else None,
+            "halt_latency_ms": {
+                "p50": round(float(np.percentile(lat, 50)), 3) if lat.size else None,
+                "p99": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
+                "max": round(float(lat.max()), 3) if lat.size else None,
+                "n": int(lat.size),
+            },
+            "permit_gaps": gaps,
+            "cpu_percent": round(cpu_percent, 1),
+            "peak_rss_mb": round(self.peak_rss_mb, 1),
+            "mow_s": round(mow_s, 1),
+            "permit_fraction": round(float(np.mean(deck[t >= first_permit])), 4)
+            if np.isfinite(first_permit)
+            else 0.0,
+            "time_truly_outside_s": round(float(np.sum(s_true < 0)) / 200.0, 2),
+            "edge_turns": None,
+        }
+
+    # ----------------------------------------------------------------------------- faults
+
+    def _inject(self, spec: FaultSpec, t_mow0: float) -> FaultResult:
+        ctl = self.controller
+        t0 = time.monotonic()
+        res = FaultResult(spec.kind, round(t0 - t_mow0, 2), spec.duration_s, ctl.deck_running)
+        n_events = len(ctl.state.events)
+        clear = lambda: None  # noqa: E731
+        if spec.kind == "imu-unplug":
+            self.vn.vanish(spec.duration_s)
+        elif spec.kind == "speed-stop":
+            self.speed.paused.set()
+            clear = self.speed.paused.clear
+        elif spec.kind == "camera-freeze":
+            self.camera.frozen.set()
+            clear = self.camera.frozen.clear
+        elif spec.kind in ("nan", "exception"):
+            request(self.sock, "fault", args=[spec.kind])
+        elif spec.kind == "corrupt-map":
+            path = Path(self.cfg_path.parent / "lawn.json")
+            with open(path, "r+b") as fh:  # damage it in place, as a bad disk or editor would
+                fh.seek(len(self.map_bytes) // 2)
+                fh.write(b"\x00garbage\x00" * 8)
+            clear = lambda: _restore(path, self.map_bytes)  # noqa: E731
+        elif spec.kind in ("sigterm", "sigkill"):
+            pid = self.proc.pid  # type: ignore[union-attr]
+            cpu, rss = self._proc_cpu_rss()
+            self.cpu_s_total += cpu
+            self.peak_rss_mb = max(self.peak_rss_mb, rss)
+            os.kill(pid, signal.SIGTERM if spec.kind == "sigterm" else signal.SIGKILL)
+            self.proc.wait(10.0)  # type: ignore[union-attr]
+            res.notes.append(f"daemon exit status {self.proc.returncode}")  # type: ignore[union-attr]
+        # the stop, as the mock mower controller saw it
+        stop = _wait_for(lambda: _stop_after(ctl, n_events, t0), 3.0)
+        if stop is not None:
+            res.stop_after_ms = round((stop.t - t0) * 1e3, 1)
+            res.reason = stop.reason
+        daemon_reason = ""
+        st = self._status(timeout=1.0)
+        if st:
+            daemon_reason = st.get("reason", "") + (": " + st.get("detail", "")).rstrip(": ")
+        res.reason = (f"controller: {res.reason}; daemon: {daemon_reason}").strip()
+        # let the fault last, then clear it
+        rest = spec.duration_s - (time.monotonic() - t0)
+        if rest > 0:
+            time.sleep(rest)
+        clear()
+        t_clear = time.monotonic()
+        if spec.kind in ("sigterm", "sigkill"):
+            self.restarts += 1
+            res.how = (
+                "restarted (systemd Restart=on-failure after SIGKILL)"
+                if spec.kind == "sigkill"
+                else "clean stop (heartbeat 255); restarted by the bench"
+            )
+            self._spawn("mow")
+        running = _wait_for(lambda: ctl.deck_running or None, RECOVERY_WINDOW_S)
+        if running:
+            res.recovered = True
+            res.recovered_after_s = round(time.monotonic() - t_clear, 2)
+            if not res.how:
+                res.how = "by itself, same process"
+        return res
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _shipped(name: str) -> Path:
+    here = Path(__file__).resolve().parents[2] / "configs" / name
+    return here
+
+
+def _restore(path: Path, data: bytes) -> None:
+    from mowerhw.fileio import write_atomic
+
+    write_atomic(path, data)
+
+
+def _stop_after(ctl: Any, n_events: int, t0: float) -> Any:
+    """The mock controller's first deck stop since the injection, if any."""
+    for e in ctl.state.events[n_events:]:
+        if not e.running and e.t >= t0 - 0.001:
+            return e
+    return None
+
+
+def _wait_for(fn, timeout: float) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = fn()
+        if v:
+            return v
+        time.sleep(0.002)
+    return None
+
+
+def _merge_latencies(have: list[dict], new: list[dict]) -> list[dict]:
+    seen = {(d["t"], d["reason"]) for d in have}
+    return have + [d for d in new if (d["t"], d["reason"]) not in seen]
+
+
+def _count(items) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for k in items:
+        out[k] = out.get(k, 0) + 1
+    return out
+
+
+def _permit_gaps(t: np.ndarray, deck: np.ndarray, first: float) -> dict[str, Any]:
+    """Halts of the deck after mowing began: how many, how long."""
+    sel = t >= first
+    t, deck = t[sel], deck[sel]
+    if t.size == 0:
+        return {"count": 0}
+    edges = np.flatnonzero(np.diff(deck.astype(np.int8)))
+    gaps = []
+    for k in edges:
+        if deck[k] and not deck[k + 1]:
+            ends = edges[edges > k]
+            end_t = t[ends[0] + 1] if ends.size else t[-1]
+            gaps.append(float(end_t - t[k + 1]))
+    g = np.array(gaps)
+    return {
+        "count": int(g.size),
+        "median_s": round(float(np.median(g)), 2) if g.size else None,
+        "max_s": round(float(g.max()), 2) if g.size else None,
+        "total_s": round(float(g.sum()), 2),
+    }
+
+
+def _boundary_errors(boundary: np.ndarray, true_edge: np.ndarray) -> np.ndarray:
+    """Distances both ways: taught boundary vertices → true edge, true edge → boundary."""
+    est = shapely.LinearRing(boundary)
+    tru = shapely.LinearRing(true_edge)
+    a = shapely.distance(tru, shapely.points(boundary))
+    b = shapely.distance(est, shapely.points(true_edge))
+    return np.concatenate([a, b])
+
+
+def run_bench(**kwargs: Any) -> dict[str, Any]:
+    return Bench(**kwargs).run()
+
+
+__all__ = ["FAULT_KINDS", "Bench", "FaultResult", "FaultSpec", "run_bench"]

@@ -1,0 +1,72 @@
+"""``mowerhw run`` (the daemon) and ``mowerhw ctl`` (talk to it over its control socket)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from mowerhw.cli.common import add_config_argument, load_config_or_exit
+from mowerhw.runtime.control import COMMANDS
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="the on-board daemon: devices, estimators, fail-safe permit (systemd service)",
+        description=(
+            "Run the daemon: read the VN-100, CAN ground speed and the camera, teach or mow, "
+            "and drive the mowing permit / halt on CAN (default: halt). Stops on SIGTERM "
+            "with a halt and heartbeat 255. Exit status 78: bad configuration."
+        ),
+    )
+    add_config_argument(p)
+    p.add_argument(
+        "--mode",
+        choices=("idle", "teach", "mow"),
+        help="start-up mode (default: runtime.mode of the config)",
+    )
+    p.set_defaults(handler=cmd_run)
+
+    c = sub.add_parser(
+        "ctl",
+        help="control a running daemon: status|teach|mow|idle|finish-teach|save-map",
+        description="Send one command to the daemon's control socket and print its reply.",
+    )
+    add_config_argument(c)
+    c.add_argument("command", choices=[x for x in COMMANDS if x != "fault"] + ["fault"])
+    c.add_argument("args", nargs="*", help="save-map: PATH; fault: nan|exception")
+    c.add_argument("--socket", type=Path, help="control socket (default: from the config)")
+    c.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for a reply")
+    c.add_argument("--json", action="store_true", help="print the reply as JSON")
+    c.set_defaults(handler=cmd_ctl)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    cfg = load_config_or_exit(args.config)
+    root = logging.getLogger()
+    root.setLevel(min(getattr(logging, cfg.runtime.log_level), root.level))
+    from mowerhw.runtime.daemon import run_daemon
+
+    return run_daemon(cfg, args.mode)
+
+
+def cmd_ctl(args: argparse.Namespace) -> int:
+    from mowerhw.runtime.control import request
+
+    sock = args.socket
+    if sock is None:
+        sock = load_config_or_exit(args.config).runtime.control_socket
+    extra = {"args": args.args} if args.args else {}
+    try:
+        reply = request(sock, args.command, timeout=args.timeout, **extra)
+    except (OSError, ConnectionError) as exc:
+        print(f"mowerhw ctl: cannot reach the daemon at {sock}: {exc}", file=sys.stderr)
+        return 1
+    if args.json or args.command == "status":
+        print(json.dumps(reply, indent=2))
+    else:
+        print(reply.get("error") or json.dumps(reply))
+    return 0 if reply.get("ok") else 1

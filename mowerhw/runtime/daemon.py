@@ -1,0 +1,657 @@
+"""The daemon (DESIGN.md §8): devices → time-ordered buffer → estimator → fail-safe permit.
+
+One asyncio event loop owns all estimator state. Device readers run in their own threads (the
+drivers' own) and hand each sample to the loop with ``call_soon_threadsafe``:
+
+* IMU (VN-100): every sample is pushed into the :class:`~mowerhw.buffer.SensorBuffer`, the
+  estimator consumes what is ready in time order, and the permit is decided at once — so a
+  halt goes out within the IMU period of the sample that revealed it;
+* ground speed (ISO 11783 GBSD on CAN): a reader thread decodes frames (unknown ones are
+  counted and ignored) and hands samples to the loop;
+* camera: frames go to a one-slot queue (the oldest is dropped); the costly tracking runs on a
+  worker thread, one frame at a time, so a slow frame never delays IMU processing or the
+  permit; its tracks enter the buffer stamped with the frame's capture time.
+
+A 5 ms ticker sends the periodic ISB / heartbeat / status frames, catches silent sensors
+(staleness is judged on the host clock of arrival), watches the map file, and pings systemd's
+watchdog — from the loop, so a hung estimator stops the pings and systemd restarts it.
+
+Modes: idle (halt), teach (halt; maps), mow (permit when :class:`~.gate.PermitGate` allows).
+An estimator exception or non-finite state halts with FAULT, rebuilds the estimator from the
+last good pose, and the daemon carries on; it recovers by itself once localized again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import os
+import shutil
+import signal
+import threading
+import time
+from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.camera_v4l2 import CameraSource, V4l2Camera, asyncio_sink
+from drivers.isobus import open_bus
+from drivers.isobus_speed import SpeedReader
+from drivers.permit import PermitSender, Status
+from drivers.vn100 import Vn100
+from mowerhw.buffer import SensorBuffer
+from mowerhw.camera import load_camchain
+from mowerhw.config import Config
+from mowerhw.fileio import write_atomic
+from mowerhw.geometry import quat_to_rotmat
+from mowerhw.map import LawnMap, MapError
+from mowerhw.map import load as load_map
+from mowerhw.mow.containment import Reason
+from mowerhw.runtime.control import ControlServer
+from mowerhw.runtime.gate import Decision, PermitGate
+from mowerhw.runtime.pipelines import MowPipeline, TeachPipeline
+from mowerhw.runtime.sdnotify import Notifier
+from mowerhw.samples import ImuSample, SpeedSample, Stream
+
+log = logging.getLogger("mowerhw.daemon")
+
+MODES = ("idle", "teach", "mow")
+TICK_S = 0.005
+TRACKS = "tracks"
+
+
+class Daemon:
+    """``await Daemon(config).run()`` until SIGTERM / SIGINT or :meth:`request_stop`."""
+
+    def __init__(self, config: Config, mode: str | None = None) -> None:
+        self.cfg = config
+        self.start_mode = mode or config.runtime.mode
+        if self.start_mode not in MODES:
+            raise ValueError(f"mode {self.start_mode!r} is not one of {', '.join(MODES)}")
+        self.mode = "idle"
+        self.camera_model = load_camchain(config.camera.calibration)
+        self.r_bi = quat_to_rotmat(np.asarray(config.imu.q_bi, dtype=np.float64))
+        self.buffer = SensorBuffer(capacity={TRACKS: 16})
+        self.gate = PermitGate(
+            {
+                "imu": config.imu.stale_after_s,
+                "speed": config.speed.stale_after_s,
+                "camera": config.camera.stale_after_s,
+            }
+        )
+        self.last_arrival: dict[str, float | None] = {"imu": None, "speed": None, "camera": None}
+        self.counts: Counter[str] = Counter()
+        self.pipeline: TeachPipeline | MowPipeline | None = None
+        self.map: LawnMap | None = None
+        self.map_problem = ""
+        self.fault = ""
+        self.teach_state = ""  # "", "recording", "finishing", "saved", "failed: …"
+        self.last_teach: dict[str, Any] = {}
+        self.halt_latencies: list[dict[str, Any]] = []
+        self.decision: Decision = self.gate.current
+        self.notifier = Notifier()
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.sender: PermitSender | None = None
+        self.bus: Any = None
+        self.imu_dev: Vn100 | None = None
+        self.camera: CameraSource | None = None
+        self.speed_reader = SpeedReader(
+            config.speed.source, config.speed.sensor_address, config.speed.stale_after_s
+        )
+        self._frames: asyncio.Queue | None = None
+        self._stop_event: asyncio.Event | None = None
+        self._shutting_down = False
+        self._can_stop = threading.Event()
+        self._can_thread: threading.Thread | None = None
+        self._frontend_pool = ThreadPoolExecutor(1, thread_name_prefix="frontend")
+        self._work_pool = ThreadPoolExecutor(1, thread_name_prefix="teach-finish")
+        self._inject: str = ""
+        self._finish_task: asyncio.Task | None = None
+        self._map_stat: tuple[int, int, int] | None = None
+        self._next_map_check = 0.0
+        self._next_watchdog = 0.0
+        self._sd_status = ""
+        self._last_good_pose: tuple[np.ndarray, np.ndarray] | None = None
+        self._good_pose_count = 0
+        self._started = time.monotonic()
+
+    # ------------------------------------------------------------------------- lifecycle
+
+    async def run(self) -> int:
+        self.loop = asyncio.get_running_loop()
+        self._stop_event = asyncio.Event()
+        self._frames = asyncio.Queue(maxsize=1)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                self.loop.add_signal_handler(sig, self.request_stop, sig.name)
+        rt = self.cfg.runtime
+        control = ControlServer(rt.control_socket, self.handle_command, rt.socket_mode)
+        await control.start()
+        self._open_can()
+        self._start_imu()
+        self._start_camera()
+        self.set_mode(self.start_mode)
+        tasks = [
+            asyncio.create_task(self._ticker(), name="ticker"),
+            asyncio.create_task(self._frame_task(), name="frontend"),
+        ]
+        self.notifier.ready(self._status_line())
+        log.info(
+            "running: mode %s, control socket %s, pid %d", self.mode, rt.control_socket, os.getpid()
+        )
+        try:
+            await self._stop_event.wait()
+        finally:
+            await self._shutdown(tasks, control)
+        return 0
+
+    def request_stop(self, why: str = "stop requested") -> None:
+        if not self._shutting_down:
+            log.warning("shutting down (%s): halting the deck", why)
+        self._shutting_down = True
+        if self._stop_event is not None:
+            self._stop_event.set()
+
+    async def _shutdown(self, tasks: list[asyncio.Task], control: ControlServer) -> None:
+        self._shutting_down = True
+        self.notifier.stopping()
+        self._decide(time.monotonic())
+        if self.sender is not None:
+            self.sender.shutdown(time.monotonic())
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        await control.close()
+        if self.imu_dev is not None:
+            self.imu_dev.stop()
+        if self.camera is not None:
+            self.camera.stop()
+        self._can_stop.set()
+        if self._can_thread is not None:
+            self._can_thread.join(timeout=1.0)
+        if self.bus is not None:
+            with contextlib.suppress(Exception):
+                self.bus.shutdown()
+        self._frontend_pool.shutdown(wait=False, cancel_futures=True)
+        self._work_pool.shutdown(wait=False, cancel_futures=True)
+        log.info("stopped")
+
+    # --------------------------------------------------------------------------- devices
+
+    def _open_can(self) -> None:
+        c = self.cfg.can
+        try:
+            self.bus = open_bus(c.interface, c.channel, c.bitrate)
+        except Exception as exc:  # can.CanError, OSError: retried by the ticker
+            if self.bus is None and self.counts["can_open_failures"] == 0:
+                log.error("CAN %s %s: cannot open (%s); retrying", c.interface, c.channel, exc)
+            self.counts["can_open_failures"] += 1
+            return
+        p = self.cfg.permit
+        self.sender = PermitSender(
+            self.bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s
+        )
+        self._can_stop.clear()
+        self._can_thread = threading.Thread(target=self._can_reader, name="can-rx", daemon=True)
+        self._can_thread.start()
+        log.info("CAN %s %s open, sending as 0x%02X", c.interface, c.channel, c.source_address)
+
+    def _can_reader(self) -> None:
+        """Ground speed from the bus (DESIGN.md §7); everything else is counted and ignored."""
+        loop = self.loop
+        own = self.cfg.can.source_address
+        while not self._can_stop.is_set():
+            try:
+                msg = self.bus.recv(timeout=0.1)
+            except Exception as exc:  # the bus went away: the ticker notices staleness
+                log.warning("CAN receive failed: %s", exc)
+                self._can_stop.wait(0.5)
+                continue
+            if msg is None or not msg.is_extended_id or (msg.arbitration_id & 0xFF) == own:
+                continue
+            now = time.monotonic()
+            sample = self.speed_reader.handle(msg.arbitration_id, bytes(msg.data), now)
+            if sample is not None and loop is not None:
+                with contextlib.suppress(RuntimeError):
+                    loop.call_soon_threadsafe(self._on_speed, sample)
+
+    def _start_imu(self) -> None:
+        c = self.cfg.imu
+        loop = self.loop
+
+        def on_sample(s: ImuSample) -> None:
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(self._on_imu, s)  # type: ignore[union-attr]
+
+        self.imu_dev = Vn100(
+            c.port,
+            baudrate=c.baudrate,
+            initial_baudrate=c.initial_baudrate,
+            rate_hz=c.rate_hz,
+            output=c.output,
+            low_latency=c.low_latency,
+            reconnect_max_backoff_s=c.reconnect_max_backoff_s,
+            on_sample=on_sample,
+        )
+        self.imu_dev.start()
+
+    def _start_camera(self) -> None:
+        c = self.cfg.camera
+        if c.driver == "stream":
+            from drivers.camera_stream import StreamCamera
+
+            self.camera = StreamCamera(c.device)
+        elif c.driver == "mock":
+            from drivers.mock.camera import MockCamera
+
+            self.camera = MockCamera(fps=c.fps, width=c.width, height=c.height)
+        else:
+            self.camera = V4l2Camera(
+                c.device, width=c.width, height=c.height, fps=c.fps, pixel_format=c.pixel_format
+            )
+        sink = asyncio_sink(self.loop, self._frames)  # type: ignore[arg-type]
+
+        def on_frame(frame: Any) -> None:
+            sink(frame)
+
+        self.camera.start(on_frame)
+
+    # ------------------------------------------------------------------ samples → estimator
+
+    def _on_imu(self, s: ImuSample) -> None:
+        now = time.monotonic()
+        self.last_arrival["imu"] = now
+        self.counts["imu"] += 1
+        gyro = self.r_bi @ s.gyro
+        self.buffer.push(Stream.IMU, ImuSample(s.t, gyro, None, s.device_time_ns, s.host_time_ns))
+        pipe = self.pipeline
+        if pipe is not None:
+            pipe.vision.imu(s.t, gyro)  # gyro history for the front end's derotation
+        self._consume(s.t)
+        arrival = s.host_time_ns * 1e-9 if s.host_time_ns is not None else now
+        self._decide(time.monotonic(), arrival)
+
+    def _on_speed(self, s: SpeedSample) -> None:
+        if s.valid:  # an invalid reading is not a fresh speed
+            self.last_arrival["speed"] = s.t
+        self.counts["speed" if s.valid else "speed_invalid"] += 1
+        self.buffer.push(Stream.SPEED, s)
+
+    def _consume(self, newest_t: float) -> None:
+        """Feed the estimator everything ready, in time order (teach holds back ``lag_s`` so
+        frames, which come late, are not overtaken by the IMU)."""
+        pipe = self.pipeline
+        if pipe is None:
+            self.buffer.pop_ready()
+            return
+        if self.mode == "teach" and self.teach_state != "recording":
+            return
+        try:
+            for stream, s in self.buffer.pop_ready(newest_t - pipe.lag_s):
+                if self._inject == "exception":
+                    self._inject = ""
+                    raise RuntimeError("injected estimator exception (fault injection)")
+                if stream == Stream.IMU:
+                    pipe.imu(s.t, s.gyro)
+                elif stream == Stream.SPEED:
+                    pipe.speed(s.t, s.speed_mps if s.valid else float("nan"))
+                elif stream == TRACKS:
+                    pipe.frame_tracks(s)
+            if self._inject == "nan" and isinstance(pipe, MowPipeline):
+                self._inject = ""
+                pipe.localizer.ekf.x[:] = np.nan  # fault injection: a diverged estimator
+        except Exception as exc:
+            self._estimator_fault(f"estimator raised {type(exc).__name__}: {exc}", exc)
+
+    def _estimator_fault(self, what: str, exc: BaseException | None = None) -> None:
+        self.counts["estimator_faults"] += 1
+        self.fault = f"{what}; estimator restarted"
+        if exc is not None:
+            log.error("FAULT: %s", self.fault, exc_info=exc)
+        else:
+            log.error("FAULT: %s", self.fault)
+        self.buffer.pop_ready()
+        if self.mode == "mow" and self.map is not None:
+            self.pipeline = MowPipeline(
+                self.cfg, self.camera_model, self.map, start_pose=self._last_good_pose
+            )
+            self._relocalize(self.pipeline)
+        elif self.mode == "teach":
+            self.pipeline = TeachPipeline(self.cfg, self.camera_model)
+            self.teach_state = "recording"
+            log.error("teach: the recording so far is lost; drive the loop again")
+
+    def _relocalize(self, pipe: MowPipeline) -> None:
+        """A restarted localizer resumes from a pose it had: widen it, skip the standstill."""
+        loc = pipe.localizer
+        if self._last_good_pose is not None:
+            loc.reinitialise(self._last_good_pose, 0.5, math.radians(20.0))
+            loc.calibrating = False
+
+    async def _frame_task(self) -> None:
+        assert self._frames is not None
+        loop = asyncio.get_running_loop()
+        while True:
+            frame = await self._frames.get()
+            self.last_arrival["camera"] = time.monotonic()
+            self.counts["frames"] += 1
+            pipe = self.pipeline
+            if pipe is None or (self.mode == "teach" and self.teach_state != "recording"):
+                continue
+            try:
+                r = pipe.vision.prepare(frame.t)
+                tracks = await loop.run_in_executor(
+                    self._frontend_pool, pipe.vision.track, frame.t, frame.image, r
+                )
+            except Exception as exc:
+                self.counts["frontend_errors"] += 1
+                log.error("front end failed on frame %d: %s", frame.sequence, exc)
+                continue
+            if self.pipeline is not pipe:
+                continue  # the mode changed meanwhile
+            self.buffer.push(TRACKS, tracks)
+            if isinstance(pipe, MowPipeline):
+                self._consume(math.inf if pipe.lag_s == 0 else frame.t)
+
+    # -------------------------------------------------------------------------- decision
+
+    def _decide(self, now: float, revealed_at: float | None = None) -> Decision:
+        pipe = self.pipeline
+        containment = None
+        if isinstance(pipe, MowPipeline) and not self.map_problem:
+            if not pipe.finite():
+                self._estimator_fault("estimator state is not finite (NaN/inf)")
+                pipe = self.pipeline
+            if isinstance(pipe, MowPipeline):
+                if self.fault and pipe.localizer.localized:
+                    log.info("fault cleared: localized again after the estimator restart")
+                    self.fault = ""
+                containment = pipe.containment(now)
+                self._good_pose_count += 1
+                if self._good_pose_count % 10 == 0 and pipe.finite():
+                    self._last_good_pose = pipe.last_good_pose()
+        stale = self.gate.stale(now, self.last_arrival)
+        d = self.gate.decide(
+            now,
+            self.mode,
+            self.last_arrival,
+            containment,
+            self.map_problem,
+            self.fault,
+            self._shutting_down,
+        )
+        self.decision = d
+        if self.sender is not None:
+            x = y = h = float("nan")
+            if isinstance(pipe, MowPipeline):
+                _, x, y, h, _ = pipe.pose()
+            status = Status(d.state, d.permit, d.reason or "NONE", d.signed_distance_m, x, y, h)
+            was = self.sender.permit
+            self.sender.set(d.permit, now, status)
+            if was and not d.permit:
+                sent = time.monotonic()
+                if stale is not None:
+                    name = stale[0]
+                    last = self.last_arrival[name]
+                    limit = self.gate.stale_limits_s[name]
+                    revealed_at = (last + limit) if last is not None else now
+                reveal = revealed_at if revealed_at is not None else now
+                self.halt_latencies.append(
+                    {"reason": d.reason, "latency_ms": round((sent - reveal) * 1e3, 3), "t": sent}
+                )
+                del self.halt_latencies[:-1000]
+        return d
+
+    # ------------------------------------------------------------------------------ modes
+
+    def set_mode(self, mode: str) -> dict[str, Any]:
+        if mode not in MODES:
+            raise ValueError(f"mode {mode!r} is not one of {', '.join(MODES)}")
+        if self.mode == "teach" and self.teach_state == "finishing":
+            return {"ok": False, "error": "teach is finishing (loop closure); try again shortly"}
+        self.buffer.pop_ready()
+        self.fault = ""
+        self.map_problem = ""
+        self.pipeline = None
+        self.mode = mode
+        if mode == "teach":
+            self.pipeline = TeachPipeline(self.cfg, self.camera_model)
+            self.teach_state = "recording"
+            log.info("mode teach: hold still for the gyro calibration, then drive the edge")
+        elif mode == "mow":
+            self._load_map_for_mow()
+        log.info("mode %s", mode)
+        return {"ok": True, "mode": mode}
+
+    def _load_map_for_mow(self, start_pose: Any = None) -> None:
+        path = self.cfg.map.path
+        try:
+            self._map_stat = _stat(path)
+            lawn_map = load_map(path)
+            problems = lawn_map.problems()
+            if problems:
+                raise MapError(f"{path}: " + "; ".join(problems))
+        except MapError as exc:
+            self.map_problem = str(exc)
+            self.map = None
+            self.pipeline = None
+            log.error("MAP_INVALID: %s", exc)
+            return
+        self.map = lawn_map
+        self.map_problem = ""
+        self.pipeline = MowPipeline(self.cfg, self.camera_model, lawn_map, start_pose=start_pose)
+        if start_pose is not None:
+            self._relocalize(self.pipeline)
+        log.info(
+            "map %s: %d landmarks, %.1f m² to mow",
+            path,
+            len(lawn_map.landmarks),
+            lawn_map.lawn_polygon().area,
+        )
+
+    def _check_map_file(self) -> None:
+        """Mow mode: a map file that changed is reloaded (an edited keep-out zone takes
+        effect; a corrupt file halts with MAP_INVALID until it is fixed)."""
+        st = _stat(self.cfg.map.path)
+        if st == self._map_stat:
+            return
+        log.warning("map file %s changed: reloading", self.cfg.map.path)
+        pose = self._last_good_pose
+        old = self.map
+        self._load_map_for_mow(start_pose=pose)
+        if self.map is not None and old is not None and self.map.checksum == old.checksum:
+            log.info("map content unchanged (checksum %s)", (old.checksum or "")[:19])
+
+    async def finish_teach(self) -> dict[str, Any]:
+        pipe = self.pipeline
+        if self.mode != "teach" or not isinstance(pipe, TeachPipeline):
+            return {"ok": False, "error": f"not teaching (mode {self.mode})"}
+        if self.teach_state != "recording":
+            return {"ok": False, "error": f"teach is {self.teach_state}"}
+        self.teach_state = "finishing"
+        self.buffer.pop_ready()
+        loop = asyncio.get_running_loop()
+        path = Path(self.cfg.map.path)
+        t0 = time.monotonic()
+        log.info("teach: finishing (loop closure, boundary)")
+        try:
+            result, lawn_map = await loop.run_in_executor(self._work_pool, pipe.finish)
+            await loop.run_in_executor(self._work_pool, _save_map, lawn_map, path)
+        except Exception as exc:
+            self.teach_state = f"failed: {exc}"
+            log.error("teach failed: %s (any previous map is untouched)", exc)
+            self.pipeline = None
+            self.mode = "idle"
+            return {"ok": False, "error": f"teach failed: {exc}"}
+        self.last_teach = {
+            "map": str(path),
+            "png": str(path.with_suffix(".png")),
+            "landmarks": len(lawn_map.landmarks),
+            "boundary_points": int(lawn_map.boundary.shape[0]),
+            "area_m2": round(float(lawn_map.lawn_polygon().area), 2),
+            "loop_closure": result.closure.reason,
+            "finish_s": round(time.monotonic() - t0, 3),
+            "checksum": lawn_map.checksum,
+        }
+        self.teach_state = "saved"
+        self.pipeline = None
+        self.mode = "idle"
+        log.info("teach: map saved to %s (%s)", path, self.last_teach)
+        return {"ok": True, **self.last_teach}
+
+    # ----------------------------------------------------------------------------- ticker
+
+    async def _ticker(self) -> None:
+        while True:
+            await asyncio.sleep(TICK_S)
+            now = time.monotonic()
+            if self.sender is None and self.counts["can_open_failures"] and now % 1.0 < TICK_S:
+                self._open_can()
+            self._decide(now)
+            if self.sender is not None:
+                self.sender.tick(now)
+            if self.mode == "mow" and now >= self._next_map_check:
+                self._next_map_check = now + self.cfg.runtime.map_check_period_s
+                self._check_map_file()
+            pipe = self.pipeline
+            if (
+                isinstance(pipe, TeachPipeline)
+                and self.teach_state == "recording"
+                and self.cfg.runtime.auto_finish_teach
+                and pipe.loop_done()
+            ):
+                log.info("teach: loop detected (stopped back at the start); finishing")
+                self._finish_task = asyncio.create_task(self.finish_teach())
+            period = self.notifier.watchdog_period_s
+            if period is not None and now >= self._next_watchdog:
+                self._next_watchdog = now + period
+                self.notifier.watchdog()
+            line = self._status_line()
+            if line != self._sd_status:
+                self._sd_status = line
+                self.notifier.status(line)
+
+    def _status_line(self) -> str:
+        d = self.decision
+        if self.mode == "teach":
+            return f"teach: {self.teach_state}; deck halted"
+        if d.permit:
+            return f"{self.mode}: {d.state}, mowing permitted"
+        return f"{self.mode}: {d.state}, halted ({d.reason})"
+
+    # ---------------------------------------------------------------------------- control
+
+    async def handle_command(self, cmd: str, args: dict[str, Any]) -> dict[str, Any]:
+        if cmd == "status":
+            return {"ok": True, **self.status()}
+        if cmd in MODES:
+            return self.set_mode(cmd)
+        if cmd == "finish-teach":
+            return await self.finish_teach()
+        if cmd == "save-map":
+            return await self._save_map_command(args)
+        if cmd == "fault":
+            if not self.cfg.runtime.fault_injection:
+                return {"ok": False, "error": "fault injection is off (runtime.fault_injection)"}
+            kind = str(args.get("kind") or (args.get("args") or [""])[0])
+            if kind not in ("nan", "exception"):
+                return {"ok": False, "error": f"fault kind {kind!r}; allowed: nan, exception"}
+            self._inject = kind
+            log.warning("fault injection: %s", kind)
+            return {"ok": True, "injected": kind}
+        return {"ok": False, "error": f"unknown command {cmd!r}"}
+
+    async def _save_map_command(self, args: dict[str, Any]) -> dict[str, Any]:
+        if self.mode == "teach" and self.teach_state == "recording":
+            return await self.finish_teach()
+        target = args.get("path") or (args.get("args") or [None])[0]
+        if self.map is None:
+            return {"ok": False, "error": "no map loaded (mow mode loads one; teach makes one)"}
+        path = Path(target) if target else Path(self.cfg.map.path)
+        loop = asyncio.get_running_loop()
+        try:
+            await loop.run_in_executor(self._work_pool, _save_map, self.map, path)
+        except (MapError, OSError) as exc:
+            return {"ok": False, "error": str(exc)}
+        return {"ok": True, "map": str(path)}
+
+    def status(self) -> dict[str, Any]:
+        now = time.monotonic()
+        d = self.decision
+        pipe = self.pipeline
+        out: dict[str, Any] = {
+            "pid": os.getpid(),
+            "uptime_s": round(now - self._started, 3),
+            "now": now,
+            "mode": self.mode,
+            "permit": d.permit,
+            "state": str(d.state),
+            "reason": d.reason,
+            "detail": d.detail,
+            "signed_distance_m": None if math.isnan(d.signed_distance_m) else d.signed_distance_m,
+            "sensor_age_s": {
+                k: (None if v is None else round(now - v, 4)) for k, v in self.last_arrival.items()
+            },
+            "counts": dict(self.counts),
+            "map": str(self.cfg.map.path),
+            "map_problem": self.map_problem,
+            "fault": self.fault,
+            "teach": {"state": self.teach_state, **self.last_teach},
+            "halt_latencies": self.halt_latencies[-200:],
+            "imu_driver": vars(self.imu_dev.stats) if self.imu_dev else {},
+            "speed_reader": vars(self.speed_reader.stats),
+            "permit_sender": vars(self.sender.stats) if self.sender else {},
+        }
+        if isinstance(pipe, MowPipeline):
+            t, x, y, h, sig = pipe.pose()
+            out["pose"] = {"t": t, "x": x, "y": y, "heading": h, "sigma_xy_m": sig}
+            out["localizer"] = pipe.status()
+        elif isinstance(pipe, TeachPipeline):
+            out["teach"].update(pipe.status())
+        return out
+
+
+def _stat(path: Path) -> tuple[int, int, int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+def _save_map(lawn_map: LawnMap, path: Path) -> None:
+    """Write the map atomically (keeping the previous one as ``.bak``) and its PNG."""
+    path = Path(path)
+    if path.exists():
+        with contextlib.suppress(OSError):
+            shutil.copy2(path, path.with_name(path.name + ".bak"))
+    lawn_map.save(path)
+    try:
+        import tempfile
+
+        from mowerhw.plots import map_figure
+
+        with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
+            png = map_figure(lawn_map, Path(tmp) / "map.png", title=f"Lawn map {path.name}")
+            write_atomic(path.with_suffix(".png"), png.read_bytes())
+    except Exception as exc:
+        log.warning("map picture not written: %s", exc)
+
+
+def run_daemon(config: Config, mode: str | None = None) -> int:
+    """Run until stopped; the exit status (0 after a clean stop)."""
+    import sys
+
+    import cv2
+
+    sys.setswitchinterval(0.001)  # the front-end thread must not hold the GIL for 5 ms
+    cv2.setNumThreads(1)  # one frame at a time on one worker; OpenCV's pool would spin
+    return asyncio.run(Daemon(config, mode).run())
+
+
+__all__ = ["MODES", "Daemon", "Reason", "run_daemon"]

@@ -1,0 +1,96 @@
+"""The fail-safe permit decision (DESIGN.md §5, §8): halt unless every condition holds.
+
+:class:`PermitGate` is asked after every IMU sample and on a short timer. It permits only in
+mow mode, with a valid map, every sensor fresh on the host clock (IMU 100 ms, speed 300 ms,
+camera: ``camera.stale_after_s``), no estimator fault, and containment saying INSIDE or
+NEAR_EDGE. The first failing condition is the reason (precedence: shutting down, not mowing,
+map invalid, sensor stale, fault, then containment's own). A change of decision is logged once
+with its reason; :meth:`decide` is pure apart from that log line.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+from mowerhw.mow.containment import ContainmentResult, Reason, State
+
+log = logging.getLogger("mowerhw.permit")
+
+
+@dataclass(frozen=True)
+class Decision:
+    permit: bool
+    state: str  # containment state (UNKNOWN when the runtime halts before containment)
+    reason: str  # "" while permitted
+    detail: str = ""
+    signed_distance_m: float = float("nan")
+
+
+class PermitGate:
+    """Every condition for mowing, checked in order; logs each change of decision once."""
+
+    def __init__(self, stale_limits_s: dict[str, float]) -> None:
+        self.stale_limits_s = dict(stale_limits_s)
+        self.current = Decision(False, State.UNKNOWN, Reason.NOT_MOWING, "starting")
+        self.changes = 0
+
+    def stale(self, now: float, last_arrival: dict[str, float | None]) -> tuple[str, str] | None:
+        """The first stream silent for longer than its limit: (stream, detail)."""
+        for name, limit in self.stale_limits_s.items():
+            last = last_arrival.get(name)
+            if last is None:
+                return name, f"no {name} data yet"
+            if now - last > limit:
+                return name, f"{name} silent for {now - last:.3f} s (limit {limit} s)"
+        return None
+
+    def decide(
+        self,
+        now: float,
+        mode: str,
+        last_arrival: dict[str, float | None],
+        containment: ContainmentResult | None = None,
+        map_problem: str = "",
+        fault: str = "",
+        shutting_down: bool = False,
+    ) -> Decision:
+        def halt(reason: Reason, detail: str) -> Decision:
+            return Decision(False, State.UNKNOWN, reason.value, detail)
+
+        if shutting_down:
+            d = halt(Reason.SHUTTING_DOWN, "the daemon is stopping")
+        elif mode != "mow":
+            d = halt(Reason.NOT_MOWING, f"mode is {mode}")
+        elif map_problem:
+            d = halt(Reason.MAP_INVALID, map_problem)
+        elif (st := self.stale(now, last_arrival)) is not None:
+            d = halt(Reason.SENSOR_STALE, st[1])
+        elif fault:
+            d = halt(Reason.FAULT, fault)
+        elif containment is None:
+            d = halt(Reason.NOT_LOCALIZED, "no estimate yet")
+        else:
+            c = containment
+            ok = c.permit and math.isfinite(c.signed_distance_m)
+            d = Decision(
+                ok,
+                c.state,
+                "" if ok else (c.reason or Reason.FAULT.value),
+                c.detail if not ok else "",
+                c.signed_distance_m,
+            )
+        self._log_change(d)
+        self.current = d
+        return d
+
+    def _log_change(self, d: Decision) -> None:
+        prev = self.current
+        if d.permit == prev.permit and d.reason == prev.reason:
+            return
+        self.changes += 1
+        if d.permit:
+            log.info("PERMIT: mowing permitted (%s, %.2f m inside)", d.state, d.signed_distance_m)
+        else:
+            log.warning("HALT %s: %s", d.reason, d.detail or d.state)

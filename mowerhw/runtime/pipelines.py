@@ -1,0 +1,159 @@
+"""Estimator chains the daemon feeds in time order: teach (Teacher + TeachVision) and mow
+(Localizer + MowVision + containment).
+
+Pure computation: samples in (host-clock seconds, body-frame gyro, signed speed, front-end
+tracks), estimates out. The daemon decides when to feed them; the heavy front-end tracking
+(:meth:`mowerhw.vision._VisionBase.track`) runs on its worker thread, and only
+:meth:`frame_tracks` (association, estimator update) runs here.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mowerhw.config import Config
+from mowerhw.map import LawnMap
+from mowerhw.mow import Localizer
+from mowerhw.mow.containment import ContainmentResult
+from mowerhw.teach import Teacher
+from mowerhw.teach.teacher import TeachResult
+from mowerhw.vision import MowVision, TeachVision
+
+FloatArray = NDArray[np.float64]
+
+
+def yaw_of(q: FloatArray) -> float:
+    """Heading (rad) of a Hamilton quaternion (w, x, y, z)."""
+    w, x, y, z = (float(v) for v in q)
+    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+class TeachPipeline:
+    """Teach mode: standstill calibration, the drive, then :meth:`finish` → map."""
+
+    #: frames reach the teacher in time order: the IMU is held back this long for them
+    LAG_S = 0.8
+    #: automatic end of the teach drive: stopped this long, back within this of the start,
+    #: after driving at least this far
+    AUTO_STOPPED_S = 2.0
+    AUTO_CLOSE_M = 1.5
+    AUTO_MIN_DISTANCE_M = 10.0
+
+    def __init__(self, config: Config, camera: Any, seed: int = 0) -> None:
+        self.config = config
+        self.teacher = Teacher(config.teach, camera=camera)
+        self.vision = TeachVision(
+            self.teacher, camera, config.camera.q_bc, config.frontend, seed=seed
+        )
+        self.lag_s = self.LAG_S
+        self._stopped_since: float | None = None
+        self.t_last = -math.inf
+
+    def imu(self, t: float, gyro: FloatArray) -> None:
+        self.teacher.imu(t, gyro)
+        self.t_last = t
+
+    def speed(self, t: float, v: float) -> None:
+        self.teacher.speed(t, v)
+        if v == 0.0:
+            self._stopped_since = t if self._stopped_since is None else self._stopped_since
+        else:
+            self._stopped_since = None
+
+    def frame_tracks(self, tracks: Any) -> None:
+        self.vision.use(tracks)
+
+    def loop_done(self) -> bool:
+        """The operator has driven a loop and stopped back at the start."""
+        tch = self.teacher
+        if tch.phase != "driving" or tch.distance_m < self.AUTO_MIN_DISTANCE_M:
+            return False
+        if self._stopped_since is None or self.t_last - self._stopped_since < self.AUTO_STOPPED_S:
+            return False
+        pos, _ = tch.world_pose()
+        return float(np.hypot(pos[0], pos[1])) < self.AUTO_CLOSE_M
+
+    def finish(self) -> tuple[TeachResult, LawnMap]:
+        """Loop closure and boundary (seconds of work: call it off the event loop)."""
+        result = self.vision.annotate(self.teacher.finish())
+        return result, LawnMap.from_teach_result(result)
+
+    def status(self) -> dict[str, Any]:
+        tch = self.teacher
+        out: dict[str, Any] = {
+            "phase": tch.phase,
+            "distance_m": round(tch.distance_m, 2),
+            "frames": tch.counters["frames"],
+            "keyframes": len(tch.keyframes),
+        }
+        if tch.phase == "driving":
+            pos, q = tch.world_pose()
+            out.update(x=round(float(pos[0]), 3), y=round(float(pos[1]), 3), yaw=yaw_of(q))
+        return out
+
+
+class MowPipeline:
+    """Mow mode: localize against the map, decide containment."""
+
+    LAG_S = 0.0  # the localizer takes late frames itself (state history, DESIGN.md §5)
+
+    def __init__(
+        self,
+        config: Config,
+        camera: Any,
+        lawn_map: LawnMap,
+        start_pose: tuple[FloatArray, FloatArray] | None = None,
+        seed: int = 0,
+    ) -> None:
+        self.config = config
+        self.map = lawn_map
+        self.localizer = Localizer(lawn_map, config, start_pose=start_pose)
+        self.vision = MowVision(
+            self.localizer,
+            camera,
+            config.camera.q_bc,
+            config.frontend,
+            seed=seed,
+            pixel_sigma=config.camera.pixel_sigma,
+        )
+        self.lag_s = self.LAG_S
+
+    def imu(self, t: float, gyro: FloatArray) -> None:
+        self.localizer.imu(t, gyro)
+
+    def speed(self, t: float, v: float) -> None:
+        self.localizer.speed(t, v)
+
+    def frame_tracks(self, tracks: Any) -> None:
+        self.vision.use(tracks)
+
+    def containment(self, now: float) -> ContainmentResult:
+        """The decision for the newest state; the daemon checks staleness on its own clock."""
+        return self.localizer.containment(now)
+
+    def finite(self) -> bool:
+        ekf = self.localizer.ekf
+        return bool(
+            np.all(np.isfinite(ekf.x)) and np.all(np.isfinite(ekf.q)) and np.all(np.isfinite(ekf.P))
+        )
+
+    def pose(self) -> tuple[float, float, float, float, float]:
+        """t, x, y, heading, σ_xy."""
+        loc = self.localizer
+        t = loc.t_imu if loc.t_imu is not None else float("nan")
+        return t, float(loc.ekf.x[0]), float(loc.ekf.x[1]), yaw_of(loc.ekf.q), loc.sigma_xy()
+
+    def last_good_pose(self) -> tuple[FloatArray, FloatArray] | None:
+        loc = self.localizer
+        if self.finite():
+            return loc.ekf.x.copy(), loc.ekf.q.copy()
+        return None
+
+    def status(self) -> dict[str, Any]:
+        st = self.localizer.status()
+        st.pop("gyro_bias", None)
+        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in st.items()}

@@ -1,0 +1,52 @@
+"""systemd's notify protocol (sd_notify(3)) without a dependency: datagrams to $NOTIFY_SOCKET.
+
+``READY=1`` once the devices are open, ``STATUS=…`` with mode and containment state,
+``WATCHDOG=1`` from the estimator loop (so a hung estimator is restarted: ``WatchdogSec=``),
+``STOPPING=1`` on shutdown. Outside systemd (no $NOTIFY_SOCKET) every call does nothing.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+
+
+class Notifier:
+    def __init__(self) -> None:
+        addr = os.environ.get("NOTIFY_SOCKET", "")
+        if addr.startswith("@"):  # abstract namespace
+            addr = "\0" + addr[1:]
+        self.address = addr
+        self._sock: socket.socket | None = None
+        if addr:
+            self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+        usec = os.environ.get("WATCHDOG_USEC", "")
+        pid = os.environ.get("WATCHDOG_PID", "")
+        ours = not pid or pid == str(os.getpid())
+        #: how often to ping (half systemd's WatchdogSec), or None when there is no watchdog
+        self.watchdog_period_s = int(usec) / 2e6 if usec.isdigit() and ours else None
+
+    @property
+    def enabled(self) -> bool:
+        return self._sock is not None
+
+    def notify(self, *lines: str) -> bool:
+        if self._sock is None:
+            return False
+        try:
+            self._sock.sendto("\n".join(lines).encode(), self.address)
+            return True
+        except OSError:
+            return False
+
+    def ready(self, status: str = "") -> bool:
+        return self.notify("READY=1", *((f"STATUS={status}",) if status else ()))
+
+    def status(self, text: str) -> bool:
+        return self.notify(f"STATUS={text}")
+
+    def watchdog(self) -> bool:
+        return self.notify("WATCHDOG=1")
+
+    def stopping(self) -> bool:
+        return self.notify("STOPPING=1")
