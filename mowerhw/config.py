@@ -288,6 +288,20 @@ class MowConfig:
     localized_after_frames: int = opt(
         3, "good frames needed after a (re)start to be localized", ge=1
     )
+    max_speed_mps: float = opt(
+        1.0,
+        "fastest the mower can go: while the ground speed is stale, the position is "
+        "propagated at zero speed with this much uncertainty per second",
+        gt=0.0,
+        le=10.0,
+    )
+    lost_after_s: float = opt(
+        6.0,
+        "no landmark fix for this long: widen the pose uncertainty (0.5 m, 15°) so features "
+        "can be re-identified from further off",
+        gt=0.0,
+        le=600.0,
+    )
 
 
 @dataclass(frozen=True)

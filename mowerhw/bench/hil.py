@@ -100,7 +100,11 @@ class FaultResult:
     recovered: bool = False
     recovered_after_s: float | None = None  # the fault cleared → deck running again
     how: str = ""
+    daemon_reason: str = ""
     notes: list[str] = field(default_factory=list)
+    t0: float | None = None  # bookkeeping while the run goes on (cleared in the result)
+    n_events: int | None = None
+    t_clear: float | None = None
 
 
 class Bench:
@@ -360,15 +364,20 @@ class Bench:
         end = t_mow0 + self.duration_s
         next_poll = t_mow0
         latencies: list[dict[str, Any]] = []
+        self._actions: list[tuple[float, Any]] = []  # (when, what): fault clearing etc.
         while time.monotonic() < end:
             now = time.monotonic()
             if pending and now - t_mow0 >= pending[0].at_s:
                 spec = pending.pop(0)
                 res = self._inject(spec, t_mow0)
                 self.results.append(res)
-                windows.append(
-                    (t_mow0 + res.injected_at_s, t_mow0 + res.injected_at_s + spec.duration_s + 15)
-                )
+                windows.append((res.t0, res.t0 + spec.duration_s + 15.0))
+                continue
+            due = [a for a in self._actions if a[0] <= now]
+            if due:
+                self._actions = [a for a in self._actions if a[0] > now]
+                for _, fn in due:
+                    fn()
                 continue
             if now >= next_poll:
                 next_poll = now + 0.2
@@ -378,7 +387,10 @@ class Bench:
                     self.pose_samples.append((pose["t"], pose["x"], pose["y"], bool(st["permit"])))
                 if st:
                     latencies = _merge_latencies(latencies, st.get("halt_latencies", []))
-            time.sleep(0.02)
+            time.sleep(0.01)
+        for _, fn in sorted(self._actions, key=lambda a: a[0]):
+            fn()  # clear what is still injected
+        self._finish_faults()
         st = self._status(timeout=2.0)
         latencies = _merge_latencies(latencies, st.get("halt_latencies", []))
         cpu1, rss = self._proc_cpu_rss()
@@ -392,7 +404,10 @@ class Bench:
         metrics["daemon_counts"] = st.get("counts", {})
         metrics["daemon_restarts"] = self.restarts
         if self.results:
-            metrics["faults"] = [vars(r) for r in self.results]
+            skip = ("t0", "n_events", "t_clear", "daemon_reason")
+            metrics["faults"] = [
+                {k: v for k, v in vars(r).items() if k not in skip} for r in self.results
+            ]
         self._cpu_rss_done = True
         return metrics
 
@@ -400,6 +415,7 @@ class Bench:
         from mowerhw.mow import LawnGeometry
 
         log_arr = self.mower.log_array()
+        np.save(self.out / "truth.npy", log_arr)  # t, x, y, yaw, v, deck, phase (post-mortem)
         sel = log_arr[:, 6] == 2  # mowing phase
         t, x, y, deck = log_arr[sel, 0], log_arr[sel, 1], log_arr[sel, 2], log_arr[sel, 5] > 0
         true_geom = LawnGeometry(self.mower.frame.outline_world(world.lawn), [])
@@ -448,13 +464,16 @@ class Bench:
     # ----------------------------------------------------------------------------- faults
 
     def _inject(self, spec: FaultSpec, t_mow0: float) -> FaultResult:
+        """Inject now; clearing it and the daemon's stated reason are scheduled, the stop
+        and recovery are read from the mock controller's deck events afterwards."""
         ctl = self.controller
         t0 = time.monotonic()
         res = FaultResult(spec.kind, round(t0 - t_mow0, 2), spec.duration_s, ctl.deck_running)
-        n_events = len(ctl.state.events)
-        clear = lambda: None  # noqa: E731
+        res.t0 = t0
+        res.n_events = len(ctl.state.events)
+        clear: Any = None
         if spec.kind == "imu-unplug":
-            self.vn.vanish(spec.duration_s)
+            self.vn.vanish(spec.duration_s)  # the pty comes back by itself
         elif spec.kind == "speed-stop":
             self.speed.paused.set()
             clear = self.speed.paused.clear
@@ -465,49 +484,63 @@ class Bench:
             request(self.sock, "fault", args=[spec.kind])
         elif spec.kind == "corrupt-map":
             path = Path(self.cfg_path.parent / "lawn.json")
-            with open(path, "r+b") as fh:  # damage it in place, as a bad disk or editor would
+            with open(path, "r+b") as fh:  # damaged in place, as a bad disk or editor would
                 fh.seek(len(self.map_bytes) // 2)
                 fh.write(b"\x00garbage\x00" * 8)
             clear = lambda: _restore(path, self.map_bytes)  # noqa: E731
         elif spec.kind in ("sigterm", "sigkill"):
-            pid = self.proc.pid  # type: ignore[union-attr]
             cpu, rss = self._proc_cpu_rss()
             self.cpu_s_total += cpu
             self.peak_rss_mb = max(self.peak_rss_mb, rss)
-            os.kill(pid, signal.SIGTERM if spec.kind == "sigterm" else signal.SIGKILL)
+            self.proc.send_signal(signal.SIGTERM if spec.kind == "sigterm" else signal.SIGKILL)  # type: ignore[union-attr]
             self.proc.wait(10.0)  # type: ignore[union-attr]
             res.notes.append(f"daemon exit status {self.proc.returncode}")  # type: ignore[union-attr]
-        # the stop, as the mock mower controller saw it
-        stop = _wait_for(lambda: _stop_after(ctl, n_events, t0), 3.0)
-        if stop is not None:
-            res.stop_after_ms = round((stop.t - t0) * 1e3, 1)
-            res.reason = stop.reason
-        daemon_reason = ""
-        st = self._status(timeout=1.0)
-        if st:
-            daemon_reason = st.get("reason", "") + (": " + st.get("detail", "")).rstrip(": ")
-        res.reason = (f"controller: {res.reason}; daemon: {daemon_reason}").strip()
-        # let the fault last, then clear it
-        rest = spec.duration_s - (time.monotonic() - t0)
-        if rest > 0:
-            time.sleep(rest)
-        clear()
-        t_clear = time.monotonic()
-        if spec.kind in ("sigterm", "sigkill"):
-            self.restarts += 1
+
+            def clear() -> None:
+                self.restarts += 1
+                self._spawn("mow")
+
             res.how = (
-                "restarted (systemd Restart=on-failure after SIGKILL)"
+                "restarted (as systemd Restart=on-failure does after SIGKILL)"
                 if spec.kind == "sigkill"
-                else "clean stop (heartbeat 255); restarted by the bench"
+                else "clean stop (halt + heartbeat 255); restarted by the bench"
             )
-            self._spawn("mow")
-        running = _wait_for(lambda: ctl.deck_running or None, RECOVERY_WINDOW_S)
-        if running:
-            res.recovered = True
-            res.recovered_after_s = round(time.monotonic() - t_clear, 2)
-            if not res.how:
-                res.how = "by itself, same process"
+
+        def note_reason() -> None:
+            st = self._status(timeout=1.0)
+            if st:
+                res.daemon_reason = f"{st.get('reason', '')}: {st.get('detail', '')}".strip(": ")
+
+        def cleared() -> None:
+            res.t_clear = time.monotonic()
+            if clear is not None:
+                clear()
+
+        self._actions.append((t0 + min(0.5, spec.duration_s * 0.5), note_reason))
+        self._actions.append((t0 + spec.duration_s, cleared))
         return res
+
+    def _finish_faults(self) -> None:
+        """Stop and recovery of each fault, from the mock controller's deck events."""
+        events = self.controller.state.events
+        for res in self.results:
+            stop = next(
+                (e for e in events[res.n_events :] if not e.running and e.t >= res.t0 - 1e-3),
+                None,
+            )
+            if stop is not None and stop.t - res.t0 < 5.0:
+                res.stop_after_ms = round((stop.t - res.t0) * 1e3, 1)
+                res.reason = f"controller: {stop.reason}"
+            if res.daemon_reason:
+                res.reason = f"{res.reason}; daemon: {res.daemon_reason}".strip("; ")
+            t_clear = res.t_clear if res.t_clear is not None else res.t0 + res.duration_s
+            back = next((e for e in events if e.running and e.t >= t_clear), None)
+            if back is not None and back.t - t_clear <= RECOVERY_WINDOW_S:
+                res.recovered = True
+                res.recovered_after_s = round(back.t - t_clear, 2)
+                res.how = res.how or "by itself, same process"
+            for attr in ("t0", "n_events", "t_clear"):
+                setattr(res, attr, None)
 
 
 # ----------------------------------------------------------------------------- helpers

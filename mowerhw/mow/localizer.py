@@ -82,6 +82,7 @@ class LocalizerCounters:
     reinitialisations: int = 0
     faults: int = 0
     nonfinite_inputs: int = 0
+    speed_stale_steps: int = 0  # IMU steps propagated without a fresh ground speed
 
 
 @dataclass
@@ -147,6 +148,7 @@ class Localizer:
         self._fault = ""
         self._lockout_since: float | None = None
         self._inflated = False
+        self._lost_inflated = False
         self._w_last = np.zeros(3)
         self._gyro_sum = np.zeros(3)
         self._gyro_n = 0
@@ -288,8 +290,22 @@ class Localizer:
         self.ekf.propagate(BodyMotion.of(w, np.array([speed, 0.0, 0.0]), t1 - t0))
 
     def _step(self, t0: float, t1: float, gyro: FloatArray) -> None:
-        speed = self._speeds.at(0.5 * (t0 + t1))
+        mid = 0.5 * (t0 + t1)
+        speed = self._speeds.at(mid)
+        speed_stale = self.t_speed is None or mid - self.t_speed > self.stale_s["speed"]
+        if speed_stale:
+            # no ground speed: holding the last value would drive on while the mower may
+            # have stopped; propagate at zero with the speed unknown up to max_speed_mps
+            speed = 0.0
+            self.counters.speed_stale_steps += 1
         self._propagate(t0, t1, gyro, speed)
+        if speed_stale:
+            self.ekf.P[3:5, 3:5] += np.eye(2) * (self.cfg.max_speed_mps * (t1 - t0)) ** 2
+        lost = self.t_fix is not None and t1 - self.t_fix > self.cfg.lost_after_s
+        if lost and not self._lost_inflated:
+            self.ekf.inflate(0.5, math.radians(15.0))  # let re-identification look wider
+            self._lost_inflated = True
+            self.counters.inflations += 1
         self._remember(t0, t1, gyro, speed)
         self._check_fault()
 
@@ -335,6 +351,7 @@ class Localizer:
             self.t_fix = t if self.t_fix is None else max(self.t_fix, t)
             self._lockout_since = None
             self._inflated = False
+            self._lost_inflated = False
             if self._fault and self._good_frames >= c.localized_after_frames:
                 self._fault = ""
             return

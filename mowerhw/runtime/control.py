@@ -32,7 +32,7 @@ def parse_request(line: bytes) -> tuple[str, dict[str, Any]]:
     text = line.decode("utf-8", errors="strict").strip()
     if not text:
         raise ValueError("empty request")
-    if text.startswith("{"):
+    if text[0] in '{["':
         try:
             req = json.loads(text)
         except json.JSONDecodeError as exc:

@@ -112,6 +112,8 @@ class Daemon:
         self._work_pool = ThreadPoolExecutor(1, thread_name_prefix="teach-finish")
         self._inject: str = ""
         self._finish_task: asyncio.Task | None = None
+        self._map_reload: asyncio.Future | None = None
+        self._tasks: set[asyncio.Future] = set()
         self._map_stat: tuple[int, int, int] | None = None
         self._next_map_check = 0.0
         self._next_watchdog = 0.0
@@ -135,7 +137,7 @@ class Daemon:
         self._open_can()
         self._start_imu()
         self._start_camera()
-        self.set_mode(self.start_mode)
+        await self.set_mode(self.start_mode)
         tasks = [
             asyncio.create_task(self._ticker(), name="ticker"),
             asyncio.create_task(self._frame_task(), name="frontend"),
@@ -309,6 +311,7 @@ class Daemon:
             self._estimator_fault(f"estimator raised {type(exc).__name__}: {exc}", exc)
 
     def _estimator_fault(self, what: str, exc: BaseException | None = None) -> None:
+        """Halt (FAULT), drop the estimator, rebuild it off the loop from the last good pose."""
         self.counts["estimator_faults"] += 1
         self.fault = f"{what}; estimator restarted"
         if exc is not None:
@@ -316,15 +319,41 @@ class Daemon:
         else:
             log.error("FAULT: %s", self.fault)
         self.buffer.pop_ready()
+        self.pipeline = None
         if self.mode == "mow" and self.map is not None:
-            self.pipeline = MowPipeline(
-                self.cfg, self.camera_model, self.map, start_pose=self._last_good_pose
-            )
-            self._relocalize(self.pipeline)
+            self._spawn(self._install_mow(self.map, self._last_good_pose))
         elif self.mode == "teach":
-            self.pipeline = TeachPipeline(self.cfg, self.camera_model)
-            self.teach_state = "recording"
             log.error("teach: the recording so far is lost; drive the loop again")
+            self._spawn(self._install_teach())
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _install_teach(self) -> None:
+        loop = asyncio.get_running_loop()
+        pipe = await loop.run_in_executor(
+            self._work_pool, TeachPipeline, self.cfg, self.camera_model
+        )
+        if self.mode == "teach":
+            self.buffer.pop_ready()
+            self.pipeline = pipe
+            self.teach_state = "recording"
+            log.info("teach: recording; hold still for the gyro calibration, then drive the edge")
+
+    async def _install_mow(self, lawn_map: LawnMap, start_pose: Any = None) -> None:
+        """Build the localizer + front end off the loop (it takes a while), then use it."""
+        loop = asyncio.get_running_loop()
+        pipe = await loop.run_in_executor(
+            self._work_pool, _build_mow, self.cfg, self.camera_model, lawn_map, start_pose
+        )
+        if self.mode != "mow" or self.map is not lawn_map:
+            return  # the mode or the map changed meanwhile
+        if start_pose is not None:
+            self._relocalize(pipe)
+        self.buffer.pop_ready()
+        self.pipeline = pipe
 
     def _relocalize(self, pipe: MowPipeline) -> None:
         """A restarted localizer resumes from a pose it had: widen it, skip the standstill."""
@@ -409,7 +438,7 @@ class Daemon:
 
     # ------------------------------------------------------------------------------ modes
 
-    def set_mode(self, mode: str) -> dict[str, Any]:
+    async def set_mode(self, mode: str) -> dict[str, Any]:
         if mode not in MODES:
             raise ValueError(f"mode {mode!r} is not one of {', '.join(MODES)}")
         if self.mode == "teach" and self.teach_state == "finishing":
@@ -418,54 +447,77 @@ class Daemon:
         self.fault = ""
         self.map_problem = ""
         self.pipeline = None
+        self.map = None
         self.mode = mode
-        if mode == "teach":
-            self.pipeline = TeachPipeline(self.cfg, self.camera_model)
-            self.teach_state = "recording"
-            log.info("mode teach: hold still for the gyro calibration, then drive the edge")
-        elif mode == "mow":
-            self._load_map_for_mow()
         log.info("mode %s", mode)
-        return {"ok": True, "mode": mode}
+        if mode == "teach":
+            self.teach_state = "starting"
+            await self._install_teach()
+        elif mode == "mow":
+            await self._load_map_for_mow()
+        return {"ok": True, "mode": mode, "map_problem": self.map_problem}
 
-    def _load_map_for_mow(self, start_pose: Any = None) -> None:
+    async def _load_map_for_mow(self, start_pose: Any = None) -> None:
+        """Load and check the map (halt MAP_INVALID naming the problem), then the estimator."""
         path = self.cfg.map.path
+        loop = asyncio.get_running_loop()
+        self._map_stat = _stat(path)
         try:
-            self._map_stat = _stat(path)
-            lawn_map = load_map(path)
-            problems = lawn_map.problems()
-            if problems:
-                raise MapError(f"{path}: " + "; ".join(problems))
+            lawn_map = await loop.run_in_executor(self._work_pool, _load_checked_map, path)
         except MapError as exc:
             self.map_problem = str(exc)
             self.map = None
             self.pipeline = None
             log.error("MAP_INVALID: %s", exc)
             return
+        if self.mode != "mow":
+            return
         self.map = lawn_map
         self.map_problem = ""
-        self.pipeline = MowPipeline(self.cfg, self.camera_model, lawn_map, start_pose=start_pose)
-        if start_pose is not None:
-            self._relocalize(self.pipeline)
         log.info(
             "map %s: %d landmarks, %.1f m² to mow",
             path,
             len(lawn_map.landmarks),
             lawn_map.lawn_polygon().area,
         )
+        await self._install_mow(lawn_map, start_pose)
 
     def _check_map_file(self) -> None:
         """Mow mode: a map file that changed is reloaded (an edited keep-out zone takes
         effect; a corrupt file halts with MAP_INVALID until it is fixed)."""
         st = _stat(self.cfg.map.path)
-        if st == self._map_stat:
+        if st == self._map_stat or self._map_reload is not None:
             return
         log.warning("map file %s changed: reloading", self.cfg.map.path)
-        pose = self._last_good_pose
+        self._map_stat = st
         old = self.map
-        self._load_map_for_mow(start_pose=pose)
-        if self.map is not None and old is not None and self.map.checksum == old.checksum:
-            log.info("map content unchanged (checksum %s)", (old.checksum or "")[:19])
+        pose = self._last_good_pose
+
+        async def reload() -> None:
+            try:
+                path = self.cfg.map.path
+                loop = asyncio.get_running_loop()
+                try:
+                    lawn_map = await loop.run_in_executor(self._work_pool, _load_checked_map, path)
+                except MapError as exc:
+                    # halt; the estimator keeps tracking on the map in memory, so a restored
+                    # file resumes at once
+                    self.map_problem = str(exc)
+                    log.error("MAP_INVALID: %s", exc)
+                    return
+                if old is not None and lawn_map.checksum == old.checksum:
+                    self.map_problem = ""
+                    log.info("map file valid again, same map (checksum %s)", old.checksum[:19])
+                    if self.pipeline is None:
+                        await self._install_mow(old, pose)
+                    return
+                self.map, self.map_problem, self.pipeline = lawn_map, "", None
+                log.info("new map loaded: %d landmarks", len(lawn_map.landmarks))
+                await self._install_mow(lawn_map, pose)
+            finally:
+                self._map_reload = None
+
+        self._map_reload = asyncio.ensure_future(reload())
 
     async def finish_teach(self) -> dict[str, Any]:
         pipe = self.pipeline
@@ -550,7 +602,7 @@ class Daemon:
         if cmd == "status":
             return {"ok": True, **self.status()}
         if cmd in MODES:
-            return self.set_mode(cmd)
+            return await self.set_mode(cmd)
         if cmd == "finish-teach":
             return await self.finish_teach()
         if cmd == "save-map":
@@ -622,6 +674,18 @@ def _stat(path: Path) -> tuple[int, int, int] | None:
     except OSError:
         return None
     return (st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+def _load_checked_map(path: Path) -> LawnMap:
+    lawn_map = load_map(path)
+    problems = lawn_map.problems()
+    if problems:
+        raise MapError(f"{path}: " + "; ".join(problems))
+    return lawn_map
+
+
+def _build_mow(cfg: Config, camera: Any, lawn_map: LawnMap, start_pose: Any) -> MowPipeline:
+    return MowPipeline(cfg, camera, lawn_map, start_pose=start_pose)
 
 
 def _save_map(lawn_map: LawnMap, path: Path) -> None:

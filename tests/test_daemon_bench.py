@@ -1,0 +1,73 @@
+"""The daemon against mock hardware (the hardware-in-the-loop bench, short case).
+
+A real ``mowerhw run`` process with its real drivers: VN-100 bytes on a pty, GBSD / ISB /
+heartbeat / status frames on a CAN bus shared between processes, rendered frames through
+the camera interface. The map comes from a pixel-level simulated teach of the same yard (the
+full teach-then-mow run is ``mowerhw bench``; its figures are in the README)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from mowerhw.bench import Bench, FaultSpec
+from mowerhw.evaluate_pixel import run_teach_pixel
+from mowerhw.map import LawnMap
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def yard_map(tmp_path_factory):
+    out = run_teach_pixel("paper", 7)
+    assert out.result is not None, out.error
+    path = tmp_path_factory.mktemp("map") / "lawn.json"
+    LawnMap.from_teach_result(out.result).save(path)
+    return path
+
+
+def test_mows_with_faults_and_recovers(yard_map, tmp_path) -> None:
+    faults = [
+        FaultSpec("imu-unplug", 8.0, 1.0),
+        FaultSpec("speed-stop", 16.0, 1.0),
+        FaultSpec("corrupt-map", 24.0, 1.0),
+        FaultSpec("exception", 32.0, 1.0),
+    ]
+    res = Bench(duration_s=42.0, seed=7, out_dir=tmp_path, faults=faults, map_path=yard_map).run()
+    print({k: res[k] for k in ("position_rmse_m", "missed_halts", "halt_latency_ms")})
+    assert res["missed_halts"] == 0
+    assert res["position_rmse_m"] is not None and res["position_rmse_m"] < 0.10
+    by_kind = {f["kind"]: f for f in res["faults"]}
+    expected = {
+        "imu-unplug": "SENSOR_STALE",
+        "speed-stop": "SENSOR_STALE",
+        "corrupt-map": "MAP_INVALID",
+        "exception": "FAULT",
+    }
+    for kind, reason in expected.items():
+        f = by_kind[kind]
+        print(kind, f["stop_after_ms"], f["reason"], f["recovered_after_s"])
+        if f["deck_was_running"]:
+            assert f["stop_after_ms"] is not None and f["stop_after_ms"] <= 400.0, f
+        assert reason in f["reason"], f
+        assert f["recovered"], f
+    # the map file was restored, never half-written by the daemon
+    assert LawnMap is not None and (tmp_path / "lawn.json").read_bytes() == yard_map.read_bytes()
+    log = (tmp_path / "daemon.log").read_text()
+    assert "HALT MAP_INVALID" in log and "HALT SENSOR_STALE: imu silent" in log
+
+
+def test_bad_config_exits_78(tmp_path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("imu:\n  baudrate: 12345\nruntime:\n  mode: fly\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "mowerhw", "run", "--config", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 78
+    assert "imu.baudrate: 12345 is not one of" in proc.stderr
+    assert "runtime.mode: 'fly' is not one of" in proc.stderr
