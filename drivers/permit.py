@@ -214,6 +214,10 @@ class PermitSender:
             self.sequence = 0 if self.sequence >= 250 else self.sequence + 1
             self._next_hb = self._advance(now, self._next_hb, self.heartbeat_period_s)
 
+    def next_due(self) -> float:
+        """When :meth:`tick` next has something to send (host monotonic s)."""
+        return min(self._next_isb, self._next_hb) - _TICK_TOLERANCE_S
+
     def error(self, now: float) -> None:
         """An internal fault: stop, and say so in the heartbeat (254)."""
         self.set(False, now)

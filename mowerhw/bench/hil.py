@@ -135,6 +135,7 @@ class Bench:
         self.cpu_s_total = 0.0  # CPU seconds of daemons that have exited (restarts)
         self.peak_rss_mb = 0.0
         self.restarts = 0
+        self.rss_samples: list[tuple[float, float, float]] = []  # (s into mowing, RSS MB, CPU s)
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -365,6 +366,7 @@ class Bench:
         next_poll = t_mow0
         latencies: list[dict[str, Any]] = []
         self._actions: list[tuple[float, Any]] = []  # (when, what): fault clearing etc.
+        next_rss = t_mow0
         while time.monotonic() < end:
             now = time.monotonic()
             if pending and now - t_mow0 >= pending[0].at_s:
@@ -379,6 +381,11 @@ class Bench:
                 for _, fn in due:
                     fn()
                 continue
+            if now >= next_rss:
+                next_rss = now + 10.0
+                cpu, _ = self._proc_cpu_rss()
+                current = _current_rss_mb(self.proc)
+                self.rss_samples.append((round(now - t_mow0, 1), current, round(cpu, 2)))
             if now >= next_poll:
                 next_poll = now + 0.2
                 st = self._status(timeout=1.0)
@@ -403,6 +410,12 @@ class Bench:
         )
         metrics["daemon_counts"] = st.get("counts", {})
         metrics["daemon_restarts"] = self.restarts
+        if self.rss_samples:
+            metrics["rss_mb"] = {
+                "start": self.rss_samples[0][1],
+                "end": self.rss_samples[-1][1],
+                "samples": len(self.rss_samples),
+            }
         if self.results:
             skip = ("t0", "n_events", "t_clear", "daemon_reason")
             metrics["faults"] = [
@@ -549,6 +562,18 @@ class Bench:
 def _shipped(name: str) -> Path:
     here = Path(__file__).resolve().parents[2] / "configs" / name
     return here
+
+
+def _current_rss_mb(proc: Any) -> float:
+    if proc is None or proc.poll() is not None:
+        return 0.0
+    try:
+        for line in Path(f"/proc/{proc.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return round(int(line.split()[1]) / 1024.0, 1)
+    except OSError:
+        pass
+    return 0.0
 
 
 def _restore(path: Path, data: bytes) -> None:

@@ -12,8 +12,9 @@ drivers' own) and hand each sample to the loop with ``call_soon_threadsafe``:
   worker thread, one frame at a time, so a slow frame never delays IMU processing or the
   permit; its tracks enter the buffer stamped with the frame's capture time.
 
-A 5 ms ticker sends the periodic ISB / heartbeat / status frames, catches silent sensors
-(staleness is judged on the host clock of arrival), watches the map file, and pings systemd's
+A ticker (waking at the next deadline, at least every 20 ms) sends the periodic ISB /
+heartbeat / status frames, catches silent sensors (staleness is judged on the host clock of
+arrival), watches the map file, and pings systemd's
 watchdog — from the loop, so a hung estimator stops the pings and systemd restarts it.
 
 Modes: idle (halt), teach (halt; maps), mow (permit when :class:`~.gate.PermitGate` allows).
@@ -61,7 +62,8 @@ from mowerhw.samples import ImuSample, SpeedSample, Stream
 log = logging.getLogger("mowerhw.daemon")
 
 MODES = ("idle", "teach", "mow")
-TICK_S = 0.005
+TICK_MIN_S = 0.0005
+TICK_MAX_S = 0.02
 TRACKS = "tracks"
 
 
@@ -560,9 +562,9 @@ class Daemon:
 
     async def _ticker(self) -> None:
         while True:
-            await asyncio.sleep(TICK_S)
+            await asyncio.sleep(self._next_tick_wait(time.monotonic()))
             now = time.monotonic()
-            if self.sender is None and self.counts["can_open_failures"] and now % 1.0 < TICK_S:
+            if self.sender is None and self.counts["can_open_failures"] and now % 1.0 < TICK_MAX_S:
                 self._open_can()
             self._decide(now)
             if self.sender is not None:
@@ -587,6 +589,19 @@ class Daemon:
             if line != self._sd_status:
                 self._sd_status = line
                 self.notifier.status(line)
+
+    def _next_tick_wait(self, now: float) -> float:
+        """Sleep until the next thing due: a sensor's staleness deadline (so a silent sensor
+        halts within a millisecond or two of its limit), the next periodic CAN frame, or at
+        most ``TICK_MAX_S``."""
+        due = now + TICK_MAX_S
+        for name, limit in self.gate.stale_limits_s.items():
+            last = self.last_arrival[name]
+            if last is not None and last + limit > now:
+                due = min(due, last + limit + 1e-4)
+        if self.sender is not None:
+            due = min(due, self.sender.next_due())
+        return max(TICK_MIN_S, due - now)
 
     def _status_line(self) -> str:
         d = self.decision

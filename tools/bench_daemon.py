@@ -1,0 +1,67 @@
+"""Daemon benchmarks on the hardware-in-the-loop bench (prints one JSON object).
+
+* halt latency under load: while the front end tracks every frame, the ground-speed sensor
+  goes quiet for 0.6 s every ``--halt-every`` seconds (each time the daemon must halt); and
+  every mow-phase halt (OUTSIDE at the edge, …) counts too. Latency = arrival of the
+  revealing sample (or the staleness deadline) → the ISB stop frame sent, from the daemon;
+* CPU share of the daemon process at real-time rates (100 Hz IMU, 10 Hz speed, 4 Hz
+  1540×1540 frames), from /proc;
+* memory: the daemon's RSS every 10 s (a soak: ``--duration 3600``).
+
+    .venv/bin/python tools/bench_daemon.py --duration 600 --halt-every 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+from mowerhw.bench import Bench, FaultSpec
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--duration", type=float, default=300.0, help="seconds of mowing")
+    ap.add_argument("--halt-every", type=float, default=20.0, help="seconds between speed gaps")
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--map", type=Path, help="a map of the yard (default: pixel-level sim teach)")
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    map_path = args.map
+    if map_path is None:
+        from mowerhw.evaluate_pixel import run_teach_pixel
+        from mowerhw.map import LawnMap
+
+        res = run_teach_pixel("paper", args.seed)
+        map_path = Path(tempfile.mkdtemp(prefix="mowerhw-map-")) / "lawn.json"
+        LawnMap.from_teach_result(res.result).save(map_path)
+    n = int(args.duration // args.halt_every)
+    faults = [FaultSpec("speed-stop", args.halt_every * (k + 0.5), 0.6) for k in range(n)]
+    bench = Bench(
+        duration_s=args.duration, seed=args.seed, out_dir=args.out, faults=faults, map_path=map_path
+    )
+    r = bench.run()
+    stops = [f["stop_after_ms"] for f in r.get("faults", []) if f["stop_after_ms"] is not None]
+    out = {
+        "mow_s": r["mow_s"],
+        "halt_latency_ms": r["halt_latency_ms"],
+        "halts_by_reason": r["halts_by_reason"],
+        "speed_gaps": len(faults),
+        "speed_gap_stop_seen_ms": {
+            "min": min(stops) if stops else None,
+            "max": max(stops) if stops else None,
+            "n": len(stops),
+        },
+        "cpu_percent_of_one_core": r["cpu_percent"],
+        "peak_rss_mb": r["peak_rss_mb"],
+        "rss_mb_over_time": bench.rss_samples,
+        "missed_halts": r["missed_halts"],
+        "position_rmse_m": r["position_rmse_m"],
+    }
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
