@@ -19,6 +19,7 @@ bench from the renderer.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -37,14 +38,18 @@ FloatArray = NDArray[np.float64]
 _RAD_PER_PX = 1.0 / 470.0
 
 
+#: per-frame figures kept (bounded: the daemon runs for days); 20000 frames = 83 min at 4 Hz
+STATS_FRAMES = 20000
+
+
 @dataclass
 class VisionStats:
     frames: int = 0
-    tracks_per_frame: list[int] = field(default_factory=list)
+    tracks_per_frame: deque[int] = field(default_factory=lambda: deque(maxlen=STATS_FRAMES))
     observations: int = 0  # bearings handed to the estimator
     reidentified: int = 0  # tracks matched to a known landmark
     dropped_associations: int = 0
-    frontend_ms: list[float] = field(default_factory=list)
+    frontend_ms: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_FRAMES))
 
 
 def merge_descriptors(

@@ -118,3 +118,26 @@ def test_control_server_answers_errors_and_keeps_serving(tmp_path) -> None:
     assert r[3] == {"ok": True, "cmd": "status"}
     assert r[4] == {"ok": True, "cmd": "idle"}
     assert not path.exists()
+
+
+def test_sd_notify_speaks_the_protocol(tmp_path, monkeypatch) -> None:
+    import os
+    import socket
+
+    from mowerhw.runtime.sdnotify import Notifier
+
+    path = tmp_path / "notify.sock"
+    rx = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    rx.bind(str(path))
+    rx.settimeout(1.0)
+    monkeypatch.setenv("NOTIFY_SOCKET", str(path))
+    monkeypatch.setenv("WATCHDOG_USEC", "2000000")
+    monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+    n = Notifier()
+    assert n.enabled and n.watchdog_period_s == 1.0
+    assert n.ready("mow: INSIDE, mowing permitted")
+    assert rx.recv(4096) == b"READY=1\nSTATUS=mow: INSIDE, mowing permitted"
+    assert n.watchdog()
+    assert rx.recv(4096) == b"WATCHDOG=1"
+    monkeypatch.delenv("NOTIFY_SOCKET")
+    assert not Notifier().ready()  # outside systemd: nothing, no error

@@ -27,6 +27,7 @@ pixels and ages. Track ids are never reused.
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import cv2
@@ -65,7 +66,8 @@ class FrontendStats:
     lost_outside: int = 0
     rejected_at_birth: int = 0
     ms_total: float = 0.0
-    track_lengths: list[int] = field(default_factory=list)  # frames, of every ended track
+    # frames, of each ended track (the newest 20000: bounded for a long-running daemon)
+    track_lengths: deque[int] = field(default_factory=lambda: deque(maxlen=20000))
 
 
 def shi_tomasi(image: NDArray[np.uint8], pts: FloatArray, half: int = 3) -> FloatArray:

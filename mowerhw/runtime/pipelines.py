@@ -121,6 +121,10 @@ class MowPipeline:
             pixel_sigma=config.camera.pixel_sigma,
         )
         self.lag_s = self.LAG_S
+        self._cont: ContainmentResult | None = None
+        self._cont_key: tuple | None = None
+        self._finite = True
+        self._finite_key: tuple | None = None
 
     def imu(self, t: float, gyro: FloatArray) -> None:
         self.localizer.imu(t, gyro)
@@ -131,15 +135,31 @@ class MowPipeline:
     def frame_tracks(self, tracks: Any) -> None:
         self.vision.use(tracks)
 
+    def _state_key(self) -> tuple:
+        loc = self.localizer
+        c = loc.counters
+        return (loc.t_imu, loc.t_speed, loc.t_camera, loc.t_fix, c.frames, c.faults, id(loc.ekf.x))
+
     def containment(self, now: float) -> ContainmentResult:
-        """The decision for the newest state; the daemon checks staleness on its own clock."""
-        return self.localizer.containment(now)
+        """The decision for the newest state. Evaluated again only when the estimator has
+        changed (a new sample); between samples the daemon's own staleness check on the
+        host clock is what can change the decision."""
+        key = self._state_key()
+        if key != self._cont_key or self._cont is None:
+            self._cont = self.localizer.containment(now)
+            self._cont_key = key
+        return self._cont
 
     def finite(self) -> bool:
+        key = self._state_key()
+        if key == self._finite_key:
+            return self._finite
         ekf = self.localizer.ekf
-        return bool(
+        self._finite = bool(
             np.all(np.isfinite(ekf.x)) and np.all(np.isfinite(ekf.q)) and np.all(np.isfinite(ekf.P))
         )
+        self._finite_key = key
+        return self._finite
 
     def pose(self) -> tuple[float, float, float, float, float]:
         """t, x, y, heading, σ_xy."""
