@@ -56,4 +56,6 @@ def open_bus(interface: str, channel: str, bitrate: int = 250000, **kwargs):
 
     if interface == "virtual":
         return can.Bus(interface="virtual", channel=channel, receive_own_messages=False, **kwargs)
+    if interface == "udp_multicast":  # frames between processes on one host (the bench)
+        return can.Bus(interface=interface, channel=channel, **kwargs)
     return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **kwargs)

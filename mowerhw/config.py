@@ -116,6 +116,13 @@ class CanConfig:
     channel: str = opt("can0", "python-can channel (socketcan: interface name)", nonempty=True)
     bitrate: int = opt(250000, "bit rate (ISO 11783: 250000)", choices=CAN_BITRATES)
     source_address: int = opt(0x90, "this ECU's ISO 11783 source address", ge=0, le=253)
+    udp_port: int = opt(
+        43113,
+        "udp_multicast only: UDP port of the bus (Linux delivers every group on a port to "
+        "every socket on it, so two buses on one host need two ports)",
+        ge=1024,
+        le=65535,
+    )
 
 
 @dataclass(frozen=True)

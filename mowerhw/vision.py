@@ -19,6 +19,7 @@ bench from the renderer.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -38,6 +39,10 @@ FloatArray = NDArray[np.float64]
 _RAD_PER_PX = 1.0 / 470.0
 
 
+#: a refused (track, landmark) pair is not tried again for this long (s): long enough to stop
+#: a wrong pair coming back every frame, short enough that a standing mower whose tracks
+#: all lost their landmarks (a sensor gap) re-identifies them again
+BAN_S = 3.0
 #: per-frame figures kept (bounded: the daemon runs for days); 20000 frames = 83 min at 4 Hz
 STATS_FRAMES = 20000
 
@@ -254,7 +259,8 @@ class MowVision(_VisionBase):
         self._desc_sets = sets
         self.landmark_of: dict[int, int] = {}  # live track id → map landmark id
         self._refusals: dict[int, int] = {}  # track id → consecutive χ² refusals
-        self._banned: set[tuple[int, int]] = set()
+        self._banned: dict[tuple[int, int], float] = {}  # pair → when it was refused
+        self._t_last = -math.inf
         # the last frame's associations: track ids, map ids, pixels
         self.last_associated = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
         self.last_bearings = np.zeros((0, 3))
@@ -278,7 +284,10 @@ class MowVision(_VisionBase):
         self.stats.observations += int(lm.size)
         self.last_associated = (tids, lm, tracks.pixels[rows])
         self.last_bearings = tracks.bearings[rows]
+        self._t_last = t
         self._review(tids, lm)
+        if len(self._banned) > 256:  # forget expired bans (bounded memory)
+            self._banned = {k: v for k, v in self._banned.items() if t - v < BAN_S}
         return tracks
 
     def _predict(self, t: float) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
@@ -310,7 +319,7 @@ class MowVision(_VisionBase):
         for k, dist2 in zip(ks, d2.tolist(), strict=True):
             if not dist2 <= self.gate:
                 tid = int(tracks.ids[k])
-                self._banned.add((tid, self.landmark_of.pop(tid)))
+                self._banned[(tid, self.landmark_of.pop(tid))] = tracks.t
                 self._refusals.pop(tid, None)
                 self.stats.dropped_associations += 1
 
@@ -333,7 +342,7 @@ class MowVision(_VisionBase):
         )
         for k, c in pairs:
             tid, lid = int(tracks.ids[k]), int(cand.ids[c])
-            if (tid, lid) in self._banned:
+            if tracks.t - self._banned.get((tid, lid), -math.inf) < BAN_S:
                 continue
             self.landmark_of[tid] = lid
             self.stats.reidentified += 1
@@ -348,7 +357,7 @@ class MowVision(_VisionBase):
                 if self._refusals[tid] >= self.cfg.drop_after_rejections:
                     del self.landmark_of[tid]
                     self._refusals.pop(tid, None)
-                    self._banned.add((tid, i))
+                    self._banned[(tid, i)] = self._t_last
                     self.stats.dropped_associations += 1
             else:
                 self._refusals.pop(tid, None)

@@ -144,7 +144,10 @@ class Bench:
         group = f"239.{random.randint(1, 254)}.{random.randint(1, 254)}.{random.randint(1, 254)}"
         self.can_channel = group
         raw.setdefault("imu", {}).update(driver="mock", port=str(self.out / "vn100"))
-        raw.setdefault("can", {}).update(interface="udp_multicast", channel=group)
+        self.can_port = _free_udp_port()
+        raw.setdefault("can", {}).update(
+            interface="udp_multicast", channel=group, udp_port=self.can_port
+        )
         cal = _shipped("camera/paper-table1.yaml")
         raw.setdefault("camera", {}).update(
             driver="stream", device=str(self.out / "camera.sock"), calibration=str(cal)
@@ -228,7 +231,7 @@ class Bench:
         truth = teach_loop(world.lawn, sc.speed_mps, sc.camera_height_m, standstill_s=1.0)
         mower = RealTimeMower(world, truth, self.seed, q_bi=cfg.imu.q_bi)
         renderer = OmniRenderer(world, self.seed)
-        bus = can.Bus(interface="udp_multicast", channel=self.can_channel)
+        bus = can.Bus(interface="udp_multicast", channel=self.can_channel, port=self.can_port)
         vn = MockVn100(self.out / "vn100", source=mower.imu_source, seed=self.seed)
         speed = MockSpeedSensor(bus, mower.speed_source)
         controller = MockMowerController(
@@ -562,6 +565,16 @@ class Bench:
 def _shipped(name: str) -> Path:
     here = Path(__file__).resolve().parents[2] / "configs" / name
     return here
+
+
+def _free_udp_port() -> int:
+    """A UDP port nobody uses now: each bench run gets its own bus (Linux hands every
+    multicast datagram on a port to every socket bound to it, whatever the group)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("", 0))
+        return int(s.getsockname()[1])
 
 
 def _current_rss_mb(proc: Any) -> float:

@@ -83,6 +83,7 @@ class LocalizerCounters:
     faults: int = 0
     nonfinite_inputs: int = 0
     speed_stale_steps: int = 0  # IMU steps propagated without a fresh ground speed
+    frames_without_imu: int = 0  # frames refused: no IMU sample near their time
 
 
 @dataclass
@@ -95,6 +96,7 @@ class _Step:
     speed: float
     state: EkfState = field(repr=False)
     held: bool = False  # a start-up calibration step: the pose was held, not propagated
+    widen: tuple[float, float] = (0.0, 0.0)  # (xy variance, yaw variance) added after it
 
 
 def _configs(config: Any) -> tuple[MowConfig, ContainmentConfig, dict[str, float]]:
@@ -239,6 +241,11 @@ class Localizer:
         self.t_camera = float(t) if self.t_camera is None else max(self.t_camera, float(t))
         if self.t_imu is None:
             return
+        if t > self.t_imu + self.stale_s["imu"]:
+            # the IMU is silent (unplugged): extrapolating to the frame would dead-reckon at
+            # the held speed without any gyro; the frame is not used
+            self.counters.frames_without_imu += 1
+            return
         if t < self.t_imu - 1e-9:
             self._late_frame(float(t), rows, u)
         else:
@@ -277,9 +284,15 @@ class Localizer:
             state.pxl[6:9, :] = 0.0
 
     def _remember(
-        self, t0: float, t1: float, gyro: FloatArray, speed: float, held: bool = False
+        self,
+        t0: float,
+        t1: float,
+        gyro: FloatArray,
+        speed: float,
+        held: bool = False,
+        widen: tuple[float, float] = (0.0, 0.0),
     ) -> None:
-        self._history.append(_Step(t0, t1, gyro.copy(), speed, self.ekf.snapshot(), held))
+        self._history.append(_Step(t0, t1, gyro.copy(), speed, self.ekf.snapshot(), held, widen))
         horizon = t1 - self.cfg.history_s
         while len(self._history) > 2 and self._history[1].t1 < horizon:
             self._history.popleft()
@@ -293,21 +306,32 @@ class Localizer:
         mid = 0.5 * (t0 + t1)
         speed = self._speeds.at(mid)
         speed_stale = self.t_speed is None or mid - self.t_speed > self.stale_s["speed"]
+        pos_var = yaw_var = 0.0
         if speed_stale:
             # no ground speed: holding the last value would drive on while the mower may
             # have stopped; propagate at zero with the speed unknown up to max_speed_mps
             speed = 0.0
             self.counters.speed_stale_steps += 1
-        self._propagate(t0, t1, gyro, speed)
-        if speed_stale:
-            self.ekf.P[3:5, 3:5] += np.eye(2) * (self.cfg.max_speed_mps * (t1 - t0)) ** 2
+            pos_var = (self.cfg.max_speed_mps * (t1 - t0)) ** 2
         lost = self.t_fix is not None and t1 - self.t_fix > self.cfg.lost_after_s
-        if lost and not self._lost_inflated:
-            self.ekf.inflate(0.5, math.radians(15.0))  # let re-identification look wider
+        if lost and not self._lost_inflated:  # let re-identification look wider
+            pos_var += 0.5**2
+            yaw_var += math.radians(15.0) ** 2
             self._lost_inflated = True
             self.counters.inflations += 1
-        self._remember(t0, t1, gyro, speed)
+        self._propagate(t0, t1, gyro, speed)
+        self._widen((pos_var, yaw_var))
+        self._remember(t0, t1, gyro, speed, widen=(pos_var, yaw_var))
         self._check_fault()
+
+    def _widen(self, widen: tuple[float, float]) -> None:
+        """Add uncertainty the motion model does not know about (kept in the history, so a
+        late frame's re-propagation applies it again)."""
+        pos_var, yaw_var = widen
+        if pos_var > 0.0:
+            self.ekf.P[3:5, 3:5] += np.eye(2) * pos_var
+        if yaw_var > 0.0:
+            self.ekf.P[2, 2] += yaw_var
 
     def _late_frame(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
         """Apply a frame at its own time and re-propagate the IMU samples since (exact)."""
@@ -329,14 +353,18 @@ class Localizer:
                 t0 = t if j == 0 and t > st.t0 else st.t0
                 if st.t1 > t0:
                     self._propagate(t0, st.t1, st.gyro, st.speed)
-                self._remember(t0, st.t1, st.gyro, st.speed)
+                self._widen(st.widen)
+                self._remember(t0, st.t1, st.gyro, st.speed, widen=st.widen)
             return
         # re-propagate: the rest of that interval, then every later one, as they were
         for j, st in enumerate(after):
             t0 = t if j == 0 and t > st.t0 else st.t0
             if not st.held and st.t1 > t0:
                 self._propagate(t0, st.t1, st.gyro, st.speed)
-            hist[k + 1 + j] = _Step(st.t0, st.t1, st.gyro, st.speed, self.ekf.snapshot(), st.held)
+            self._widen(st.widen)
+            hist[k + 1 + j] = _Step(
+                st.t0, st.t1, st.gyro, st.speed, self.ekf.snapshot(), st.held, st.widen
+            )
 
     def _frame_update(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
         c = self.cfg

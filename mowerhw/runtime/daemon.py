@@ -190,7 +190,8 @@ class Daemon:
     def _open_can(self) -> None:
         c = self.cfg.can
         try:
-            self.bus = open_bus(c.interface, c.channel, c.bitrate)
+            extra = {"port": c.udp_port} if c.interface == "udp_multicast" else {}
+            self.bus = open_bus(c.interface, c.channel, c.bitrate, **extra)
         except Exception as exc:  # can.CanError, OSError: retried by the ticker
             if self.bus is None and self.counts["can_open_failures"] == 0:
                 log.error("CAN %s %s: cannot open (%s); retrying", c.interface, c.channel, exc)

@@ -176,4 +176,11 @@ class MowPipeline:
     def status(self) -> dict[str, Any]:
         st = self.localizer.status()
         st.pop("gyro_bias", None)
+        vs = self.vision.stats
+        st["vision"] = {
+            "tracks": vs.tracks_per_frame[-1] if vs.tracks_per_frame else 0,
+            "associated": len(self.vision.landmark_of),
+            "reidentified": vs.reidentified,
+            "dropped_associations": vs.dropped_associations,
+        }
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in st.items()}
