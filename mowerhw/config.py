@@ -346,6 +346,11 @@ class RuntimeConfig:
     map_check_period_s: float = opt(
         0.1, "how often mow mode checks the map file for changes", gt=0.0, le=10.0
     )
+    pose_file: Path = opt(
+        Path("/run/mowerhw/pose.json"),
+        "where mow mode keeps its newest localized pose (10 Hz), so a restarted daemon "
+        "resumes from it (if under 2 min old) instead of the dock",
+    )
     fault_injection: bool = opt(
         False, "accept the control socket's `fault` command (test bench only)"
     )

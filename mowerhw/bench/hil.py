@@ -131,7 +131,7 @@ class Bench:
         self.proc: subprocess.Popen | None = None
         self.daemon_log = self.out / "daemon.log"
         self.results: list[FaultResult] = []
-        self.pose_samples: list[tuple[float, float, float, bool]] = []
+        self.pose_samples: list[tuple[float, float, float, bool, float]] = []
         self.cpu_s_total = 0.0  # CPU seconds of daemons that have exited (restarts)
         self.peak_rss_mb = 0.0
         self.restarts = 0
@@ -154,7 +154,9 @@ class Bench:
         )
         raw.setdefault("map", {})["path"] = str(self.out / "lawn.json")
         raw.setdefault("runtime", {}).update(
-            control_socket=str(self.out / "control.sock"), fault_injection=True
+            control_socket=str(self.out / "control.sock"),
+            pose_file=str(self.out / "pose.json"),
+            fault_injection=True,
         )
         path = self.out / "bench-config.yaml"
         path.write_text(yaml.safe_dump(raw, sort_keys=False))
@@ -394,7 +396,9 @@ class Bench:
                 st = self._status(timeout=1.0)
                 pose = st.get("pose")
                 if pose and st.get("localizer", {}).get("localized"):
-                    self.pose_samples.append((pose["t"], pose["x"], pose["y"], bool(st["permit"])))
+                    self.pose_samples.append(
+                        (pose["t"], pose["x"], pose["y"], bool(st["permit"]), pose["sigma_xy_m"])
+                    )
                 if st:
                     latencies = _merge_latencies(latencies, st.get("halt_latencies", []))
             time.sleep(0.01)
@@ -432,6 +436,7 @@ class Bench:
 
         log_arr = self.mower.log_array()
         np.save(self.out / "truth.npy", log_arr)  # t, x, y, yaw, v, deck, phase (post-mortem)
+        np.save(self.out / "poses.npy", np.array(self.pose_samples, dtype=np.float64))
         sel = log_arr[:, 6] == 2  # mowing phase
         t, x, y, deck = log_arr[sel, 0], log_arr[sel, 1], log_arr[sel, 2], log_arr[sel, 5] > 0
         true_geom = LawnGeometry(self.mower.frame.outline_world(world.lawn), [])
@@ -444,7 +449,7 @@ class Bench:
         safe = (t >= first_permit) & (s_true > SAFE_INSIDE_M) & ~in_fault
         # the daemon's estimate against the truth at its own time stamps
         errs = []
-        for tp, xp, yp, _ in self.pose_samples:
+        for tp, xp, yp, _, _ in self.pose_samples:
             k = int(np.searchsorted(t, tp))
             if 0 < k < t.size and t[k] - t[k - 1] < 0.05:
                 f = (tp - t[k - 1]) / (t[k] - t[k - 1])

@@ -167,10 +167,11 @@ class MowPipeline:
         t = loc.t_imu if loc.t_imu is not None else float("nan")
         return t, float(loc.ekf.x[0]), float(loc.ekf.x[1]), yaw_of(loc.ekf.q), loc.sigma_xy()
 
-    def last_good_pose(self) -> tuple[FloatArray, FloatArray] | None:
+    def last_good_pose(self) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """Position, q_wb and the calibrated gyro bias (for a rebuilt estimator)."""
         loc = self.localizer
         if self.finite():
-            return loc.ekf.x.copy(), loc.ekf.q.copy()
+            return loc.ekf.x.copy(), loc.ekf.q.copy(), loc.ekf.bg.copy()
         return None
 
     def status(self) -> dict[str, Any]:
