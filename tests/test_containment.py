@@ -121,3 +121,15 @@ def test_signed_distances_vectorised_match():
     pts = np.random.default_rng(0).uniform(-2, 12, size=(200, 2))
     one = np.array([g.signed_distance(x, y) for x, y in pts])
     assert np.allclose(g.signed_distances(pts), one)
+
+
+def test_a_decision_before_the_first_sample_does_not_freeze_the_counters():
+    """The daemon asks for a decision before any IMU sample (time NaN); the soft-margin and
+    release counters must still count afterwards (found on the bench: a latched OUTSIDE
+    never released)."""
+    c = Containment(LawnGeometry(SQUARE), CFG)
+    r = c.evaluate(float("nan"), 5, 5, 0.005, halt=(Reason.NOT_LOCALIZED, "no IMU sample yet"))
+    assert r.reason == "NOT_LOCALIZED"
+    seq = [(5, -0.05)] * 4 + [(5, 0.5)] * 4
+    res = [c.evaluate(float(k), x, y, 0.005) for k, (x, y) in enumerate(seq)]
+    assert [r.permit for r in res] == [True, True, False, False, False, False, True, True]

@@ -135,6 +135,7 @@ class Bench:
         self.cpu_s_total = 0.0  # CPU seconds of daemons that have exited (restarts)
         self.peak_rss_mb = 0.0
         self.restarts = 0
+        self.timeline: list[tuple] = []  # (s, state, reason, x, y, heading, detail) at 5 Hz
         self.rss_samples: list[tuple[float, float, float]] = []  # (s into mowing, RSS MB, CPU s)
 
     # ----------------------------------------------------------------------------- set-up
@@ -401,6 +402,18 @@ class Bench:
                     )
                 if st:
                     latencies = _merge_latencies(latencies, st.get("halt_latencies", []))
+                    p = st.get("pose") or {}
+                    self.timeline.append(
+                        (
+                            round(now - t_mow0, 2),
+                            st.get("state"),
+                            st.get("reason"),
+                            p.get("x"),
+                            p.get("y"),
+                            p.get("heading"),
+                            st.get("detail", "")[:60],
+                        )
+                    )
             time.sleep(0.01)
         for _, fn in sorted(self._actions, key=lambda a: a[0]):
             fn()  # clear what is still injected
@@ -437,6 +450,7 @@ class Bench:
         log_arr = self.mower.log_array()
         np.save(self.out / "truth.npy", log_arr)  # t, x, y, yaw, v, deck, phase (post-mortem)
         np.save(self.out / "poses.npy", np.array(self.pose_samples, dtype=np.float64))
+        (self.out / "timeline.json").write_text(json.dumps(self.timeline))
         sel = log_arr[:, 6] == 2  # mowing phase
         t, x, y, deck = log_arr[sel, 0], log_arr[sel, 1], log_arr[sel, 2], log_arr[sel, 5] > 0
         true_geom = LawnGeometry(self.mower.frame.outline_world(world.lawn), [])

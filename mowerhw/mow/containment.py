@@ -19,6 +19,7 @@ violation (``m < −hard_margin``) halts at once. Every halt carries a reason.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -136,7 +137,9 @@ class Containment:
     ) -> ContainmentResult:
         """Decide for the estimate (x, y, σ) at time t; ``halt`` forces UNKNOWN with a reason."""
         c = self.cfg
-        new_sample = self._t is None or t > self._t
+        # (a NaN time — no IMU sample yet — must not be kept: every later ``t > NaN`` would
+        # be False, and the soft-violation and release counters would never count again)
+        new_sample = math.isfinite(t) and (self._t is None or t > self._t)
         self._t = t if new_sample else self._t
         if halt is not None:
             self._soft = self._clear = 0
