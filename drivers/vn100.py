@@ -569,6 +569,7 @@ class Vn100:
         reconnect_max_backoff_s: float = 5.0,
         on_sample: Callable[[ImuSample], None] | None = None,
         clock: ClockSync | None = None,
+        on_raw: Callable[[bytes, int], None] | None = None,
         serial_factory: Callable[..., Any] | None = None,
     ) -> None:
         if baudrate not in BAUDRATES or initial_baudrate not in BAUDRATES:
@@ -583,6 +584,7 @@ class Vn100:
         self.low_latency = low_latency
         self.reconnect_max_backoff_s = reconnect_max_backoff_s
         self.on_sample = on_sample
+        self.on_raw = on_raw  # every chunk of bytes as read, with its host time (recording)
         self.clock = clock or ClockSync(device_unit_s=1e-9)
         self.parser = Vn100Parser()
         self.stats = DriverStats()
@@ -687,6 +689,8 @@ class Vn100:
                 if not data:
                     continue
                 now = time.monotonic_ns()
+                if self.on_raw is not None:
+                    self.on_raw(data, now)
                 for item in self.parser.feed(data):
                     if isinstance(item, ErrorReply):
                         raise Vn100CommandError(body, item.code)
@@ -734,9 +738,15 @@ class Vn100:
             self._pending = []
         data = self._read_available()
         if data:
-            host_ns = time.monotonic_ns()
-            self._deliver([(item, host_ns) for item in self.parser.feed(data)])
+            self.feed(data, time.monotonic_ns())
         return len(data)
+
+    def feed(self, data: bytes, host_ns: int) -> None:
+        """Bytes read at host time ``host_ns`` → samples (also how a replay feeds recorded
+        serial bytes through this same code)."""
+        if self.on_raw is not None:
+            self.on_raw(data, host_ns)
+        self._deliver([(item, host_ns) for item in self.parser.feed(data)])
 
     def _read_available(self) -> bytes:
         """Wait (up to the port timeout) for data, then take all there is. ``read(4096)``

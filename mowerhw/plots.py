@@ -225,3 +225,109 @@ def frontend_figures(outcome: Any, out_dir: str | Path, size_px: int = 900) -> l
             path.write_bytes(data.tobytes())
             files.append(path)
     return files
+
+
+def recording_figure(recording: str | Path, path: str | Path) -> tuple[Path, str]:
+    """One figure of a recording (``mowerhw plot``): where the mower went (estimate, map,
+    truth if recorded), containment state and permit over time, sensor rates and gaps.
+    Returns the PNG path and the reader's warning (a truncated file is plotted up to the cut).
+    """
+    import json as _json
+
+    from mowerhw.map import from_document
+    from mowerhw.recording import RecordingRead
+
+    rd = RecordingRead(recording)
+    times: dict[str, list[float]] = {}
+    est: list[tuple[float, float, float]] = []
+    truth: list[tuple[float, float, float]] = []
+    states: list[tuple[float, str, bool]] = []
+    for topic, log_ns, msg in rd.messages():
+        t = log_ns * 1e-9
+        times.setdefault(topic, []).append(t)
+        if topic == "/estimate/pose":
+            p = msg["pose"]["position"]
+            est.append((t, p["x"], p["y"]))
+        elif topic == "/truth/pose":
+            p = msg["pose"]["position"]
+            truth.append((t, p["x"], p["y"]))
+        elif topic == "/estimate/state":
+            states.append((t, msg["state"], bool(msg["permit"])))
+    if not times:
+        raise ValueError(f"{recording}: no messages ({rd.warning or 'empty recording'})")
+    t0 = min(v[0] for v in times.values())
+    plt = _plt()
+    fig = plt.figure(figsize=(12, 8))
+    gs = fig.add_gridspec(3, 2, width_ratios=[1.1, 1.4])
+    ax_map = fig.add_subplot(gs[:, 0])
+    ax_state = fig.add_subplot(gs[0, 1])
+    ax_rate = fig.add_subplot(gs[1, 1], sharex=ax_state)
+    ax_gap = fig.add_subplot(gs[2, 1], sharex=ax_state)
+    map_data = rd.attachments.get("map.json")
+    if map_data:
+        lawn_map = from_document(_json.loads(map_data), "recorded map")
+        b = np.vstack([lawn_map.boundary, lawn_map.boundary[:1]])
+        ax_map.fill(b[:, 0], b[:, 1], color="#cdeccd", label="lawn (map)")
+        ax_map.plot(b[:, 0], b[:, 1], "g-", lw=1.2)
+        pts = lawn_map.landmark_positions()
+        if pts.size:
+            ax_map.plot(pts[:, 0], pts[:, 1], "k^", ms=3, label=f"{len(pts)} landmarks")
+    if truth:
+        a = np.array(truth)
+        ax_map.plot(a[:, 1], a[:, 2], "-", color="0.6", lw=1.0, label="truth")
+    if est:
+        a = np.array(est)
+        ax_map.plot(a[:, 1], a[:, 2], "b-", lw=0.8, label="estimate")
+    ax_map.set_aspect("equal")
+    ax_map.set_xlabel("x (m)")
+    ax_map.set_ylabel("y (m)")
+    ax_map.legend(fontsize=8, loc="best")
+    ax_map.set_title("trajectory and map", fontsize=10)
+    if states:
+        codes = {"INSIDE": 0, "NEAR_EDGE": 1, "OUTSIDE": 2, "UNKNOWN": 3, "TEACH": 4}
+        a_t = np.array([s[0] - t0 for s in states])
+        a_c = np.array([codes.get(s[1], 3) for s in states])
+        a_p = np.array([s[2] for s in states])
+        ax_state.step(a_t, a_c, where="post", color="k", lw=0.8)
+        ax_state.fill_between(
+            a_t,
+            -0.5,
+            4.5,
+            where=a_p,
+            step="post",
+            color="#b7e4b7",
+            alpha=0.6,
+            label="mowing permitted",
+        )
+        ax_state.set_yticks(list(codes.values()), list(codes))
+        ax_state.legend(fontsize=8, loc="upper right")
+    ax_state.set_title("containment state and permit", fontsize=10)
+    for topic, ts in sorted(times.items()):
+        if topic.startswith("/estimate") or topic.startswith("/truth"):
+            continue
+        a = np.asarray(ts) - t0
+        edges = np.arange(0.0, a[-1] + 1.0, 1.0)
+        if edges.size < 2:
+            continue
+        counts, _ = np.histogram(a, edges)
+        ax_rate.step(edges[:-1], counts, where="post", lw=0.8, label=topic)
+        gaps = np.diff(a)
+        if gaps.size:
+            ax_gap.plot(a[1:], gaps * 1e3, ".", ms=2, label=topic)
+    ax_rate.set_ylabel("messages / s")
+    ax_rate.legend(fontsize=7, loc="upper right")
+    ax_rate.set_title("sensor rates", fontsize=10)
+    ax_gap.set_yscale("log")
+    ax_gap.set_ylabel("gap to previous (ms)")
+    ax_gap.set_xlabel("time since start of recording (s)")
+    ax_gap.set_title("gaps (a stale sensor shows as a spike)", fontsize=10)
+    title = f"{Path(recording).name}"
+    if rd.warning:
+        title += "  (truncated: plotted up to the cut)"
+    fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out, rd.warning

@@ -71,3 +71,23 @@ def test_bad_config_exits_78(tmp_path) -> None:
     assert proc.returncode == 78
     assert "imu.baudrate: 12345 is not one of" in proc.stderr
     assert "runtime.mode: 'fly' is not one of" in proc.stderr
+
+
+def test_recorded_run_replays_deterministically(yard_map, tmp_path) -> None:
+    from mowerhw.replay import Replay
+
+    rec = tmp_path / "run.mcap"
+    res = Bench(
+        duration_s=15.0, seed=7, out_dir=tmp_path / "bench", map_path=yard_map, record=rec
+    ).run()
+    assert res["missed_halts"] == 0
+    outs = [
+        Replay(rec, "mow", map_path=yard_map, out_dir=tmp_path / f"r{k}", speed=None).run()
+        for k in range(2)
+    ]
+    for key in ("permit_sequence_sha256", "permit_fraction", "halts_by_reason", "localizer"):
+        assert outs[0][key] == outs[1][key], key
+    assert outs[0]["messages"]["/camera/image"] >= 40
+    assert outs[0]["localizer"]["frames_with_fix"] > 0.5 * outs[0]["localizer"]["frames"]
+    assert outs[0]["permit_fraction"] > 0.3
+    print(outs[0]["speed_x_real_time"], outs[0]["permit_fraction"])

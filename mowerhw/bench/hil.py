@@ -119,7 +119,9 @@ class Bench:
         faults: list[FaultSpec] | None = None,
         map_path: str | Path | None = None,
         config_path: str | Path | None = None,
+        record: str | Path | None = None,
     ) -> None:
+        self.record = Path(record) if record else None
         self.duration_s = duration_s
         self.seed = seed
         self.scenario = scenario
@@ -166,6 +168,15 @@ class Bench:
     def _spawn(self, mode: str) -> None:
         cmd = [sys.executable, "-m", "mowerhw", "run", "--config", str(self.cfg_path)]
         cmd += ["--mode", mode]
+        if self.record is not None:  # each start of the daemon gets its own file
+            path = (
+                self.record
+                if not self.restarts
+                else self.record.with_name(
+                    f"{self.record.stem}.{self.restarts}{self.record.suffix}"
+                )
+            )
+            cmd += ["--record", str(path)]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         with open(self.daemon_log, "ab") as logf:
             self.proc = subprocess.Popen(

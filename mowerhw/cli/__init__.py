@@ -19,11 +19,21 @@ from mowerhw.cli import (
     config_cmd,
     demo_cmd,
     map_cmd,
+    replay_cmd,
     run_cmd,
     sim_cmd,
 )
 
-COMMAND_MODULES = (run_cmd, bench_cmd, config_cmd, camera_cmd, sim_cmd, map_cmd, demo_cmd)
+COMMAND_MODULES = (
+    run_cmd,
+    bench_cmd,
+    replay_cmd,
+    config_cmd,
+    camera_cmd,
+    sim_cmd,
+    map_cmd,
+    demo_cmd,
+)
 
 DESCRIPTION = """\
 Wire-free, GPS-free containment for a robotic mower: VN-100 IMU + ISO 11783 ground speed +

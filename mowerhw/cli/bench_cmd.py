@@ -33,6 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--map", type=Path, help="skip teaching: mow with this map of the same yard")
     p.add_argument("--out", type=Path, help="run directory (default: a new temporary one)")
+    p.add_argument(
+        "--record", type=Path, metavar="FILE.mcap", help="the daemon records the run (MCAP)"
+    )
     p.add_argument("--json", action="store_true", help="print only the JSON object")
     p.set_defaults(handler=cmd_bench)
 
@@ -54,6 +57,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         out_dir=args.out,
         faults=faults,
         map_path=args.map,
+        record=args.record,
     )
     result = bench.run()
     print(json.dumps(result, indent=None if args.json else 2))

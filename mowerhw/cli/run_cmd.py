@@ -28,7 +28,26 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=("idle", "teach", "mow"),
         help="start-up mode (default: runtime.mode of the config)",
     )
+    p.add_argument(
+        "--record", type=Path, metavar="FILE.mcap", help="record every raw input and the estimates"
+    )
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.set_defaults(handler=cmd_run)
+
+    r = sub.add_parser(
+        "record",
+        help="record the sensors (no estimation) to an MCAP file",
+        description=(
+            "Open the VN-100, the CAN bus and the camera as the daemon does and record every "
+            "raw input (serial bytes, CAN frames, JPEG frames) with its host time, plus the "
+            "config and calibration, to one MCAP file (zstd chunks; opens in Foxglove). The "
+            "permit output stays at halt. Stop with Ctrl-C / SIGTERM or --duration."
+        ),
+    )
+    add_config_argument(r)
+    r.add_argument("--out", type=Path, required=True, metavar="FILE.mcap")
+    r.add_argument("--duration", type=float, help="stop after this many seconds")
+    r.set_defaults(handler=cmd_record)
 
     c = sub.add_parser(
         "ctl",
@@ -50,7 +69,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     root.setLevel(min(getattr(logging, cfg.runtime.log_level), root.level))
     from mowerhw.runtime.daemon import run_daemon
 
-    return run_daemon(cfg, args.mode)
+    return run_daemon(cfg, args.mode, record=args.record, duration_s=args.duration)
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    cfg = load_config_or_exit(args.config)
+    root = logging.getLogger()
+    root.setLevel(min(getattr(logging, cfg.runtime.log_level), root.level))
+    from mowerhw.runtime.daemon import run_daemon
+
+    return run_daemon(cfg, "idle", record=args.out, duration_s=args.duration)
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:

@@ -56,7 +56,7 @@ from mowerhw.map import load as load_map
 from mowerhw.mow.containment import Reason
 from mowerhw.runtime.control import ControlServer
 from mowerhw.runtime.gate import Decision, PermitGate
-from mowerhw.runtime.pipelines import MowPipeline, TeachPipeline
+from mowerhw.runtime.pipelines import TRACKS, MowPipeline, TeachPipeline, feed_ready
 from mowerhw.runtime.sdnotify import Notifier
 from mowerhw.samples import ImuSample, SpeedSample, Stream
 
@@ -69,14 +69,17 @@ RESUME_MAX_AGE_S = 120.0
 #: good frames a rebuilt or resumed estimator needs before it may permit (4 Hz: 2.5 s)
 REBUILT_FRAMES = 10
 TICK_MAX_S = 0.02
-TRACKS = "tracks"
 
 
 class Daemon:
     """``await Daemon(config).run()`` until SIGTERM / SIGINT or :meth:`request_stop`."""
 
-    def __init__(self, config: Config, mode: str | None = None) -> None:
+    def __init__(
+        self, config: Config, mode: str | None = None, record: str | Path | None = None
+    ) -> None:
         self.cfg = config
+        self.record_path = Path(record) if record else None
+        self.recorder: Any = None
         self.start_mode = mode or config.runtime.mode
         if self.start_mode not in MODES:
             raise ValueError(f"mode {self.start_mode!r} is not one of {', '.join(MODES)}")
@@ -128,6 +131,7 @@ class Daemon:
         self._last_good_pose: tuple[np.ndarray, ...] | None = None
         self._good_pose_count = 0
         self._next_pose_save = 0.0
+        self._next_record = 0.0
         self._started = time.monotonic()
 
     # ------------------------------------------------------------------------- lifecycle
@@ -142,6 +146,7 @@ class Daemon:
         rt = self.cfg.runtime
         control = ControlServer(rt.control_socket, self.handle_command, rt.socket_mode)
         await control.start()
+        self._start_recorder()
         self._open_can()
         self._start_imu()
         self._start_camera()
@@ -187,11 +192,77 @@ class Daemon:
         if self.bus is not None:
             with contextlib.suppress(Exception):
                 self.bus.shutdown()
+        if self.recorder is not None:
+            self.recorder.close()
         self._frontend_pool.shutdown(wait=False, cancel_futures=True)
         self._work_pool.shutdown(wait=False, cancel_futures=True)
         log.info("stopped")
 
     # --------------------------------------------------------------------------- devices
+
+    def _start_recorder(self) -> None:
+        if self.record_path is None:
+            return
+        import yaml
+
+        from mowerhw.config import config_to_dict
+        from mowerhw.recording import Recorder
+
+        files = {"calibration.yaml": Path(self.cfg.camera.calibration)}
+        if Path(self.cfg.map.path).exists():
+            files["map.json"] = Path(self.cfg.map.path)
+        attachments = {}
+        for name, path in files.items():
+            try:
+                attachments[name] = path.read_bytes()
+            except OSError as exc:
+                log.warning("recording: cannot attach %s (%s)", path, exc)
+        self.recorder = Recorder(
+            self.record_path,
+            yaml.safe_dump(config_to_dict(self.cfg), sort_keys=False),
+            attachments,
+        )
+        if self.recorder.error:
+            log.error("recording to %s failed: %s", self.record_path, self.recorder.error)
+        else:
+            log.info("recording to %s", self.record_path)
+
+    def _record_estimate(self, now: float) -> None:
+        rec = self.recorder
+        pipe = self.pipeline
+        if rec is None or not rec.ok:
+            return
+        d = self.decision
+        if isinstance(pipe, TeachPipeline) and pipe.teacher.phase == "driving":
+            pos, q = pipe.teacher.world_pose()
+            rec.estimate(
+                int(now * 1e9),
+                "teach",
+                pos,
+                q,
+                np.zeros(36),
+                "TEACH",
+                False,
+                d.reason,
+                float("nan"),
+                None,
+            )
+            return
+        if not isinstance(pipe, MowPipeline):
+            return
+        p = pipe.localizer.pose()
+        rec.estimate(
+            int(now * 1e9),
+            self.mode,
+            p.position,
+            p.quaternion,
+            p.covariance,
+            str(d.state),
+            d.permit,
+            d.reason,
+            pipe.localizer.sigma_xy(),
+            d.signed_distance_m,
+        )
 
     def _open_can(self) -> None:
         c = self.cfg.can
@@ -223,9 +294,21 @@ class Daemon:
                 log.warning("CAN receive failed: %s", exc)
                 self._can_stop.wait(0.5)
                 continue
-            if msg is None or not msg.is_extended_id or (msg.arbitration_id & 0xFF) == own:
+            if msg is None:
                 continue
             now = time.monotonic()
+            rec = self.recorder
+            if rec is not None:
+                mine = msg.is_extended_id and (msg.arbitration_id & 0xFF) == own  # our echo
+                rec.can(
+                    int(now * 1e9),
+                    msg.arbitration_id,
+                    bytes(msg.data),
+                    msg.is_extended_id,
+                    not mine,
+                )
+            if not msg.is_extended_id or (msg.arbitration_id & 0xFF) == own:
+                continue
             sample = self.speed_reader.handle(msg.arbitration_id, bytes(msg.data), now)
             if sample is not None and loop is not None:
                 with contextlib.suppress(RuntimeError):
@@ -248,6 +331,7 @@ class Daemon:
             low_latency=c.low_latency,
             reconnect_max_backoff_s=c.reconnect_max_backoff_s,
             on_sample=on_sample,
+            on_raw=(lambda data, ns: rec.serial(ns, data)) if (rec := self.recorder) else None,
         )
         self.imu_dev.start()
 
@@ -303,16 +387,10 @@ class Daemon:
         if self.mode == "teach" and self.teach_state != "recording":
             return
         try:
-            for stream, s in self.buffer.pop_ready(newest_t - pipe.lag_s):
-                if self._inject == "exception":
-                    self._inject = ""
-                    raise RuntimeError("injected estimator exception (fault injection)")
-                if stream == Stream.IMU:
-                    pipe.imu(s.t, s.gyro)
-                elif stream == Stream.SPEED:
-                    pipe.speed(s.t, s.speed_mps if s.valid else float("nan"))
-                elif stream == TRACKS:
-                    pipe.frame_tracks(s)
+            if self._inject == "exception":
+                self._inject = ""
+                raise RuntimeError("injected estimator exception (fault injection)")
+            feed_ready(pipe, self.buffer, newest_t - pipe.lag_s)
             if self._inject == "nan" and isinstance(pipe, MowPipeline):
                 self._inject = ""
                 pipe.localizer.ekf.x[:] = np.nan  # fault injection: a diverged estimator
@@ -429,6 +507,8 @@ class Daemon:
             frame = await self._frames.get()
             self.last_arrival["camera"] = time.monotonic()
             self.counts["frames"] += 1
+            if self.recorder is not None:
+                self.recorder.frame(time.monotonic_ns(), frame.t, frame.sequence, frame.image)
             pipe = self.pipeline
             if pipe is None or (self.mode == "teach" and self.teach_state != "recording"):
                 continue
@@ -617,6 +697,8 @@ class Daemon:
             "finish_s": round(time.monotonic() - t0, 3),
             "checksum": lawn_map.checksum,
         }
+        if self.recorder is not None:
+            self.recorder.attach("map.json", path.read_bytes())
         self.teach_state = "saved"
         self.pipeline = None
         self.mode = "idle"
@@ -634,6 +716,9 @@ class Daemon:
             self._decide(now)
             if self.sender is not None:
                 self.sender.tick(now)
+            if self.recorder is not None and now >= self._next_record:
+                self._next_record = now + 0.1
+                self._record_estimate(now)
             if self.mode == "mow" and now >= self._next_map_check:
                 self._next_map_check = now + self.cfg.runtime.map_check_period_s
                 self._check_map_file()
@@ -738,6 +823,7 @@ class Daemon:
             "imu_driver": vars(self.imu_dev.stats) if self.imu_dev else {},
             "speed_reader": vars(self.speed_reader.stats),
             "permit_sender": vars(self.sender.stats) if self.sender else {},
+            "recording": self.recorder.status() if self.recorder is not None else None,
         }
         if isinstance(pipe, MowPipeline):
             t, x, y, h, sig = pipe.pose()
@@ -787,7 +873,12 @@ def _save_map(lawn_map: LawnMap, path: Path) -> None:
         log.warning("map picture not written: %s", exc)
 
 
-def run_daemon(config: Config, mode: str | None = None) -> int:
+def run_daemon(
+    config: Config,
+    mode: str | None = None,
+    record: str | Path | None = None,
+    duration_s: float | None = None,
+) -> int:
     """Run until stopped; the exit status (0 after a clean stop)."""
     import sys
 
@@ -795,7 +886,14 @@ def run_daemon(config: Config, mode: str | None = None) -> int:
 
     sys.setswitchinterval(0.001)  # the front-end thread must not hold the GIL for 5 ms
     cv2.setNumThreads(1)  # one frame at a time on one worker; OpenCV's pool would spin
-    return asyncio.run(Daemon(config, mode).run())
+    daemon = Daemon(config, mode, record)
+
+    async def main() -> int:
+        if duration_s is not None:
+            asyncio.get_running_loop().call_later(duration_s, daemon.request_stop, "duration")
+        return await daemon.run()
+
+    return asyncio.run(main())
 
 
 __all__ = ["MODES", "Daemon", "Reason", "run_daemon"]

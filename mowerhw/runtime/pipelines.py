@@ -19,11 +19,28 @@ from mowerhw.config import Config
 from mowerhw.map import LawnMap
 from mowerhw.mow import Localizer
 from mowerhw.mow.containment import ContainmentResult
+from mowerhw.samples import Stream
 from mowerhw.teach import Teacher
 from mowerhw.teach.teacher import TeachResult
 from mowerhw.vision import MowVision, TeachVision
 
 FloatArray = NDArray[np.float64]
+
+
+#: the buffer stream of the front end's per-frame tracks (stamped with the capture time)
+TRACKS = "tracks"
+
+
+def feed_ready(pipe: Any, buffer: Any, until: float) -> None:
+    """Hand the estimator every buffered sample up to ``until``, in time order (the daemon
+    and a replay both feed it this way)."""
+    for stream, s in buffer.pop_ready(until):
+        if stream == Stream.IMU:
+            pipe.imu(s.t, s.gyro)
+        elif stream == Stream.SPEED:
+            pipe.speed(s.t, s.speed_mps if s.valid else float("nan"))
+        elif stream == TRACKS:
+            pipe.frame_tracks(s)
 
 
 def yaw_of(q: FloatArray) -> float:

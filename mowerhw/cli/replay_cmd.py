@@ -1,0 +1,83 @@
+"""``mowerhw replay`` and ``mowerhw plot``: recordings, offline."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from mowerhw.cli.common import load_config_or_exit
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "replay",
+        help="feed a recording (MCAP) through the parsers and estimators again",
+        description=(
+            "Replay FILE.mcap through the same driver parsers, estimators and permit gate as "
+            "the daemon: deterministic (same file + config → same map bytes, same permit "
+            "sequence). A truncated recording replays up to the cut, with a warning."
+        ),
+    )
+    p.add_argument("recording", type=Path, metavar="FILE.mcap")
+    p.add_argument("--mode", choices=("teach", "mow"), required=True)
+    p.add_argument("--map", type=Path, help="mow: the map (default: the one in the recording)")
+    p.add_argument("--config", type=Path, help="config (default: the one in the recording)")
+    pace = p.add_mutually_exclusive_group()
+    pace.add_argument("--speed", type=float, default=1.0, help="× real time (default 1)")
+    pace.add_argument("--fast", action="store_true", help="as fast as possible")
+    p.add_argument("--out", type=Path, help="output directory (default: next to the file)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(handler=cmd_replay)
+
+    q = sub.add_parser(
+        "plot",
+        help="figures of a recording: trajectory, map, containment, sensor rates and gaps",
+    )
+    q.add_argument("recording", type=Path, metavar="FILE.mcap")
+    q.add_argument("--out", type=Path, help="PNG path (default: FILE.png)")
+    q.set_defaults(handler=cmd_plot)
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    import logging
+
+    from mowerhw.map import MapError
+    from mowerhw.replay import Replay, ReplayError
+
+    if not args.verbose:  # every halt of the replayed gate is in the summary, not the log
+        logging.getLogger("mowerhw.permit").setLevel(logging.ERROR)
+    cfg = load_config_or_exit(args.config) if args.config else None
+    try:
+        rep = Replay(
+            args.recording,
+            args.mode,
+            config=cfg,
+            map_path=args.map,
+            out_dir=args.out,
+            speed=None if args.fast else args.speed,
+        )
+        out = rep.run()
+    except (ReplayError, MapError, ValueError) as exc:
+        print(f"mowerhw replay: {exc}", file=sys.stderr)
+        return 1
+    if "warning" in out:
+        print(f"mowerhw replay: warning: {out['warning']}", file=sys.stderr)
+    print(json.dumps(out, indent=None if args.json else 2))
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from mowerhw.plots import recording_figure
+
+    out = args.out or args.recording.with_suffix(".png")
+    try:
+        path, warning = recording_figure(args.recording, out)
+    except (OSError, ValueError) as exc:
+        print(f"mowerhw plot: {exc}", file=sys.stderr)
+        return 1
+    if warning:
+        print(f"mowerhw plot: warning: {warning}", file=sys.stderr)
+    print(path)
+    return 0
