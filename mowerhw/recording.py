@@ -350,6 +350,7 @@ class RecordingRead:
         self.warning = ""
         self.metadata: dict[str, dict[str, str]] = {}
         self.attachments: dict[str, bytes] = {}
+        self.bytes_read = 0  # how far into the file the reader is (progress bars)
 
     def messages(self):
         """(topic, log_time_ns, decoded JSON) for every message; stops at a truncation with
@@ -375,6 +376,8 @@ class RecordingRead:
                     elif isinstance(rec, Message):
                         n += 1
                         last_t = rec.log_time
+                        if n % 256 == 0:
+                            self.bytes_read = fh.tell()
                         yield channels[rec.channel_id], rec.log_time, json.loads(rec.data)
             except Exception as exc:
                 self.warning = (

@@ -210,9 +210,8 @@ class Replay:
                 self._message(topic, msg)
                 last_log_ns = log_ns
                 n += 1
-                if n % 500 == 0:
-                    bar.done = min(total, int(total * min(1.0, n / max(1, n + 500))))
-                    bar.advance(0)
+                if n % 256 == 0:
+                    bar.advance(self.reader.bytes_read - bar.done)
                 if (
                     isinstance(self.pipe, TeachPipeline)
                     and self.config.runtime.auto_finish_teach
