@@ -120,6 +120,9 @@ class Daemon:
         self._can_thread: threading.Thread | None = None
         self._frontend_pool = ThreadPoolExecutor(1, thread_name_prefix="frontend")
         self._work_pool = ThreadPoolExecutor(1, thread_name_prefix="teach-finish")
+        self._pose_pool = ThreadPoolExecutor(1, thread_name_prefix="pose-writer")
+        self._pose_future: Any = None
+        self.loop_lag_ms: list[float] = []  # how late the ticker woke (the loop was busy)
         self._inject: str = ""
         self._finish_task: asyncio.Task | None = None
         self._map_reload: asyncio.Future | None = None
@@ -196,6 +199,7 @@ class Daemon:
             self.recorder.close()
         self._frontend_pool.shutdown(wait=False, cancel_futures=True)
         self._work_pool.shutdown(wait=False, cancel_futures=True)
+        self._pose_pool.shutdown(wait=True)
         log.info("stopped")
 
     # --------------------------------------------------------------------------- devices
@@ -464,9 +468,11 @@ class Daemon:
     def _pose_file(self) -> Path:
         return Path(self.cfg.runtime.pose_file)
 
-    def _save_pose(self, pipe: MowPipeline) -> None:
-        """The newest localized pose, for a restart (a crash, SIGKILL, power loss) to resume
-        from instead of the dock. Renamed into place (no fsync: at worst an older pose)."""
+    def _queue_pose_save(self, pipe: MowPipeline) -> None:
+        """Hand the newest localized pose to the pose writer thread: file system calls never
+        run on the event loop (a rename can stall for 100 ms behind a journal commit)."""
+        if self._pose_future is not None and not self._pose_future.done():
+            return  # the previous one is still being written: skip this one
         loc = pipe.localizer
         doc = {
             "wall_time": time.time(),
@@ -474,6 +480,11 @@ class Daemon:
             "position": loc.ekf.x.tolist(),
             "quaternion": loc.ekf.q.tolist(),
         }
+        self._pose_future = self._pose_pool.submit(self._save_pose, doc)
+
+    def _save_pose(self, doc: dict[str, Any]) -> None:
+        """The newest localized pose, for a restart (a crash, SIGKILL, power loss) to resume
+        from instead of the dock. Renamed into place (no fsync: at worst an older pose)."""
         path = self._pose_file()
         tmp = path.with_name(path.name + ".tmp")
         try:
@@ -546,7 +557,7 @@ class Daemon:
                     self._last_good_pose = pipe.last_good_pose()
                 if now >= self._next_pose_save and pipe.localizer.localized and not self.fault:
                     self._next_pose_save = now + 0.1
-                    self._save_pose(pipe)
+                    self._queue_pose_save(pipe)
         stale = self.gate.stale(now, self.last_arrival)
         d = self.gate.decide(
             now,
@@ -709,8 +720,16 @@ class Daemon:
 
     async def _ticker(self) -> None:
         while True:
-            await asyncio.sleep(self._next_tick_wait(time.monotonic()))
+            wait = self._next_tick_wait(time.monotonic())
+            due = time.monotonic() + wait
+            await asyncio.sleep(wait)
             now = time.monotonic()
+            lag = (now - due) * 1e3
+            if lag > 5.0:  # the loop was blocked: keep the evidence (status: loop_lag_ms)
+                self.loop_lag_ms.append(round(lag, 1))
+                del self.loop_lag_ms[:-200]
+                if lag > 50.0:
+                    log.warning("event loop was blocked for %.0f ms", lag)
             if self.sender is None and self.counts["can_open_failures"] and now % 1.0 < TICK_MAX_S:
                 self._open_can()
             self._decide(now)
@@ -820,6 +839,7 @@ class Daemon:
             "fault": self.fault,
             "teach": {"state": self.teach_state, **self.last_teach},
             "halt_latencies": self.halt_latencies[-200:],
+            "loop_lag_ms_over_5": self.loop_lag_ms[-50:],
             "imu_driver": vars(self.imu_dev.stats) if self.imu_dev else {},
             "speed_reader": vars(self.speed_reader.stats),
             "permit_sender": vars(self.sender.stats) if self.sender else {},
@@ -880,12 +900,24 @@ def run_daemon(
     duration_s: float | None = None,
 ) -> int:
     """Run until stopped; the exit status (0 after a clean stop)."""
+    import gc
     import sys
 
     import cv2
 
     sys.setswitchinterval(0.001)  # the front-end thread must not hold the GIL for 5 ms
     cv2.setNumThreads(1)  # one frame at a time on one worker; OpenCV's pool would spin
+    gc.collect()
+    gc.freeze()  # the start-up objects (modules, config) are never scanned by a full collection
+    started: list[float] = [0.0]
+
+    def gc_watch(phase: str, info: dict[str, int]) -> None:  # a long collection stalls the loop
+        if phase == "start":
+            started[0] = time.perf_counter()
+        elif (ms := (time.perf_counter() - started[0]) * 1e3) > 20.0:
+            log.warning("garbage collection (generation %d) took %.0f ms", info["generation"], ms)
+
+    gc.callbacks.append(gc_watch)
     daemon = Daemon(config, mode, record)
 
     async def main() -> int:
