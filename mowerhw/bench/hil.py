@@ -504,7 +504,6 @@ class Bench:
             if np.isfinite(first_permit)
             else 0.0,
             "time_truly_outside_s": round(float(np.sum(s_true < 0)) / 200.0, 2),
-            "edge_turns": None,
         }
 
     # ----------------------------------------------------------------------------- faults
