@@ -360,7 +360,6 @@ class RecordingRead:
 
         channels: dict[int, str] = {}
         n = 0
-        last_t = 0
         with open(self.path, "rb") as fh:
             reader = StreamReader(fh, skip_magic=False, emit_chunks=False)
             try:
@@ -375,7 +374,6 @@ class RecordingRead:
                         self.attachments[rec.name] = bytes(rec.data)
                     elif isinstance(rec, Message):
                         n += 1
-                        last_t = rec.log_time
                         if n % 256 == 0:
                             self.bytes_read = fh.tell()
                         yield channels[rec.channel_id], rec.log_time, json.loads(rec.data)
@@ -386,7 +384,6 @@ class RecordingRead:
                     f"writer did not finish it: a crash or power loss); replayed up to the cut"
                 )
                 log.warning(self.warning)
-        del last_t
 
 
 def decode_jpeg(b64: str) -> np.ndarray:

@@ -98,13 +98,7 @@ class Replay:
         self.camera = load_camchain(cfg.camera.calibration)
         self.r_bi = quat_to_rotmat(np.asarray(cfg.imu.q_bi, dtype=np.float64))
         self.buffer = SensorBuffer(capacity={TRACKS: 16})
-        self.gate = PermitGate(
-            {
-                "imu": cfg.imu.stale_after_s,
-                "speed": cfg.speed.stale_after_s,
-                "camera": cfg.camera.stale_after_s,
-            }
-        )
+        self.gate = PermitGate.from_config(cfg)
         self.last: dict[str, float | None] = {"imu": None, "speed": None, "camera": None}
         self.vn = Vn100("replay", on_sample=self._on_imu)
         self.speed_reader = SpeedReader(

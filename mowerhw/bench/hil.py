@@ -213,11 +213,7 @@ class Bench:
             fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
             tick = os.sysconf("SC_CLK_TCK")
             cpu = (int(fields[11]) + int(fields[12])) / tick
-            rss = 0.0
-            for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-                if line.startswith("VmHWM:"):
-                    rss = int(line.split()[1]) / 1024.0
-            return cpu, rss
+            return cpu, _proc_status_mb(self.proc, "VmHWM")
         except (OSError, ValueError, IndexError):
             return 0.0, 0.0
 
@@ -401,7 +397,7 @@ class Bench:
             if now >= next_rss:
                 next_rss = now + 10.0
                 cpu, _ = self._proc_cpu_rss()
-                current = _current_rss_mb(self.proc)
+                current = _proc_status_mb(self.proc, "VmRSS")
                 self.rss_samples.append((round(now - t_mow0, 1), current, round(cpu, 2)))
             if now >= next_poll:
                 next_poll = now + 0.2
@@ -606,12 +602,13 @@ def _free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _current_rss_mb(proc: Any) -> float:
+def _proc_status_mb(proc: Any, key: str) -> float:
+    """A memory figure (``VmRSS``, ``VmHWM``) of a running process, MB; 0 if it is gone."""
     if proc is None or proc.poll() is not None:
         return 0.0
     try:
         for line in Path(f"/proc/{proc.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+            if line.startswith(key + ":"):
                 return round(int(line.split()[1]) / 1024.0, 1)
     except OSError:
         pass

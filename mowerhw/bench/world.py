@@ -170,12 +170,16 @@ class RealTimeMower:
     def pose_at(self, t: float) -> tuple[float, float, float, float]:
         """True (x, y, ψ, v) in the world frame at host time ``t`` (interpolated; a little
         extrapolated past the newest step)."""
-        with self._lock:
-            h = list(self._hist)
-        ts = [r[0] for r in h]
-        k = int(np.searchsorted(ts, t))
-        if k >= len(h):
-            t0, x, y, yaw, v, w = h[-1]
+        with self._lock:  # queries are near the newest step: look back from the end
+            h = self._hist
+            k = len(h)
+            while k > 0 and h[k - 1][0] >= t:
+                k -= 1
+            a = h[k - 1] if k > 0 else None
+            b = h[k] if k < len(h) else None
+            first = h[0]
+        if b is None:
+            t0, x, y, yaw, v, w = a  # type: ignore[misc]
             d = t - t0
             return (
                 x + v * d * math.cos(yaw),
@@ -183,9 +187,8 @@ class RealTimeMower:
                 yaw + w * d,
                 v,
             )
-        if k == 0:
-            return h[0][1], h[0][2], h[0][3], h[0][4]
-        a, b = h[k - 1], h[k]
+        if a is None:
+            return first[1], first[2], first[3], first[4]
         f = (t - a[0]) / max(b[0] - a[0], 1e-12)
         return tuple(a[i] + f * (b[i] - a[i]) for i in (1, 2, 3, 4))  # type: ignore[return-value]
 

@@ -87,13 +87,7 @@ class Daemon:
         self.camera_model = load_camchain(config.camera.calibration)
         self.r_bi = quat_to_rotmat(np.asarray(config.imu.q_bi, dtype=np.float64))
         self.buffer = SensorBuffer(capacity={TRACKS: 16})
-        self.gate = PermitGate(
-            {
-                "imu": config.imu.stale_after_s,
-                "speed": config.speed.stale_after_s,
-                "camera": config.camera.stale_after_s,
-            }
-        )
+        self.gate = PermitGate.from_config(config)
         self.last_arrival: dict[str, float | None] = {"imu": None, "speed": None, "camera": None}
         self.counts: Counter[str] = Counter()
         self.pipeline: TeachPipeline | MowPipeline | None = None
@@ -485,11 +479,8 @@ class Daemon:
     def _save_pose(self, doc: dict[str, Any]) -> None:
         """The newest localized pose, for a restart (a crash, SIGKILL, power loss) to resume
         from instead of the dock. Renamed into place (no fsync: at worst an older pose)."""
-        path = self._pose_file()
-        tmp = path.with_name(path.name + ".tmp")
         try:
-            tmp.write_text(json.dumps(doc))
-            os.replace(tmp, path)
+            write_atomic(self._pose_file(), json.dumps(doc).encode(), durable=False)
         except OSError as exc:
             self.counts["pose_save_errors"] += 1
             if self.counts["pose_save_errors"] == 1:
@@ -536,7 +527,7 @@ class Daemon:
                 continue  # the mode changed meanwhile
             self.buffer.push(TRACKS, tracks)
             if isinstance(pipe, MowPipeline):
-                self._consume(math.inf if pipe.lag_s == 0 else frame.t)
+                self._consume(math.inf)  # the localizer takes late frames itself
 
     # -------------------------------------------------------------------------- decision
 
@@ -567,6 +558,7 @@ class Daemon:
             self.map_problem,
             self.fault,
             self._shutting_down,
+            stale,
         )
         self.decision = d
         if self.sender is not None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import Any
 
 from mowerhw.mow.containment import ContainmentResult, Reason, State
 
@@ -30,6 +31,17 @@ class Decision:
 
 class PermitGate:
     """Every condition for mowing, checked in order; logs each change of decision once."""
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> PermitGate:
+        """Staleness limits from the config's sensor sections."""
+        return cls(
+            {
+                "imu": cfg.imu.stale_after_s,
+                "speed": cfg.speed.stale_after_s,
+                "camera": cfg.camera.stale_after_s,
+            }
+        )
 
     def __init__(self, stale_limits_s: dict[str, float]) -> None:
         self.stale_limits_s = dict(stale_limits_s)
@@ -55,7 +67,11 @@ class PermitGate:
         map_problem: str = "",
         fault: str = "",
         shutting_down: bool = False,
+        stale: tuple[str, str] | bool | None = False,
     ) -> Decision:
+        """``stale``: the caller's own :meth:`stale` result for this ``now``, if it has one
+        (False: work it out here)."""
+
         def halt(reason: Reason, detail: str) -> Decision:
             return Decision(False, State.UNKNOWN, reason.value, detail)
 
@@ -65,7 +81,7 @@ class PermitGate:
             d = halt(Reason.NOT_MOWING, f"mode is {mode}")
         elif map_problem:
             d = halt(Reason.MAP_INVALID, map_problem)
-        elif (st := self.stale(now, last_arrival)) is not None:
+        elif (st := self.stale(now, last_arrival) if stale is False else stale) is not None:
             d = halt(Reason.SENSOR_STALE, st[1])
         elif fault:
             d = halt(Reason.FAULT, fault)
