@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 PGN_GBSD = 65097  # 0xFE49 Ground-based speed and distance
+PGN_CCVS1 = 65265  # 0xFEF1 Cruise control / vehicle speed 1 (wheel-based vehicle speed)
+PGN_ETC2 = 61445  # 0xF005 Electronic transmission controller 2 (selected / current gear)
 PGN_WBSD = 65096  # 0xFE48 Wheel-based speed and distance
 PGN_ISB = 64770  # 0xFD02 ISOBUS shortcut button: stop all implement operations
 PGN_HEARTBEAT = 61668  # 0xF0E4 Heartbeat

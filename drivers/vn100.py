@@ -14,9 +14,14 @@ Two layers:
   (:class:`mowerhw.clocksync.ClockSync`), and reconnects with backoff when the port vanishes
   (USB unplugged) and comes back.
 
+Between them, :class:`ImuExtractor` turns parsed messages into IMU samples: the angular rate
+from whichever field or message the sensor sends (``imu.gyro_source``); a message with a
+valid check that carries no such rate is counted as ``unused``, never as an error.
+
 Units: the ASCII messages keep the sensor's units except where noted (YPR in degrees,
 magnetic field in Gauss, acceleration m/s², angular rate rad/s); a binary packet's fields are
-converted to SI by name (angles rad, magnetic field T, pressure Pa, times ns).
+decoded to SI (:mod:`drivers.vn100_binary`: angles rad, magnetic field T, pressure Pa, times
+ns).
 """
 
 from __future__ import annotations
@@ -27,17 +32,22 @@ import math
 import os
 import re
 import select
-import struct
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from dataclasses import field as dc_field
 from typing import Any
 
 import numpy as np
 
+from drivers import vn100_binary as binary
+from drivers.vn100_binary import BinaryPacket, crc16
 from mowerhw.clocksync import ClockSync
 from mowerhw.samples import ImuSample
+
+__all__ = ["BinaryPacket", "crc16"]  # re-exported: the binary protocol lives in vn100_binary
 
 log = logging.getLogger(__name__)
 
@@ -68,26 +78,6 @@ def xor8(body: bytes) -> int:
     for b in body:
         c ^= b
     return c
-
-
-def _crc16_table() -> list[int]:
-    table = []
-    for i in range(256):
-        crc = i << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else (crc << 1)
-        table.append(crc & 0xFFFF)
-    return table
-
-
-_CRC_TABLE = _crc16_table()
-
-
-def crc16(data: bytes, crc: int = 0) -> int:
-    """CRC-16, polynomial 0x1021, initial 0, not reflected ("XMODEM"): b"123456789" → 0x31C3."""
-    for b in data:
-        crc = ((crc << 8) & 0xFFFF) ^ _CRC_TABLE[((crc >> 8) ^ b) & 0xFF]
-    return crc
 
 
 def ascii_command(body: str, crc: bool = False) -> bytes:
@@ -146,6 +136,32 @@ class YprAccelRateMessage:
 
 
 @dataclass(frozen=True)
+class RateMessage:
+    """``$VNGYR`` (rate) and ``$VNMAR`` (mag, accel, rate): the angular rate in rad/s."""
+
+    header: str
+    gyro: np.ndarray
+    accel: np.ndarray | None = None
+    mag: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class DeltaMessage:
+    """``$VNDTV``: Δt (s), Δθ (deg, as sent), Δv (m/s) integrated since the last output."""
+
+    dt: float
+    dtheta_deg: np.ndarray
+    dvel: np.ndarray
+
+    @property
+    def gyro(self) -> np.ndarray:
+        """The mean angular rate over the interval (rad/s); NaN for an empty interval."""
+        if not self.dt > 0:
+            return np.full(3, np.nan)
+        return np.radians(self.dtheta_deg) / self.dt
+
+
+@dataclass(frozen=True)
 class RegisterReply:
     """``$VNRRG`` / ``$VNWRG`` reply: the register and its values, as sent."""
 
@@ -167,91 +183,48 @@ class ErrorReply:
 
 @dataclass(frozen=True)
 class AsciiMessage:
-    """Any other well-formed ASCII message (command echoes such as ``$VNASY,0``)."""
+    """Any other message with a valid check: command echoes (``$VNASY,0``), asynchronous
+    outputs that carry no angular rate (``$VNYPR``, ``$VNQTN``, ``$VNGPS``, …) and headers no
+    manual lists (``known`` False). Kept as sent."""
 
     header: str
     fields: tuple[str, ...]
+    known: bool = True
 
 
-# ----------------------------------------------------------------------- binary messages
-
-#: bytes of each field in each output group (groups 1–6: common, time, IMU, GPS, attitude,
-#: INS); 0 = not defined. From the VN-100/200/300 interface control documents.
-GROUP_FIELD_SIZES: tuple[tuple[int, ...], ...] = (
-    (8, 8, 8, 12, 16, 12, 24, 12, 12, 24, 20, 28, 2, 4, 8, 0),
-    (8, 8, 8, 2, 8, 8, 8, 4, 0, 0, 0, 0, 0, 0, 0, 0),
-    (2, 12, 12, 12, 4, 4, 16, 12, 12, 12, 12, 2, 40, 0, 0, 0),
-    (8, 8, 2, 1, 1, 24, 24, 12, 12, 12, 4, 4, 32, 0, 0, 0),
-    (2, 12, 16, 36, 12, 12, 12, 12, 12, 12, 28, 24, 0, 0, 0, 0),
-    (2, 24, 24, 12, 12, 12, 12, 12, 12, 4, 4, 68, 64, 0, 0, 0),
-)
-
-_DEG = math.pi / 180.0
-_GAUSS = 1e-4
-
-# Decoders of the fields we name: (group index, bit) → (name, struct format, scale).
-_FIELDS: dict[tuple[int, int], tuple[str, str, float]] = {
-    (0, 0): ("TimeStartup", "<Q", 1.0),
-    (0, 1): ("TimeGps", "<Q", 1.0),
-    (0, 2): ("TimeSyncIn", "<Q", 1.0),
-    (0, 3): ("YawPitchRoll", "<3f", _DEG),
-    (0, 4): ("Quaternion", "<4f", 1.0),
-    (0, 5): ("AngularRate", "<3f", 1.0),
-    (0, 6): ("Position", "<3d", 1.0),
-    (0, 7): ("Velocity", "<3f", 1.0),
-    (0, 8): ("Accel", "<3f", 1.0),
-    (0, 9): ("Imu", "<6f", 1.0),
-    (0, 10): ("MagPres", "<5f", 1.0),
-    (0, 11): ("Deltas", "<7f", 1.0),
-    (0, 12): ("InsStatus", "<H", 1.0),
-    (0, 13): ("SyncInCnt", "<I", 1.0),
-    (0, 14): ("TimeGpsPps", "<Q", 1.0),
-    (1, 0): ("Time.TimeStartup", "<Q", 1.0),
-    (1, 7): ("Time.SyncInCnt", "<I", 1.0),
-    (2, 4): ("Imu.Temp", "<f", 1.0),
-    (2, 5): ("Imu.Pres", "<f", 1000.0),
-    (2, 8): ("Imu.Mag", "<3f", _GAUSS),
-    (2, 9): ("Imu.Accel", "<3f", 1.0),
-    (2, 10): ("Imu.AngularRate", "<3f", 1.0),
-    (4, 1): ("Attitude.YawPitchRoll", "<3f", _DEG),
-    (4, 2): ("Attitude.Quaternion", "<4f", 1.0),
+#: the asynchronous output types of the VN-100 / VN-200 / VN-300 manuals (register 6), with
+#: the number of fields of those that carry an angular rate
+ASYNC_RATE_FIELDS = {
+    "VNYMR": 12,
+    "VNQMR": 13,
+    "VNIMU": 11,
+    "VNYBA": 9,
+    "VNYIA": 9,
+    "VNGYR": 3,
+    "VNMAR": 9,
+    "VNDTV": 7,
 }
-
-
-@dataclass(frozen=True)
-class BinaryPacket:
-    """A binary output packet: its group byte, field masks and named fields in SI units.
-
-    Common group: ``TimeStartup`` (ns), ``YawPitchRoll`` (rad, yaw/pitch/roll),
-    ``Quaternion`` (x, y, z, w as sent), ``AngularRate`` (rad/s), ``Accel`` (m/s²), ``Imu``
-    (uncompensated accel m/s² then gyro rad/s), ``MagPres`` (mag T, temperature °C,
-    pressure Pa), ``Deltas`` (Δt s, Δθ rad, Δv m/s), ….
-    """
-
-    groups: int
-    masks: tuple[int, ...]
-    fields: dict[str, Any]
-
-    def __getitem__(self, name: str) -> Any:
-        return self.fields[name]
-
-    def get(self, name: str, default: Any = None) -> Any:
-        return self.fields.get(name, default)
-
-
-def _decode_field(key: tuple[int, int], chunk: bytes) -> tuple[str, Any]:
-    name, fmt, scale = _FIELDS[key]
-    vals = struct.unpack(fmt, chunk)
-    if name == "MagPres":  # mag (Gauss → T), temperature (°C), pressure (kPa → Pa)
-        return name, np.array(
-            [vals[0] * _GAUSS, vals[1] * _GAUSS, vals[2] * _GAUSS, vals[3], vals[4] * 1000.0]
-        )
-    if name == "Deltas":  # Δt (s), Δθ (deg → rad), Δv (m/s)
-        return name, np.array([vals[0], *(v * _DEG for v in vals[1:4]), *vals[4:7]])
-    if len(vals) == 1:
-        v = vals[0]
-        return name, (int(v) if isinstance(v, int) else v * scale)
-    return name, np.asarray(vals, dtype=np.float64) * scale
+ASYNC_OTHER = frozenset(
+    {
+        "VNYPR",  # yaw, pitch, roll
+        "VNQTN",  # quaternion
+        "VNMAG",  # magnetic
+        "VNACC",  # acceleration
+        "VNGPS",  # GNSS LLA
+        "VNGPE",  # GNSS ECEF
+        "VNINS",  # INS LLA
+        "VNINE",  # INS ECEF
+        "VNISL",  # INS LLA, second solution layout
+        "VNISE",  # INS ECEF, second solution layout
+        "VNG2S",  # GNSS2 LLA
+        "VNG2E",  # GNSS2 ECEF
+        "VNHVE",  # heave and heave rate
+    }
+)
+#: replies and command echoes (no data)
+REPLIES = frozenset(
+    {"VNASY", "VNWNV", "VNRFS", "VNRST", "VNCMD", "VNTAR", "VNKMD", "VNKAD", "VNSGB", "VNFWU"}
+)
 
 
 # ------------------------------------------------------------------------------- parser
@@ -268,11 +241,18 @@ class ParserStats:
     garbage_bytes: int = 0  # skipped while looking for a sync byte
     bad_checksum: int = 0  # ASCII XOR-8 mismatch
     bad_crc: int = 0  # ASCII CRC-16 or binary CRC-16 mismatch
-    malformed: int = 0  # a valid check but fields that do not parse, or no check at all
+    malformed: int = 0  # a valid check, but a data message whose fields do not parse
     too_long: int = 0  # a ``$`` with no line end within the longest message
-    bad_binary_header: int = 0  # 0xFA followed by group bits or fields that do not exist
+    bad_binary_header: int = 0  # 0xFA followed by a group byte or mask no sensor sends
+    unknown_field: int = 0  # 0xFA and a mask naming a reserved bit (size unknown)
     truncated: int = 0  # a packet cut short at the end of the stream (``close``)
     headless_line: int = 0  # the end of an ASCII line whose start was lost (``…*CS\r\n``)
+    other_ascii: int = 0  # a valid check on a header no VectorNav manual lists: another
+    # device sharing the line (NMEA ``$GPRMC``), or a newer firmware's message (kept, unused)
+    unchecked: int = 0  # ``*XX``: the sensor's error detection is off; never trusted
+    #: reserved bits seen in packet headers ("Imu bit 13": count): a sensor configured with a
+    #: field this driver cannot size shows one name at the packet rate; garbage shows many
+    unknown_field_bits: Counter[str] = dc_field(default_factory=Counter)
 
     @property
     def rejected(self) -> int:
@@ -282,9 +262,16 @@ class ParserStats:
             + self.malformed
             + self.too_long
             + self.bad_binary_header
+            + self.unknown_field
             + self.truncated
             + self.headless_line
+            + self.unchecked
         )
+
+    def as_dict(self) -> dict[str, Any]:
+        out = {k: v for k, v in vars(self).items() if k != "unknown_field_bits"}
+        out["unknown_field_bits"] = dict(self.unknown_field_bits)
+        return out
 
 
 _ASCII_MAX = 512
@@ -293,7 +280,8 @@ _ASCII_MAX = 512
 _LINE_TAIL = re.compile(rb"\*(?:[0-9A-Fa-f]{4}|[0-9A-Fa-f]{2})\r?\n")
 _TAIL_KEEP = 7  # longest tail ``*XXXX\r\n``
 _HEX = set(b"0123456789ABCDEFabcdef")
-_N_FIELDS = {"VNYMR": 12, "VNQMR": 13, "VNIMU": 11, "VNYBA": 9, "VNYIA": 9}
+#: no binary packet is longer (the GNSS satellite and measurement lists are the longest part)
+_BINARY_MAX = 16384
 
 
 class Vn100Parser:
@@ -381,6 +369,9 @@ class Vn100Parser:
             self.stats.malformed += 1
             return 1
         body, check = line[:star], line[star + 1 :]
+        if check == b"XX":  # error detection turned off on the sensor (register 30)
+            self.stats.unchecked += 1
+            return 1
         if len(check) == 2 and all(c in _HEX for c in check):
             if int(check, 16) != xor8(body):
                 self.stats.bad_checksum += 1
@@ -397,6 +388,8 @@ class Vn100Parser:
         except (ValueError, UnicodeDecodeError, IndexError):
             self.stats.malformed += 1
             return 1
+        if isinstance(msg, AsciiMessage) and not msg.known:
+            self.stats.other_ascii += 1
         out.append(msg)
         self.stats.packets_ok += 1
         self.stats.ascii_ok += 1
@@ -405,62 +398,82 @@ class Vn100Parser:
     # -- binary ---------------------------------------------------------------------------
 
     def _binary(self, buf: bytearray, i: int, n: int, out: list[Any]) -> int:
-        if n - i < 2:
+        try:
+            found = binary.layout(buf, i, n)
+        except binary.LayoutError as exc:
+            if exc.unknown:
+                self.stats.unknown_field += 1
+                self.stats.unknown_field_bits.update(exc.unknown)
+            else:
+                self.stats.bad_binary_header += 1
+            return 1  # resume at the byte after the false sync
+        if found is None:
             return 0
-        groups = buf[i + 1]
-        if groups == 0 or groups & 0xC0:  # no group, or groups 7/8 which do not exist
+        total, spans = found
+        if total > _BINARY_MAX:
             self.stats.bad_binary_header += 1
             return 1
-        active = [g for g in range(6) if groups >> g & 1]
-        head = 2 + 2 * len(active)
-        if n - i < head:
-            return 0
-        masks = struct.unpack_from(f"<{len(active)}H", buf, i + 2)
-        length = 0
-        for g, mask in zip(active, masks, strict=True):
-            if mask == 0:
+        if n - i < total:
+            # A packet is worth waiting for only while nothing complete follows its start: a
+            # false sync in garbage must not hold back the real packets behind it.
+            if self._complete_packet_within(buf, i + 1, n):
                 self.stats.bad_binary_header += 1
                 return 1
-            sizes = GROUP_FIELD_SIZES[g]
-            for bit in range(16):
-                if mask >> bit & 1:
-                    if sizes[bit] == 0:
-                        self.stats.bad_binary_header += 1
-                        return 1
-                    length += sizes[bit]
-        total = head + length + 2
-        if n - i < total:
             return 0
-        if crc16(buf[i + 1 : i + total]) != 0:  # the CRC over everything after 0xFA is 0
+        if crc16(memoryview(buf)[i + 1 : i + total]) != 0:  # CRC over all after 0xFA is 0
             self.stats.bad_crc += 1
             return 1
-        fields: dict[str, Any] = {}
-        pos = i + head
-        try:
-            for g, mask in zip(active, masks, strict=True):
-                for bit in range(16):
-                    if mask >> bit & 1:
-                        size = GROUP_FIELD_SIZES[g][bit]
-                        if (g, bit) in _FIELDS:
-                            name, value = _decode_field((g, bit), bytes(buf[pos : pos + size]))
-                            fields[name] = value
-                        pos += size
-        except struct.error:
-            self.stats.malformed += 1
-            return 1
-        out.append(BinaryPacket(groups, tuple(masks), fields))
+        out.append(binary.parse_packet(buf, i, total, spans))
         self.stats.packets_ok += 1
         self.stats.binary_ok += 1
         return total
+
+    def _complete_packet_within(self, buf: bytearray, start: int, end: int) -> bool:
+        """Whether ``buf[start:end]`` holds a complete binary packet with a good CRC or a
+        complete ASCII line with a good check."""
+        j = start
+        while True:
+            j_bin = buf.find(b"\xfa", j, end)
+            j_asc = buf.find(b"$", j, end)
+            cands = [k for k in (j_bin, j_asc) if k >= 0]
+            if not cands:
+                return False
+            j = min(cands)
+            if buf[j] == 0xFA:
+                try:
+                    found = binary.layout(buf, j, end)
+                except binary.LayoutError:
+                    found = None
+                size = found[0] if found is not None else end + 1
+                if size <= end - j and crc16(memoryview(buf)[j + 1 : j + size]) == 0:
+                    return True
+            else:
+                stop = buf.find(b"\n", j + 1, min(end, j + _ASCII_MAX))
+                star = buf.rfind(b"*", j + 1, stop) if stop > 0 else -1
+                if star > 0:
+                    check = bytes(buf[star + 1 : stop]).rstrip(b"\r")
+                    body = bytes(buf[j + 1 : star])
+                    if (len(check) == 2 and _hexval(check) == xor8(body)) or (
+                        len(check) == 4 and _hexval(check) == crc16(body)
+                    ):
+                        return True
+            j += 1
+
+
+def _hexval(text: bytes) -> int:
+    try:
+        return int(text, 16)
+    except ValueError:
+        return -1
 
 
 # The sensor writes numbers as sign, digits, point, digits ("+170.786", "-00.1957"). Anything
 # else behind a valid checksum is corruption the XOR-8 check could not see (an even number
 # of flips of the same bit cancels out in XOR): it is refused, not guessed at.
 _NUMBER = re.compile(r"[+-]?\d+(\.\d+)?\Z")
-_HEADER = re.compile(r"VN[A-Z]{3}\Z")
-_VALUE = re.compile(r"[0-9A-Za-z+\-.]+\Z")
-_ECHOES = frozenset({"VNASY", "VNWNV", "VNRFS", "VNRST", "VNCMD", "VNTAR", "VNKMD", "VNKAD"})
+_HEADER = re.compile(r"VN[A-Z0-9]{3}\Z")
+_FOREIGN_HEADER = re.compile(r"[A-Z][A-Z0-9]{1,9}\Z")
+_VALUE = re.compile(r"[0-9A-Za-z+\-.]*\Z")
 
 
 def _floats(fields: list[str], k: int) -> list[float]:
@@ -474,25 +487,27 @@ def _parse_ascii(body: str) -> Any:
     header = parts[0]
     fields = parts[1:]
     if not _HEADER.match(header):
-        raise ValueError(f"not a VectorNav header: {header!r}")
-    if header in _N_FIELDS:
-        if len(fields) != _N_FIELDS[header]:
+        if _FOREIGN_HEADER.match(header):  # another device on the line (NMEA, a logger)
+            return AsciiMessage(header, tuple(fields), known=False)
+        raise ValueError(f"not a header: {header!r}")
+    if header in ASYNC_RATE_FIELDS:
+        if len(fields) != ASYNC_RATE_FIELDS[header]:
             raise ValueError(f"{header} with {len(fields)} fields")
-        v = _floats(fields, _N_FIELDS[header])
+        v = _floats(fields, ASYNC_RATE_FIELDS[header])
+        a = np.asarray(v)
         if header == "VNYMR":
-            return YmrMessage(
-                v[0], v[1], v[2], np.array(v[3:6]), np.array(v[6:9]), np.array(v[9:12])
-            )
+            return YmrMessage(v[0], v[1], v[2], a[3:6], a[6:9], a[9:12])
         if header == "VNQMR":
-            return QmrMessage(
-                np.array([v[3], v[0], v[1], v[2]]),
-                np.array(v[4:7]),
-                np.array(v[7:10]),
-                np.array(v[10:13]),
-            )
+            return QmrMessage(np.array([v[3], v[0], v[1], v[2]]), a[4:7], a[7:10], a[10:13])
         if header == "VNIMU":
-            return ImuMessage(np.array(v[0:3]), np.array(v[3:6]), np.array(v[6:9]), v[9], v[10])
-        return YprAccelRateMessage(header, v[0], v[1], v[2], np.array(v[3:6]), np.array(v[6:9]))
+            return ImuMessage(a[0:3], a[3:6], a[6:9], v[9], v[10])
+        if header == "VNGYR":
+            return RateMessage(header, a[0:3])
+        if header == "VNMAR":
+            return RateMessage(header, a[6:9], accel=a[3:6], mag=a[0:3])
+        if header == "VNDTV":
+            return DeltaMessage(v[0], a[1:4], a[4:7])
+        return YprAccelRateMessage(header, v[0], v[1], v[2], a[3:6], a[6:9])
     if header in ("VNRRG", "VNWRG"):
         if not fields or not fields[0].isdigit() or not all(_VALUE.match(f) for f in fields):
             raise ValueError("register reply without a register")
@@ -501,9 +516,9 @@ def _parse_ascii(body: str) -> Any:
         if len(fields) != 1 or not fields[0].isdigit():
             raise ValueError("error reply without a code")
         return ErrorReply(int(fields[0]))
-    if header not in _ECHOES or not all(_VALUE.match(f) for f in fields):
-        raise ValueError(f"unknown message {header}")
-    return AsciiMessage(header, tuple(fields))
+    if not all(_VALUE.match(f) for f in fields):
+        raise ValueError(f"{header} with a field the sensor does not write")
+    return AsciiMessage(header, tuple(fields), header in ASYNC_OTHER or header in REPLIES)
 
 
 # ------------------------------------------------------------------------------- device
@@ -511,6 +526,14 @@ def _parse_ascii(body: str) -> Any:
 #: binary output fields we ask for (common group): TimeStartup, YawPitchRoll, AngularRate,
 #: Accel — bits 0, 3, 5, 8
 COMMON_FIELDS = (1 << 0) | (1 << 3) | (1 << 5) | (1 << 8)
+#: the common-group fields asked for per ``imu.gyro_source``: TimeStartup, YawPitchRoll and
+#: the rate (AngularRate + Accel; Imu = uncompensated accel + gyro; Deltas = Δt, Δθ, Δv)
+COMMON_FIELDS_FOR = {
+    "auto": COMMON_FIELDS,
+    "angular_rate": COMMON_FIELDS,
+    "uncomp_gyro": (1 << 0) | (1 << 3) | (1 << 9),
+    "delta_theta": (1 << 0) | (1 << 3) | (1 << 8) | (1 << 11),
+}
 
 
 class Vn100Error(RuntimeError):
@@ -537,22 +560,115 @@ class DriverStats:
     baudrate: int = 0
 
 
-def imu_sample_from(item: Any, host_ns: int, clock: ClockSync | None) -> ImuSample | None:
-    """An :class:`ImuSample` (IMU frame) from a parsed packet, or None if it carries no rate."""
-    host_s = host_ns * 1e-9
+#: where the angular rate may come from (``imu.gyro_source``), each with the binary fields
+#: that carry it, in the order they are looked for; ``auto`` tries them in this order
+GYRO_SOURCES: dict[str, tuple[str, ...]] = {
+    "angular_rate": ("Common.AngularRate", "Imu.AngularRate"),  # calibrated, compensated
+    "uncomp_gyro": ("Imu.UncompGyro", "Common.Imu"),  # factory calibration only
+    "delta_theta": ("Imu.DeltaTheta", "Common.Deltas"),  # integrated angle over Δt
+}
+_ACCEL_FIELDS = ("Common.Accel", "Imu.Accel", "Imu.UncompAccel", "Common.Imu")
+_TIME_FIELDS = ("Common.TimeStartup", "Time.TimeStartup")
+#: which ASCII asynchronous outputs carry which kind of angular rate
+_ASCII_GYRO_KIND = {"VNIMU": "uncomp_gyro", "VNDTV": "delta_theta"}  # the rest: angular_rate
+
+
+@dataclass
+class ExtractStats:
+    samples: int = 0
+    unused: int = 0  # checksum-valid messages with no angular rate of the selected kind
+    empty_interval: int = 0  # delta-theta with Δt ≤ 0
+
+
+def device_time_ns(item: Any) -> int | None:
+    """The sensor's ``TimeStartup`` (ns) in a binary packet, if it carries one."""
     if isinstance(item, BinaryPacket):
-        gyro = item.get("AngularRate")
-        if gyro is None:
-            gyro = item.get("Imu.AngularRate")
-        if gyro is None:
-            return None
-        dev = item.get("TimeStartup", item.get("Time.TimeStartup"))
-        t = clock.update(dev, host_s) if (clock is not None and dev is not None) else host_s
-        accel = item.get("Accel", item.get("Imu.Accel"))
-        return ImuSample(t=t, gyro=gyro, accel=accel, device_time_ns=dev, host_time_ns=host_ns)
-    if isinstance(item, YmrMessage | QmrMessage | ImuMessage | YprAccelRateMessage):
-        return ImuSample(t=host_s, gyro=item.gyro, accel=item.accel, host_time_ns=host_ns)
+        found = item.first(_TIME_FIELDS)
+        return None if found is None else int(found[1])
     return None
+
+
+class ImuExtractor:
+    """IMU samples from parsed VN-100 messages: the angular rate of ``gyro_source`` (one of
+    :data:`GYRO_SOURCES`, or ``auto``: the first the sensor sends, compensated before
+    uncompensated before integrated), the acceleration if there is one, and ``TimeStartup``.
+    Messages with no such rate (``$VNYPR``, attitude-only packets, replies) count as unused."""
+
+    def __init__(self, gyro_source: str = "auto") -> None:
+        if gyro_source != "auto" and gyro_source not in GYRO_SOURCES:
+            allowed = ", ".join(("auto", *GYRO_SOURCES))
+            raise ValueError(f"gyro source {gyro_source!r} is not one of {allowed}")
+        self.gyro_source = gyro_source
+        kinds = list(GYRO_SOURCES) if gyro_source == "auto" else [gyro_source]
+        self._binary_fields = tuple(name for k in kinds for name in GYRO_SOURCES[k])
+        self._ascii_kinds = frozenset(kinds)
+        self.stats = ExtractStats()
+
+    def sample(self, item: Any, host_ns: int) -> ImuSample | None:
+        """An :class:`ImuSample` (IMU frame, ``t`` = arrival on the host clock), or None."""
+        gyro = accel = None
+        if isinstance(item, BinaryPacket):
+            found = item.first(self._binary_fields)
+            if found is not None:
+                gyro = self._rate(*found)
+                acc = item.first(_ACCEL_FIELDS)
+                if acc is not None:
+                    accel = acc[1][:3]
+        elif isinstance(
+            item,
+            YmrMessage | QmrMessage | ImuMessage | YprAccelRateMessage | RateMessage | DeltaMessage,
+        ):
+            header = getattr(item, "header", None) or _ascii_header(item)
+            if _ASCII_GYRO_KIND.get(header, "angular_rate") in self._ascii_kinds:
+                gyro = item.gyro
+                accel = getattr(item, "accel", None)
+                if isinstance(item, DeltaMessage) and not item.dt > 0:
+                    self.stats.empty_interval += 1
+                    return None
+        if gyro is None:
+            if not isinstance(item, RegisterReply | ErrorReply) and not (
+                isinstance(item, AsciiMessage) and item.header in REPLIES
+            ):
+                self.stats.unused += 1
+            return None
+        self.stats.samples += 1
+        return ImuSample(
+            t=host_ns * 1e-9,
+            gyro=gyro,
+            accel=accel,
+            device_time_ns=device_time_ns(item),
+            host_time_ns=host_ns,
+        )
+
+    def _rate(self, name: str, value: Any) -> np.ndarray | None:
+        if name == "Common.Imu":
+            return value[3:6]
+        if name in ("Imu.DeltaTheta", "Common.Deltas"):
+            dt = value[0]
+            if not dt > 0:
+                self.stats.empty_interval += 1
+                return np.full(3, np.nan)
+            return value[1:4] / dt
+        return value
+
+
+def _ascii_header(item: Any) -> str:
+    return {
+        YmrMessage: "VNYMR",
+        QmrMessage: "VNQMR",
+        ImuMessage: "VNIMU",
+        DeltaMessage: "VNDTV",
+    }[type(item)]
+
+
+def imu_sample_from(item: Any, host_ns: int, clock: ClockSync | None = None) -> ImuSample | None:
+    """An :class:`ImuSample` from a parsed message with any kind of angular rate (``auto``);
+    with ``clock``, a device ``TimeStartup`` is mapped onto the host clock."""
+    sample = ImuExtractor().sample(item, host_ns)
+    if sample is None or clock is None or sample.device_time_ns is None:
+        return sample
+    t = clock.update(sample.device_time_ns, host_ns * 1e-9)
+    return ImuSample(t, sample.gyro, sample.accel, sample.device_time_ns, host_ns)
 
 
 class Vn100:
@@ -571,6 +687,8 @@ class Vn100:
         clock: ClockSync | None = None,
         on_raw: Callable[[bytes, int], None] | None = None,
         serial_factory: Callable[..., Any] | None = None,
+        gyro_source: str = "auto",
+        configure_sensor: bool = True,
     ) -> None:
         if baudrate not in BAUDRATES or initial_baudrate not in BAUDRATES:
             raise ValueError(f"baud rates must be one of {BAUDRATES}")
@@ -587,6 +705,8 @@ class Vn100:
         self.on_raw = on_raw  # every chunk of bytes as read, with its host time (recording)
         self.clock = clock or ClockSync(device_unit_s=1e-9)
         self.parser = Vn100Parser()
+        self.extractor = ImuExtractor(gyro_source)
+        self.configure_sensor = configure_sensor
         self.stats = DriverStats()
         self._serial: Any = None
         self._factory = serial_factory
@@ -631,7 +751,11 @@ class Vn100:
                 self.close()
         else:
             raise Vn100Error(f"no VN-100 answers on {self.port} at {tried} baud")
-        self.configure()
+        if self.configure_sensor:
+            self.configure()
+        else:  # the user's own output configuration, as it is: only resume it
+            self.command("VNASY,1")
+            self.stats.reconfigurations += 1
 
     def configure(self) -> None:
         """Pause output, switch baud, set the output registers, verify, resume."""
@@ -650,10 +774,11 @@ class Vn100:
             )
         divisor = 800 // self.rate_hz
         if self.output == "binary":
+            fields = COMMON_FIELDS_FOR[self.extractor.gyro_source]
             self.command("VNWRG,06,0", expect=("VNWRG", 6, ("0",)))
             self.command(
-                f"VNWRG,75,1,{divisor},01,{COMMON_FIELDS:04X}",
-                expect=("VNWRG", 75, ("1", str(divisor), "01", f"{COMMON_FIELDS:04X}")),
+                f"VNWRG,75,1,{divisor},01,{fields:04X}",
+                expect=("VNWRG", 75, ("1", str(divisor), "01", f"{fields:04X}")),
             )
         else:
             self.command("VNWRG,75,0,0,00", expect=("VNWRG", 75, ("0", "0", "00")))
@@ -713,11 +838,11 @@ class Vn100:
         """Map a batch's device times (all of it updates the clock first, so packets that
         arrived together are spread by their device stamps) and deliver its samples."""
         for item, host_ns in batch:
-            dev = item.get("TimeStartup") if isinstance(item, BinaryPacket) else None
+            dev = device_time_ns(item)
             if dev is not None:
                 self.clock.update(dev, host_ns * 1e-9)
         for item, host_ns in batch:
-            sample = imu_sample_from(item, host_ns, None)
+            sample = self.extractor.sample(item, host_ns)
             if sample is None or not sample.finite:
                 continue
             if sample.device_time_ns is not None and self.clock.synced:

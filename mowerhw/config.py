@@ -98,6 +98,18 @@ class ImuConfig:
     rate_hz: int = opt(
         100, "IMU output rate (800 Hz divided by a whole number)", choices=VN100_RATES_HZ
     )
+    gyro_source: str = opt(
+        "auto",
+        "where the angular rate comes from: angular_rate (Common/IMU AngularRate, "
+        "compensated), uncomp_gyro (IMU UncompGyro or Common Imu), delta_theta (IMU "
+        "DeltaTheta or Common Deltas, Δθ/Δt); auto: the first the sensor sends, in that order",
+        choices=("auto", "angular_rate", "uncomp_gyro", "delta_theta"),
+    )
+    configure_sensor: bool = opt(
+        True,
+        "write the output registers at start-up (baud, rate, binary fields for gyro_source); "
+        "false: keep the sensor's own configuration and read whatever it sends",
+    )
     stale_after_s: float = opt(0.1, "halt when no IMU sample for this long", gt=0.0, le=5.0)
     low_latency: bool = opt(True, "request Linux serial low-latency mode (USB adapters)")
     reconnect_max_backoff_s: float = opt(5.0, "longest wait between reconnect tries", gt=0, le=60)
@@ -127,9 +139,20 @@ class CanConfig:
 
 @dataclass(frozen=True)
 class SpeedConfig:
-    """Ground speed from ISO 11783 GBSD (PGN 65097) / WBSD (PGN 65096)."""
+    """Ground speed from ISO 11783 GBSD (PGN 65097), WBSD (PGN 65096) or J1939 CCVS1 (65265)."""
 
-    source: str = opt("ground", "which message to use", choices=("ground", "wheel", "any"))
+    source: str = opt(
+        "ground",
+        "which message to use: ground (GBSD), wheel (WBSD), ccvs1 (CCVS1 wheel-based vehicle "
+        "speed, what most tractor and mower controllers send), any (whichever arrives valid)",
+        choices=("ground", "wheel", "ccvs1", "any"),
+    )
+    ccvs1_direction: str = opt(
+        "etc2",
+        "CCVS1 carries no direction: etc2 (reverse when the transmission's ETC2 gear is "
+        "negative; no ETC2 on the bus: speed invalid) or forward (the mower never reverses)",
+        choices=("etc2", "forward"),
+    )
     sensor_address: int | None = opt(
         None, "accept only this source address (null: any)", ge=0, le=253
     )

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from drivers.isobus_speed import SpeedReader
+from drivers.isobus_speed import SpeedReader, invalid_detail
 from drivers.vn100 import Vn100
 from mowerhw.buffer import SensorBuffer
 from mowerhw.config import Config, config_from_dict
@@ -100,10 +100,11 @@ class Replay:
         self.buffer = SensorBuffer(capacity={TRACKS: 16})
         self.gate = PermitGate.from_config(cfg)
         self.last: dict[str, float | None] = {"imu": None, "speed": None, "camera": None}
-        self.vn = Vn100("replay", on_sample=self._on_imu)
+        self.vn = Vn100("replay", on_sample=self._on_imu, gyro_source=cfg.imu.gyro_source)
         self.speed_reader = SpeedReader(
-            cfg.speed.source, cfg.speed.sensor_address, cfg.speed.stale_after_s
+            cfg.speed.source, cfg.speed.sensor_address, cfg.speed.ccvs1_direction
         )
+        self.notes: dict[str, tuple[float, str]] = {}
         if self.mode == "teach":
             self.pipe: Any = TeachPipeline(cfg, self.camera)
         else:
@@ -136,7 +137,8 @@ class Replay:
         if not isinstance(self.pipe, MowPipeline):
             return
         c = self.pipe.containment(self.now) if self.pipe.finite() else None
-        d = self.gate.decide(self.now, "mow", self.last, c)
+        stale = self.gate.stale(self.now, self.last, self.notes)
+        d = self.gate.decide(self.now, "mow", self.last, c, stale=stale)
         self.samples += 1
         self.permit_samples += int(d.permit)
         if self.prev_permit and not d.permit:
@@ -156,6 +158,9 @@ class Replay:
             if s is not None:
                 if s.valid:
                     self.last["speed"] = s.t
+                    self.notes.pop("speed", None)
+                else:
+                    self.notes["speed"] = (s.t, invalid_detail(s))
                 self.buffer.push(Stream.SPEED, s)
         elif topic == "/camera/image":
             ts = msg["timestamp"]

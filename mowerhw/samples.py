@@ -57,7 +57,7 @@ class ImuSample:
 
 @dataclass(frozen=True, slots=True)
 class SpeedSample:
-    """Signed ground speed (m/s; negative = reverse) from ISO 11783 GBSD/WBSD.
+    """Signed ground speed (m/s; negative = reverse) from ISO 11783 GBSD/WBSD/CCVS1.
 
     ``valid`` is False when the sensor reported an error or "not available" in the speed or
     the direction field: then ``speed_mps`` is NaN and must not be used as a number.
@@ -66,10 +66,12 @@ class SpeedSample:
     t: float
     speed_mps: float
     valid: bool = True
-    source: str = "ground"  # "ground" (GBSD, PGN 65097) or "wheel" (WBSD, PGN 65096)
+    source: str = "ground"  # "ground" (GBSD, PGN 65097), "wheel" (WBSD), "ccvs1" (PGN 65265)
     distance_m: float | None = None
     source_address: int | None = None
-    reason: str = ""  # why it is invalid, for logs
+    reason: str = ""  # why it is invalid, as the sensor said it ("not available (0xFFFF)")
+    message: str = ""  # the message it came in: GBSD, WBSD, CCVS1
+    direction_known: bool = True  # False: an unsigned speed (CCVS1) not yet signed
 
     def __post_init__(self) -> None:
         if self.valid and not np.isfinite(self.speed_mps):

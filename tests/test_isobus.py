@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.isobus import PGN_GBSD, PGN_HEARTBEAT, PGN_ISB, PGN_WBSD, can_id, open_bus, parse_id
-from drivers.isobus_speed import SpeedReader, decode_speed, encode_speed
+from drivers.isobus_speed import SpeedReader, decode_speed, encode_speed, invalid_detail
 from drivers.mock.mower import MockMowerController
 from drivers.mock.speed import MockSpeedSensor
 from drivers.permit import (
@@ -83,21 +83,22 @@ def test_reserved_bits_are_masked_not_required():
 @pytest.mark.parametrize(
     "data, why",
     [
-        (frame(0xFE00), "speed error"),
-        (frame(0xFEFF), "speed error"),
-        (frame(0xFF00), "speed not available"),
-        (frame(0xFFFF), "speed not available"),
-        (frame(64256), "speed out of range"),
-        (frame(1000, 0, 0xFE), "direction error"),
+        (frame(0xFE00), "error"),
+        (frame(0xFEFF), "error"),
+        (frame(0xFF00), "not available"),
+        (frame(0xFFFF), "not available"),
+        (frame(64256), "out of range"),
+        (frame(1000, 0, 0xFE), "a direction error"),
         (frame(1000, 0, 0xFF), "direction not available"),
-        (frame(1000)[:7], "frame has 7 bytes"),
-        (b"", "frame has 0 bytes"),
+        (frame(1000)[:7], "a 7-byte frame (8 expected)"),
+        (b"", "a 0-byte frame (8 expected)"),
     ],
 )
 def test_error_and_not_available_give_an_invalid_sample_never_a_number(data, why):
     s = decode_speed(GBSD_ID, data, t=0.0)
     assert s is not None and not s.valid and math.isnan(s.speed_mps)
-    assert s.reason.startswith(why)
+    assert s.reason == why and s.message == "GBSD"
+    assert invalid_detail(s) == f"speed sensor reports {why} (GBSD from 0x80)"
 
 
 def test_distance_not_available_keeps_the_speed():
@@ -121,19 +122,72 @@ def test_encode_decode_round_trip():
     assert not decode_speed(ident, data, t=0.0).valid
 
 
-def test_speed_reader_filters_source_address_and_goes_stale():
-    r = SpeedReader(source="ground", sensor_address=0x80, stale_after_s=0.3)
-    assert r.stale(0.0)  # nothing heard yet
+def test_speed_reader_filters_source_address():
+    r = SpeedReader(source="ground", sensor_address=0x80)
+    assert r.last_valid is None  # nothing heard yet
     assert r.handle(*encode_speed(1.0, 0.0, 0x80), t=1.0).valid
     assert r.handle(*encode_speed(9.0, 0.0, 0x81), t=1.05) is None  # another sensor
     assert r.handle(*encode_speed(9.0, 0.0, 0x80, pgn=PGN_WBSD), t=1.05) is None  # wheel-based
     assert r.stats.wrong_source == 1 and r.stats.other_frames == 1
-    assert not r.stale(1.2) and r.stale(1.31)
-    # an invalid sample does not refresh the speed
+    # an invalid sample does not refresh the speed; it is kept to say why
     assert not r.handle(*encode_speed(1.0, 0.0, 0x80, error=True), t=1.25).valid
-    assert r.stale(1.31) and r.stats.invalid == 1
-    with pytest.raises(ValueError, match="ground, wheel, any"):
+    assert r.last_valid.t == 1.0 and r.last_invalid.t == 1.25 and r.stats.invalid == 1
+    with pytest.raises(ValueError, match="ground, wheel, ccvs1, any"):
         SpeedReader(source="gps")
+
+
+def ccvs1(kmh_raw: int, sa: int = 0x00) -> tuple[int, bytes]:
+    """A CCVS1 frame as J1939-71 defines it: PGN 65265 (0xFEF1), priority 6, byte 1 parking
+    brake / cruise switches (all 'not available' here), bytes 2–3 SPN 84 wheel-based vehicle
+    speed, 1/256 km/h per bit, little-endian; the rest not available."""
+    ident = (6 << 26) | (0xFE << 16) | (0xF1 << 8) | sa
+    return ident, bytes([0xFF, kmh_raw & 0xFF, kmh_raw >> 8, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF])
+
+
+def etc2(selected_raw: int, current_raw: int, sa: int = 0x03) -> tuple[int, bytes]:
+    """ETC2 (PGN 61445, 0xF005): byte 0 selected gear, byte 3 current gear, offset −125."""
+    ident = (6 << 26) | (0xF0 << 16) | (0x05 << 8) | sa
+    return ident, bytes([selected_raw, 0xFF, 0xFF, current_raw, 0xFF, 0xFF, 0xFF, 0xFF])
+
+
+def test_ccvs1_speed_from_the_j1939_definition():
+    """SPN 84: 0x0E10 = 3600/256 km/h = 14.0625 km/h = 3.90625 m/s; the sign from ETC2."""
+    r = SpeedReader(source="ccvs1")
+    s = r.handle(*ccvs1(0x0E10, sa=0x17), t=0.0)
+    assert not s.valid and "no ETC2 gear" in s.reason  # no direction yet: never a guess
+    r.handle(*etc2(125 + 3, 0xFF), t=0.05)  # selected gear 3, current not available
+    s = r.handle(*ccvs1(0x0E10, sa=0x17), t=0.1)
+    assert s.valid and s.speed_mps == pytest.approx(3.90625) and s.message == "CCVS1"
+    r.handle(*etc2(125 - 1, 125 - 1), t=0.15)  # reverse
+    assert r.handle(*ccvs1(256), t=0.2).speed_mps == pytest.approx(-1 / 3.6)
+    assert r.handle(*ccvs1(256), t=1.3).reason.startswith("no direction")  # gear too old
+    r.handle(*etc2(251, 0xFF), t=1.35)  # park
+    assert r.handle(*ccvs1(0), t=1.4).speed_mps == 0.0
+    assert r.handle(*ccvs1(0xFAFF), t=1.5).speed_mps == pytest.approx(0xFAFF / 256 / 3.6)
+    for raw, why in [(0xFE00, "error"), (0xFFFF, "not available"), (0xFC00, "out of range")]:
+        s = r.handle(*ccvs1(raw, sa=0x47), t=1.6)
+        assert not s.valid and invalid_detail(s) == f"speed sensor reports {why} (CCVS1 from 0x47)"
+    fwd = SpeedReader(source="ccvs1", ccvs1_direction="forward")
+    assert fwd.handle(*ccvs1(512), t=0.0).speed_mps == pytest.approx(2 / 3.6)
+    # a CCVS1 frame is not a ground speed unless asked for
+    assert SpeedReader(source="ground").handle(*ccvs1(512), t=0.0) is None
+
+
+def test_gate_names_what_the_speed_sensor_said():
+    from mowerhw.runtime.gate import PermitGate
+
+    gate = PermitGate({"speed": 0.3})
+    na = decode_speed(can_id(3, PGN_GBSD, 0x47), bytes([0xFF] * 8), t=10.0)
+    notes = {"speed": (10.0, invalid_detail(na))}
+    assert gate.stale(10.1, {"speed": None}, notes) == (
+        "speed",
+        "speed sensor reports not available (GBSD from 0x47)",
+    )
+    _, old = gate.stale(12.0, {"speed": None}, notes)
+    assert old == "no speed data yet; last heard 2.0 s ago: " + notes["speed"][1]
+    assert gate.stale(10.1, {"speed": 10.05}, notes) is None  # good data after the note
+    _, silent = gate.stale(10.5, {"speed": 10.05}, notes)
+    assert silent.startswith("speed silent for 0.450 s")
 
 
 # --- fuzzing ------------------------------------------------------------------------------
@@ -147,7 +201,12 @@ payloads = st.binary(min_size=0, max_size=8)
 def test_fuzz_decode_speed_never_raises_and_never_accepts_a_bad_value(arb, data):
     s = decode_speed(arb, data, t=0.0)
     if s is None:
-        assert parse_id(arb).pgn not in (PGN_GBSD, PGN_WBSD)
+        assert parse_id(arb).pgn not in (PGN_GBSD, PGN_WBSD, 65265)
+        return
+    if s.message == "CCVS1":
+        raw = data[1] | data[2] << 8 if len(data) >= 3 else None
+        assert s.valid == (len(data) == 8 and raw <= 64255)
+        assert s.valid or (math.isnan(s.speed_mps) and s.reason)
         return
     if s.valid:
         raw = data[0] | data[1] << 8
@@ -194,7 +253,7 @@ def test_speed_decoded_end_to_end_on_a_virtual_bus():
     profile = lambda t: 0.5 + 0.2 * math.sin(t)  # noqa: E731
     sensor = MockSpeedSensor(sensor_bus, profile, source_address=0x80).start()
     intruder = MockSpeedSensor(other_bus, lambda t: 9.0, source_address=0x81).start()
-    reader = SpeedReader(sensor_address=0x80, stale_after_s=0.3)
+    reader = SpeedReader(sensor_address=0x80)
     got = []
     try:
         deadline = time.monotonic() + 1.0
@@ -214,7 +273,7 @@ def test_speed_decoded_end_to_end_on_a_virtual_bus():
             msg = rx.recv(timeout=0.05)
             if msg is not None:
                 reader.handle(msg.arbitration_id, bytes(msg.data), time.monotonic())
-        assert reader.stale(time.monotonic())
+        assert time.monotonic() - reader.last_valid.t > 0.3  # the gate will call it stale
     finally:
         sensor.stop()
         intruder.stop()
@@ -398,6 +457,18 @@ def test_every_frame_decodes_with_cantools_against_the_shipped_dbc():
     assert name == "WBSD" and sig["WheelBasedMachineDirection"] == "Reverse"
     assert sig["WheelBasedMachineSpeed"] == pytest.approx(0.5)
 
+    name, sig = decode(*encode_speed(0.0, pgn=PGN_WBSD, error=True))
+    assert name == "WBSD" and sig["WheelBasedMachineSpeed"] == "Error"
+    name, sig = decode(*ccvs1(0x0E10, sa=0x47))
+    assert name == "CCVS1" and sig["WheelBasedVehicleSpeed"] == pytest.approx(14.0625)
+    assert decode(*ccvs1(0xFFFF))[1]["WheelBasedVehicleSpeed"] == "NotAvailable"
+    gbsd_na = decode(can_id(3, PGN_GBSD, 0x47), bytes([0xFF] * 8))[1]  # the tractor's frame
+    assert gbsd_na["GroundBasedMachineSpeed"] == "NotAvailable"
+    assert gbsd_na["GroundBasedDirection"] == "NotAvailable"
+    name, sig = decode(*etc2(125 - 2, 251))
+    assert name == "ETC2" and sig["TransmissionSelectedGear"] == -2
+    assert sig["TransmissionCurrentGear"] == "Park"
+
     name, sig = decode(can_id(3, PGN_ISB, 0x90), encode_isb(7, True))
     assert name == "ISB" and sig["IsbTransitionCounter"] == 7
     assert sig["IsbStopAllImplementOperations"] == "Permit"
@@ -444,3 +515,35 @@ def test_a_failing_bus_is_counted_not_raised():
     sender.set(True, 0.0)
     sender.tick(0.0)
     assert sender.stats.send_errors >= 3
+
+
+# --- a real tractor's bus --------------------------------------------------------------------
+
+
+def _load_tool(name: str):
+    import importlib.util
+
+    path = Path(__file__).resolve().parent.parent / "tools" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+real_can = _load_tool("check_real_can")
+TRACTOR_LOGS = sorted(real_can.LOGS.glob("*.log")) if real_can.LOGS.exists() else []
+
+
+@pytest.mark.skipif(not TRACTOR_LOGS, reason=f"real tractor CAN logs not present ({real_can.LOGS})")
+@pytest.mark.parametrize("log", TRACTOR_LOGS, ids=lambda p: p.stem)
+def test_real_tractor_bus(log):
+    """GBSD from 0x47 is always 'not available': every frame is recognised, the speed is never
+    fresh, and the halt says what the sensor said; CCVS1 gives a real 0 m/s, signed by ETC2."""
+    r = real_can.check(log)
+    print(r)
+    ground, wheel = r["ground"], r["ccvs1"]
+    assert ground["speed_frames_recognised"] == r["gbsd_frames"] >= 128
+    assert ground["valid"] == 0 and ground["fresh_fraction"] == 0.0
+    assert "speed sensor reports not available (GBSD from 0x47)" in ground["halt_details"]
+    assert wheel["valid"] >= 0.9 * wheel["speed_frames_recognised"] > 100
+    assert wheel["speed_mps"] == [0.0] and wheel["fresh_fraction"] > 0.3

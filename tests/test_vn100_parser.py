@@ -8,10 +8,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers import vn100_binary as binary
 from drivers.mock.vn100 import MockVn100, still_source
 from drivers.vn100 import (
     BinaryPacket,
     ErrorReply,
+    ImuExtractor,
     QmrMessage,
     RegisterReply,
     Vn100Parser,
@@ -136,13 +138,13 @@ def test_binary_common_group_fields_in_si():
     mask = (1 << 0) | (1 << 3) | (1 << 4) | (1 << 5) | (1 << 8) | (1 << 9) | (1 << 10)
     (pkt,) = Vn100Parser().feed(binary_packet(0x01, [mask], payload))
     assert isinstance(pkt, BinaryPacket)
-    assert pkt["TimeStartup"] == 123_456_789_000
-    assert np.allclose(pkt["YawPitchRoll"], np.radians([90.0, -10.0, 5.0]))
-    assert np.allclose(pkt["AngularRate"], [0.1, -0.2, 0.3], atol=1e-7)
-    assert np.allclose(pkt["Accel"], [0, 0, -9.81], atol=1e-6)
-    assert np.allclose(pkt["Imu"], [0.1, 0.2, -9.7, 0.01, 0.02, 0.03], atol=1e-6)
-    assert np.allclose(pkt["MagPres"], [0.2e-4, 0.1e-4, 0.4e-4, 21.5, 101300.0], rtol=1e-6)
-    assert np.allclose(pkt["Quaternion"], [0, 0, 0.70710678, 0.70710678])
+    assert pkt["Common.TimeStartup"] == 123_456_789_000
+    assert np.allclose(pkt["Common.YawPitchRoll"], np.radians([90.0, -10.0, 5.0]))
+    assert np.allclose(pkt["Common.AngularRate"], [0.1, -0.2, 0.3], atol=1e-7)
+    assert np.allclose(pkt["Common.Accel"], [0, 0, -9.81], atol=1e-6)
+    assert np.allclose(pkt["Common.Imu"], [0.1, 0.2, -9.7, 0.01, 0.02, 0.03], atol=1e-6)
+    assert np.allclose(pkt["Common.MagPres"], [0.2e-4, 0.1e-4, 0.4e-4, 21.5, 101300.0], rtol=1e-6)
+    assert np.allclose(pkt["Common.Quaternion"], [0, 0, 0.70710678, 0.70710678])
 
 
 def test_binary_with_several_groups():
@@ -157,7 +159,7 @@ def test_binary_with_several_groups():
         0x01 | 0x04 | 0x10, [1, (1 << 4) | (1 << 5) | (1 << 10), 1 << 1], payload
     )
     (pkt,) = Vn100Parser().feed(pkt_bytes)
-    assert pkt["TimeStartup"] == 5
+    assert pkt["Common.TimeStartup"] == 5
     assert pkt["Imu.Temp"] == pytest.approx(30.0) and pkt["Imu.Pres"] == pytest.approx(100000.0)
     assert np.allclose(pkt["Imu.AngularRate"], [1, 2, 3])
     assert np.allclose(pkt["Attitude.YawPitchRoll"], np.radians([10, 0, 0]))
@@ -192,8 +194,8 @@ def _same(a, b):
     return type(a) is type(b) and all(
         np.array_equal(np.asarray(x), np.asarray(y))
         for x, y in zip(
-            vars(a).values() if not isinstance(a, BinaryPacket) else a.fields.values(),
-            vars(b).values() if not isinstance(b, BinaryPacket) else b.fields.values(),
+            vars(a).values() if not isinstance(a, BinaryPacket) else [a.payload],
+            vars(b).values() if not isinstance(b, BinaryPacket) else [b.payload],
             strict=True,
         )
     )
@@ -288,3 +290,190 @@ def test_imu_samples_from_packets():
     )
     s = imu_sample_from(pkt, 3_000_000_000, None)
     assert s.device_time_ns == 10**9 and np.allclose(s.gyro, [0.1, 0.2, 0.3])
+
+
+# ------------------------------------------------------------ the whole binary protocol
+
+
+def _load_tool(name: str):
+    import importlib.util
+
+    path = Path(__file__).resolve().parent.parent / "tools" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+real_vn100 = _load_tool("check_real_vn100")
+needs_real_log = pytest.mark.skipif(
+    not real_vn100.LOGS.exists(), reason=f"real VN-100 log not present ({real_vn100.LOGS})"
+)
+
+
+@needs_real_log
+@pytest.mark.parametrize("seed", [0, 1])
+def test_real_binary_log_decodes_every_value_as_its_authors_did(seed):
+    """A real VN-100 (IMU + Attitude groups, 10 Hz) written to an SD card between NMEA lines
+    and a logger's text: every packet, every one of its 29 values, against the authors' CSV."""
+    r = real_vn100.compare("F00379", seed=seed)
+    print(r)
+    assert r["packets_accepted"] == 8895 and r["crc_rejected"] == 2  # real corruption
+    assert r["imu_samples"] == 8895  # the gyro comes from Imu.UncompGyro
+    assert r["malformed"] == 0 and r["other_ascii_lines"] == 3748  # NMEA lines: not errors
+    assert r["upstream_rows_matched"] == r["upstream_rows"] == 8895
+    assert r["values_compared"] == 8895 * 29
+    assert r["max_rel_diff"] <= 5.01e-7  # half a unit in the 7th printed digit
+
+
+@needs_real_log
+def test_real_short_log_all_packets_valid():
+    r = real_vn100.compare("F00294")
+    assert r["packets_accepted"] == r["imu_samples"] == 99 and r["crc_rejected"] == 0
+    # the authors' CSV lacks one packet (78) that is CRC-valid; every other row matches
+    assert r["upstream_rows_matched"] == r["upstream_rows"] == 98
+    assert r["packets_not_in_upstream_csv"] == [78]
+    assert r["max_rel_diff"] <= 5.01e-7
+
+
+def test_field_sizes_follow_the_manuals():
+    size = binary.field_size
+    assert size(1, 8) == 4 and size(1, 9) == 1  # Time.SyncOutCnt, Time.TimeStatus
+    assert size(3, 12) == 2 and size(3, 13) == 28  # Gnss.TimeInfo, Gnss.Dop
+    assert size(4, 12) == 12  # Attitude.Heave
+    assert all(size(6, b) == size(3, b) for b in range(16))  # GNSS2 = GNSS
+    assert [size(0, b) for b in range(15)] == [8, 8, 8, 12, 16, 12, 24, 12, 12, 24, 20, 28, 2, 4, 8]
+    imu = [2, 12, 12, 12, 4, 4, 16, 12, 12, 12, 12, 2, 40]
+    assert [size(2, b) for b in range(13)] == imu
+
+
+_FIXED = [name for name, (g, b) in binary.FIELD_INDEX.items() if not binary.FIELDS[(g, b)].variable]
+
+
+@settings(max_examples=300)
+@given(
+    st.lists(st.sampled_from(sorted(binary.FIELD_INDEX)), min_size=1, max_size=12, unique=True),
+    st.randoms(use_true_random=False),
+    st.integers(1, 64),
+)
+def test_any_field_combination_is_framed_and_split_exactly(names, rnd, chunk):
+    """Whatever fields a user enables, in any groups: the packet is found, every field at
+    its place, whatever the chunking, with garbage around it."""
+    fields = {}
+    for name in names:
+        spec = binary.FIELDS[binary.FIELD_INDEX[name]]
+        if spec.variable == "satinfo":
+            n = rnd.randint(0, 5)
+            fields[name] = bytes([n, 0]) + rnd.randbytes(8 * n)
+        elif spec.variable == "rawmeas":
+            n = rnd.randint(0, 3)
+            fields[name] = rnd.randbytes(10) + bytes([n, 0]) + rnd.randbytes(28 * n)
+        else:
+            fields[name] = rnd.randbytes(spec.size)
+    pkt = binary.encode_packet(fields)
+    stream = b"junk$GP" + pkt + b"\r\nM,123\r\n" + pkt
+    p = Vn100Parser()
+    out = []
+    for k in range(0, len(stream), chunk):
+        out += p.feed(stream[k : k + chunk])
+    packets = [o for o in out if isinstance(o, BinaryPacket)]
+    assert len(packets) == 2, p.stats.as_dict()
+    for got in packets:
+        assert set(got.field_names) == set(fields)
+        for name, data in fields.items():
+            assert got.raw(name) == data
+            got.get(name)  # every field decodes
+
+
+def test_reserved_bit_is_refused_named_and_the_stream_goes_on():
+    good = binary.encode_packet({"Common.AngularRate": struct.pack("<3f", 1, 2, 3)})
+    body = bytes([0x04]) + struct.pack("<H", (1 << 10) | (1 << 14)) + bytes(12)
+    odd = b"\xfa" + body + struct.pack(">H", crc16(body))  # Imu bit 14: no manual sizes it
+    p = Vn100Parser()
+    out = p.feed(odd + good + odd + good)
+    assert len(out) == 2 and all(np.allclose(o["Common.AngularRate"], [1, 2, 3]) for o in out)
+    assert p.stats.unknown_field == 2 and p.stats.unknown_field_bits == {"Imu bit 14": 2}
+
+
+def test_false_sync_claiming_a_long_packet_does_not_hold_back_real_ones():
+    """0xFA + GNSS SatInfo with 255 satellites in garbage would claim 2 KB; the real packets
+    right behind it are delivered at once, not after 2 KB more of the line."""
+    good = binary.encode_packet({"Common.AngularRate": struct.pack("<3f", 1, 2, 3)})
+    fake = b"\xfa\x08" + struct.pack("<H", 1 << 14) + bytes([255, 0])
+    p = Vn100Parser()
+    out = p.feed(fake + good + good)
+    assert len(out) == 2 and p.stats.bad_binary_header == 1
+
+
+@pytest.mark.parametrize(
+    ("fields", "source", "expect"),
+    [
+        ({"Common.AngularRate": (0.1, 0.2, 0.3)}, "auto", (0.1, 0.2, 0.3)),
+        ({"Imu.UncompGyro": (0.1, 0.2, 0.3)}, "auto", (0.1, 0.2, 0.3)),
+        ({"Imu.UncompGyro": (0.1, 0.2, 0.3)}, "angular_rate", None),
+        ({"Imu.AngularRate": (1, 1, 1), "Imu.UncompGyro": (2, 2, 2)}, "uncomp_gyro", (2, 2, 2)),
+        ({"Imu.AngularRate": (1, 1, 1), "Imu.UncompGyro": (2, 2, 2)}, "auto", (1, 1, 1)),
+        ({"Common.Imu": (0, 0, -9.8, 0.1, 0.2, 0.3)}, "uncomp_gyro", (0.1, 0.2, 0.3)),
+        ({"Imu.DeltaTheta": (0.01, 0.5, -1.0, 2.0)}, "auto", np.radians([50, -100, 200])),
+        ({"Common.Deltas": (0.02, 1, 1, 1, 0, 0, 0)}, "delta_theta", np.radians([50] * 3)),
+        ({"Attitude.YawPitchRoll": (10, 0, 0)}, "auto", None),
+    ],
+)
+def test_gyro_from_whichever_field_the_sensor_sends(fields, source, expect):
+    pkt = binary.encode_packet({k: binary.pack_values(k, v) for k, v in fields.items()})
+    (item,) = Vn100Parser().feed(pkt)
+    ex = ImuExtractor(source)
+    s = ex.sample(item, 5_000_000_000)
+    if expect is None:
+        assert s is None and ex.stats.unused == 1
+    else:
+        assert np.allclose(s.gyro, expect, rtol=1e-6) and ex.stats.samples == 1
+
+
+_RATE = (0.01, -0.02, 0.03)
+_MAG, _ACC, _W = (
+    "+00.2000,+00.0500,+00.4500",
+    "+00.000,+00.000,-09.810",
+    "+00.010000,-00.020000,+00.030000",
+)
+ASCII_OUTPUTS = {
+    b"VNYPR,+010.000,-001.000,+002.000": None,
+    b"VNQTN,+0.000000,+0.000000,+0.087156,+0.996195": None,
+    f"VNMAG,{_MAG}".encode(): None,
+    f"VNACC,{_ACC}".encode(): None,
+    f"VNGYR,{_W}".encode(): _RATE,
+    f"VNMAR,{_MAG},{_ACC},{_W}".encode(): _RATE,
+    b"VNDTV,+0.010000,+0.5000,-1.0000,+2.0000,+0.0000,+0.0000,-0.0981": tuple(
+        np.radians([50, -100, 200])
+    ),
+    f"VNIMU,{_MAG},{_ACC},{_W},+25.0,+101.3".encode(): _RATE,
+    b"VNGPS,342123.000,1234,3,08,+37.0,-122.0,+0010.0,+000.0,+000.0,+000.0,"
+    b"+002.0,+002.0,+005.0,+0.0,1.0E-08": None,
+    b"VNINS,342123.000,1234,0000,+37.0,-122.0,+0010.0,+000.0,+000.0,+000.0,"
+    b"+0.0,+0.0,+0.0,+0.0,+0.0": None,
+    b"VNHVE,+0.010,+0.002,+0.000": None,
+}
+
+
+@pytest.mark.parametrize("body", list(ASCII_OUTPUTS), ids=lambda b: b[:5].decode())
+def test_every_ascii_output_type_is_recognised(body):
+    """A valid message the runtime does not use is `unused`: never malformed, never garbage."""
+    p = Vn100Parser()
+    (msg,) = p.feed(b"$" + body + b"*%02X\r\n" % xor8(body))
+    assert p.stats.rejected == 0 and p.stats.other_ascii == 0
+    ex = ImuExtractor()
+    s = ex.sample(msg, 1_000_000_000)
+    expect = ASCII_OUTPUTS[body]
+    if expect is None:
+        assert s is None and ex.stats.unused == 1
+    else:
+        assert np.allclose(s.gyro, expect)
+
+
+def test_other_devices_lines_and_unchecked_lines():
+    nmea = b"GPRMC,000012.800,V,,,,,0.00,0.00,060180,,,N"
+    p = Vn100Parser()
+    out = p.feed(b"$" + nmea + b"*%02X\r\n" % xor8(nmea) + b"$" + YMR_A + b"*XX\r\n")
+    assert len(out) == 1 and out[0].header == "GPRMC" and not out[0].known
+    assert p.stats.other_ascii == 1 and p.stats.malformed == 0
+    assert p.stats.unchecked == 1  # a sensor with error detection off is never trusted

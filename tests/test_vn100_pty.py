@@ -112,3 +112,33 @@ def test_reconnects_when_the_port_vanishes_and_returns(link, power_cycle):
         f"gap in samples {gaps.max():.2f} s, reconnects {drv.stats.reconnects}, "
         f"configurations {drv.stats.reconfigurations}, samples {len(samples)} in 6 s"
     )
+
+
+def test_driver_asks_for_the_configured_gyro_field(link):
+    """imu.gyro_source: uncomp_gyro → register 75 asks for Common.Imu, and the samples carry
+    the uncompensated gyro."""
+    samples = []
+    with MockVn100(link, source=moving_source) as mock:
+        drv = Vn100(str(link), gyro_source="uncomp_gyro", on_sample=samples.append)
+        drv.open()
+        assert mock.registers[75] == ["1", "8", "01", "0209"]  # TimeStartup, YPR, Imu
+        run_for(drv, 1.0)
+    assert len(samples) >= 80 and drv.extractor.stats.unused == 0
+    s = samples[-1]
+    assert np.allclose(s.gyro, moving_source(s.device_time_ns * 1e-9).gyro, atol=1e-6)
+
+
+def test_driver_keeps_the_users_own_output_configuration(link):
+    """configure_sensor: false — a sensor set up by its user (IMU + Attitude groups at 40 Hz,
+    as the real SD-card logger's) is read as it is: no register written, gyro from UncompGyro."""
+    samples = []
+    with MockVn100(link, source=moving_source, baudrate=115200) as mock:
+        mock.registers[6] = ["0"]
+        mock.registers[75] = ["1", "20", "14", "003E", "003A"]
+        drv = Vn100(str(link), baudrate=115200, configure_sensor=False, on_sample=samples.append)
+        drv.open()
+        assert mock.registers[75] == ["1", "20", "14", "003E", "003A"]
+        run_for(drv, 1.0)
+    assert 30 <= len(samples) <= 50 and drv.parser.stats.rejected == 0
+    assert all(s.device_time_ns is None for s in samples)  # no time field: arrival time
+    assert np.allclose(samples[-1].gyro[2], moving_source(0).gyro[2], atol=0.02)

@@ -22,7 +22,6 @@ import os
 import pty
 import random
 import select
-import struct
 import termios
 import threading
 import time
@@ -33,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.vn100 import BAUDRATES, GROUP_FIELD_SIZES, crc16, xor8
+from drivers import vn100_binary as binary
+from drivers.vn100 import BAUDRATES, crc16, xor8
 
 _BAUD_CONSTANTS = {getattr(termios, f"B{b}"): b for b in BAUDRATES if hasattr(termios, f"B{b}")}
 
@@ -382,35 +382,54 @@ class MockVn100:
     def _binary_packet(self, t: float, s: MockImuState) -> bytes | None:
         groups = int(self.registers[75][2], 16)
         masks = [int(v, 16) for v in self.registers[75][3:]]
-        payload = bytearray()
-        active = [g for g in range(6) if groups >> g & 1]
-        for g, mask in zip(active, masks, strict=True):
-            for bit in range(16):
-                if mask >> bit & 1:
-                    payload += _field_bytes(g, bit, t, s)
-        head = bytes([groups]) + struct.pack(f"<{len(masks)}H", *masks)
-        body = head + bytes(payload)
-        return b"\xfa" + body + struct.pack(">H", crc16(body))
+        active = [g for g in range(len(binary.GROUP_NAMES)) if groups >> g & 1]
+        fields = {
+            f"{binary.GROUP_NAMES[g]}.{binary.FIELDS[(g, bit)].name}": _field_bytes(g, bit, t, s)
+            for g, mask in zip(active, masks, strict=True)
+            for bit in range(16)
+            if mask >> bit & 1
+        }
+        return binary.encode_packet(fields)
 
 
 def _field_bytes(g: int, bit: int, t: float, s: MockImuState) -> bytes:
-    size = GROUP_FIELD_SIZES[g][bit]
-    if g == 0:
-        if bit in (0, 2):
-            return struct.pack("<Q", int(t * 1e9))
-        if bit == 3:
-            return struct.pack("<3f", *s.ypr_deg)
-        if bit == 4:
-            return struct.pack("<4f", *s.quaternion_xyzw)
-        if bit == 5:
-            return struct.pack("<3f", *s.gyro)
-        if bit == 8:
-            return struct.pack("<3f", *s.accel)
-        if bit == 9:
-            return struct.pack("<6f", *s.accel, *s.gyro)
-        if bit == 10:
-            return struct.pack("<5f", *s.mag_gauss, 25.0, 101.3)
-    return bytes(size)
+    """What the mock measures, in field (group, bit); zeros for what it does not."""
+    name = f"{binary.GROUP_NAMES[g]}.{binary.FIELDS[(g, bit)].name}"
+    rad_to_deg = 180.0 / math.pi
+    values: dict[str, list[float]] = {
+        "Common.TimeStartup": [int(t * 1e9)],
+        "Common.TimeSyncIn": [int(t * 1e9)],
+        "Time.TimeStartup": [int(t * 1e9)],
+        "Common.YawPitchRoll": list(s.ypr_deg),
+        "Attitude.YawPitchRoll": list(s.ypr_deg),
+        "Common.Quaternion": list(s.quaternion_xyzw),
+        "Attitude.Quaternion": list(s.quaternion_xyzw),
+        "Common.AngularRate": list(s.gyro),
+        "Imu.AngularRate": list(s.gyro),
+        "Imu.UncompGyro": list(s.gyro),
+        "Common.Accel": list(s.accel),
+        "Imu.Accel": list(s.accel),
+        "Imu.UncompAccel": list(s.accel),
+        "Common.Imu": [*s.accel, *s.gyro],
+        "Common.MagPres": [*s.mag_gauss, 25.0, 101.3],
+        "Imu.UncompMag": list(s.mag_gauss),
+        "Imu.Mag": list(s.mag_gauss),
+        "Imu.Temp": [25.0],
+        "Imu.Pres": [101.3],
+    }
+    if name in values:
+        return binary.pack_values(name, values[name])
+    spec = binary.FIELDS[(g, bit)]
+    if name in ("Imu.DeltaTheta", "Common.Deltas"):  # over one output period at 100 Hz
+        dt = 0.01
+        dtheta = [w * dt * rad_to_deg for w in s.gyro]
+        extra = [a * dt for a in s.accel] if name == "Common.Deltas" else []
+        return binary.pack_values(name, [dt, *dtheta, *extra])
+    if spec.variable == "satinfo":
+        return bytes(2)  # no satellites
+    if spec.variable == "rawmeas":
+        return bytes(12)  # no measurements
+    return bytes(spec.size)
 
 
 def _valid_binary_register(values: list[str]) -> bool:
@@ -419,15 +438,12 @@ def _valid_binary_register(values: list[str]) -> bool:
         masks = [int(v, 16) for v in values[3:]]
     except (ValueError, IndexError):
         return False
-    if mode not in (0, 1, 2, 3) or divisor < 0 or groups & 0xC0:
+    if mode not in (0, 1, 2, 3) or divisor < 0 or groups & ~binary.VALID_GROUPS:
         return False
-    active = [g for g in range(6) if groups >> g & 1]
+    active = [g for g in range(len(binary.GROUP_NAMES)) if groups >> g & 1]
     if len(masks) != len(active):
         return False
-    return all(
-        all(GROUP_FIELD_SIZES[g][b] for b in range(16) if m >> b & 1)
-        for g, m in zip(active, masks, strict=True)
-    )
+    return all(m and not m & ~binary.KNOWN_BITS[g] for g, m in zip(active, masks, strict=True))
 
 
 def _hex(b: bytes) -> int:

@@ -43,7 +43,7 @@ import numpy as np
 
 from drivers.camera_v4l2 import CameraSource, V4l2Camera, asyncio_sink
 from drivers.isobus import open_bus
-from drivers.isobus_speed import SpeedReader
+from drivers.isobus_speed import SpeedReader, invalid_detail
 from drivers.permit import PermitSender, Status
 from drivers.vn100 import Vn100
 from mowerhw.buffer import SensorBuffer
@@ -105,8 +105,10 @@ class Daemon:
         self.imu_dev: Vn100 | None = None
         self.camera: CameraSource | None = None
         self.speed_reader = SpeedReader(
-            config.speed.source, config.speed.sensor_address, config.speed.stale_after_s
+            config.speed.source, config.speed.sensor_address, config.speed.ccvs1_direction
         )
+        #: per stream, why its newest data could not be used (arrival, the device's words)
+        self.stream_notes: dict[str, tuple[float, str]] = {}
         self._frames: asyncio.Queue | None = None
         self._stop_event: asyncio.Event | None = None
         self._shutting_down = False
@@ -328,6 +330,8 @@ class Daemon:
             output=c.output,
             low_latency=c.low_latency,
             reconnect_max_backoff_s=c.reconnect_max_backoff_s,
+            gyro_source=c.gyro_source,
+            configure_sensor=c.configure_sensor,
             on_sample=on_sample,
             on_raw=(lambda data, ns: rec.serial(ns, data)) if (rec := self.recorder) else None,
         )
@@ -372,6 +376,9 @@ class Daemon:
     def _on_speed(self, s: SpeedSample) -> None:
         if s.valid:  # an invalid reading is not a fresh speed
             self.last_arrival["speed"] = s.t
+            self.stream_notes.pop("speed", None)
+        else:
+            self.stream_notes["speed"] = (s.t, invalid_detail(s))
         self.counts["speed" if s.valid else "speed_invalid"] += 1
         self.buffer.push(Stream.SPEED, s)
 
@@ -549,7 +556,7 @@ class Daemon:
                 if now >= self._next_pose_save and pipe.localizer.localized and not self.fault:
                     self._next_pose_save = now + 0.1
                     self._queue_pose_save(pipe)
-        stale = self.gate.stale(now, self.last_arrival)
+        stale = self.gate.stale(now, self.last_arrival, self.stream_notes)
         d = self.gate.decide(
             now,
             self.mode,

@@ -48,14 +48,30 @@ class PermitGate:
         self.current = Decision(False, State.UNKNOWN, Reason.NOT_MOWING, "starting")
         self.changes = 0
 
-    def stale(self, now: float, last_arrival: dict[str, float | None]) -> tuple[str, str] | None:
-        """The first stream silent for longer than its limit: (stream, detail)."""
+    def stale(
+        self,
+        now: float,
+        last_arrival: dict[str, float | None],
+        notes: dict[str, tuple[float, str]] | None = None,
+    ) -> tuple[str, str] | None:
+        """The first stream with no good data for longer than its limit: (stream, detail).
+
+        ``notes``: per stream, the arrival time and the device's own word for why its newest
+        data is not usable (``speed sensor reports not available (GBSD from 0x47)``); while it
+        is recent, it is the detail instead of "silent"."""
         for name, limit in self.stale_limits_s.items():
             last = last_arrival.get(name)
+            if last is not None and now - last <= limit:
+                continue
+            note = (notes or {}).get(name)
+            if note is not None and last is not None and note[0] < last:
+                note = None  # good data came after it
+            if note is not None and now - note[0] <= limit:
+                return name, note[1]
+            said = f"; last heard {now - note[0]:.1f} s ago: {note[1]}" if note else ""
             if last is None:
-                return name, f"no {name} data yet"
-            if now - last > limit:
-                return name, f"{name} silent for {now - last:.3f} s (limit {limit} s)"
+                return name, f"no {name} data yet{said}"
+            return name, f"{name} silent for {now - last:.3f} s (limit {limit} s){said}"
         return None
 
     def decide(
