@@ -25,6 +25,10 @@ from typing import Any
 import yaml
 
 EX_CONFIG = 78  # sysexits.h: configuration error
+#: the mirror-up camera of the paper: camera z along body −z, image centre at nadir
+DEFAULT_Q_BC = (0.0, 1.0, 0.0, 0.0)
+#: camera.q_bc and a calibration's T_cam_imu may differ by this much (deg)
+EXTRINSICS_TOLERANCE_DEG = 1.0
 
 VN100_BAUDRATES = (9600, 19200, 38400, 57600, 115200, 128000, 230400, 460800, 921600)
 VN100_RATES_HZ = (1, 2, 4, 5, 8, 10, 16, 20, 25, 40, 50, 80, 100, 160, 200, 400, 800)
@@ -179,9 +183,19 @@ class CameraConfig:
     calibration: Path = opt(
         Path("camera/paper-table1.yaml"), "Kalibr camchain YAML (omni + radtan)", exists=True
     )
-    q_bc: Quat = opt(
-        (0.0, 1.0, 0.0, 0.0),
-        "camera (Mei) frame in the body frame, (w, x, y, z); mirror up, image centre at nadir",
+    camchain_key: str = opt("cam0", "which camera of the camchain (cam0, cam1, …)", nonempty=True)
+    extrinsics: str = opt(
+        "calibration",
+        "where the camera's rotation in the body frame comes from: calibration (the camchain's "
+        "T_cam_imu with imu.q_bi; camera.q_bc, if also given, must agree within "
+        f"{EXTRINSICS_TOLERANCE_DEG}°; a camchain without T_cam_imu uses camera.q_bc) or config "
+        "(camera.q_bc, whatever the camchain says)",
+        choices=("calibration", "config"),
+    )
+    q_bc: Quat | None = opt(
+        None,
+        "camera (Mei) frame in the body frame, (w, x, y, z); null: from the calibration's "
+        f"T_cam_imu, else {DEFAULT_Q_BC} (mirror up, image centre at nadir)",
         unit_norm=True,
     )
     stale_after_s: float = opt(1.0, "halt when no frame for this long", gt=0.0, le=30.0)
@@ -537,7 +551,20 @@ def config_from_dict(raw: Any, base_dir: Path | None = None, source: str | None 
         problems.extend(_cross_checks(cfg))
     if problems:
         raise ConfigError(problems, source)
+    cfg = _resolve_camera_rotation(cfg)
     return dataclasses.replace(cfg, source=Path(source) if source else None)
+
+
+def _resolve_camera_rotation(cfg: Config) -> Config:
+    """The config with ``camera.q_bc`` set from its source (see :func:`camera_rotation`), so
+    everything downstream reads one value."""
+    t_cam_imu = None
+    if cfg.camera.extrinsics == "calibration" and cfg.camera.calibration.exists():
+        from mowerhw.camera import load_camchain
+
+        t_cam_imu = load_camchain(cfg.camera.calibration, cfg.camera.camchain_key).T_cam_imu
+    q_bc = camera_rotation(cfg, t_cam_imu)
+    return dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, q_bc=q_bc))
 
 
 def _cross_checks(cfg: Config) -> list[str]:
@@ -558,7 +585,7 @@ def _cross_checks(cfg: Config) -> list[str]:
         from mowerhw.camera import CameraCalibrationError, load_camchain
 
         try:
-            cam = load_camchain(cal)
+            cam = load_camchain(cal, cfg.camera.camchain_key)
         except CameraCalibrationError as exc:
             problems.append(f"camera.calibration: {exc}")
         else:
@@ -567,7 +594,42 @@ def _cross_checks(cfg: Config) -> list[str]:
                     f"camera.width/height: {cfg.camera.width}x{cfg.camera.height} does not match "
                     f"the calibration's resolution {cam.width}x{cam.height} ({cal})"
                 )
+            try:
+                camera_rotation(cfg, cam.T_cam_imu)
+            except ValueError as exc:
+                problems.append(str(exc))
     return problems
+
+
+def camera_rotation(cfg: Config, t_cam_imu: Any = None) -> Quat:
+    """The camera's rotation in the body frame, ``q_bc`` (w, x, y, z), from its one source
+    (``camera.extrinsics``): the calibration's ``T_cam_imu`` (p_cam = T p_imu) composed with
+    ``imu.q_bi``, or ``camera.q_bc``. Raises ValueError naming both on a conflict."""
+    import numpy as np
+
+    from mowerhw.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
+
+    c = cfg.camera
+    given = c.q_bc
+    if c.extrinsics == "config" or t_cam_imu is None:
+        return given if given is not None else DEFAULT_Q_BC
+    r_ci = np.asarray(t_cam_imu, dtype=np.float64)[:3, :3]
+    q_ic = rotmat_to_quat(r_ci.T)
+    q = quat_multiply(np.asarray(cfg.imu.q_bi, dtype=np.float64), q_ic)
+    q = q if q[0] >= 0 else -q
+    derived: Quat = (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+    if given is not None:
+        r_diff = quat_to_rotmat(np.asarray(given)).T @ quat_to_rotmat(q)
+        angle = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(r_diff) - 1.0) / 2.0))))
+        if angle > EXTRINSICS_TOLERANCE_DEG:
+            shown = ", ".join(f"{v:.4f}" for v in derived)
+            raise ValueError(
+                f"camera.q_bc: {list(given)} differs by {angle:.1f}° from the camera rotation "
+                f"the calibration gives ({shown}: T_cam_imu of {c.camchain_key} in "
+                f"{c.calibration} with imu.q_bi); remove camera.q_bc to use the calibration, "
+                "or set camera.extrinsics: config to use camera.q_bc"
+            )
+    return derived
 
 
 def load_config(path: str | Path) -> Config:

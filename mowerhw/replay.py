@@ -95,7 +95,7 @@ class Replay:
         cfg = self.config
         from mowerhw.camera import load_camchain
 
-        self.camera = load_camchain(cfg.camera.calibration)
+        self.camera = load_camchain(cfg.camera.calibration, cfg.camera.camchain_key)
         self.r_bi = quat_to_rotmat(np.asarray(cfg.imu.q_bi, dtype=np.float64))
         self.buffer = SensorBuffer(capacity={TRACKS: 16})
         self.gate = PermitGate.from_config(cfg)

@@ -79,6 +79,8 @@ class _VisionBase:
         self.rotations = RotationHistory()
         self.stats = VisionStats()
         self._t_prev: float | None = None
+        # Kalibr's camera-to-IMU time shift: t_imu = t_cam + shift (calibrations without one: 0)
+        self.time_shift_s = float(getattr(camera, "timeshift_cam_imu", 0.0))
 
     def imu(self, t: float, gyro_xyz: Any) -> None:
         self.rotations.add(t, gyro_xyz)
@@ -90,6 +92,7 @@ class _VisionBase:
     def prepare(self, t: float) -> FloatArray | None:
         """The gyro's body rotation from the previous frame to the one taken at ``t`` (call on
         the estimator's thread: it reads the IMU history)."""
+        t = t + self.time_shift_s
         r = None
         if self._t_prev is not None:
             r = self.rotations.rotation_between(self._t_prev, t)
@@ -98,8 +101,9 @@ class _VisionBase:
 
     def track(self, t: float, image: NDArray[np.uint8], r_prev_cur: FloatArray | None):
         """Detection and tracking, the costly part: touches only the front end, so a runtime
-        may run it on a worker thread (one frame at a time)."""
-        tracks = self.frontend.process(t, image, r_prev_cur)
+        may run it on a worker thread (one frame at a time). ``t`` is the camera's capture
+        time; the tracks carry it on the IMU's clock (``timeshift_cam_imu`` applied)."""
+        tracks = self.frontend.process(t + self.time_shift_s, image, r_prev_cur)
         self.stats.frames += 1
         self.stats.tracks_per_frame.append(int(tracks.ids.size))
         self.stats.frontend_ms.append(tracks.ms)

@@ -16,7 +16,7 @@ from mowerhw.camera import (
     paper_table1_camera,
     save_camchain,
 )
-from mowerhw.camera_check import angle_between, check_against_opencv, sample_valid_pixels
+from mowerhw.camera.check import angle_between, check_against_opencv, sample_valid_pixels
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 TABLE1 = CONFIGS / "camera" / "paper-table1.yaml"
@@ -192,3 +192,218 @@ def test_missing_or_unparsable_camchain(tmp_path):
     (tmp_path / "other.yaml").write_text("cam1: {}\n")
     with pytest.raises(CameraCalibrationError, match="no 'cam0' entry"):
         load_camchain(tmp_path / "other.yaml")
+
+
+# ---------------------------------------------------------------- any Mei lens (ξ up to 3+)
+
+
+def fisheye(xi: float, **kw) -> OmniRadtanCamera:
+    """A wide lens fitted with the Mei model (ξ > 1), as Kalibr fits fisheyes: 640x480."""
+    base = dict(fu=xi * 230.0, fv=xi * 230.0, cu=322.0, cv=238.0, k1=0.2, k2=-0.6, p1=0.003)
+    base.update(kw)
+    return OmniRadtanCamera(xi=xi, p2=0.0004, width=640, height=480, **base)
+
+
+@pytest.mark.parametrize("xi", [0.5, 1.0, 1.5, 2.0, 2.5, 3.0])
+def test_valid_pixels_always_lift_and_others_are_refused(xi):
+    """valid ⇔ lift finite and project(lift) back: over every pixel of the image."""
+    cam = fisheye(xi)
+    v, u = np.mgrid[0:480:2, 0:640:2]
+    pix = np.stack([u.ravel(), v.ravel()], 1).astype(float)
+    ok = cam.valid(pix)
+    bearings = cam.lift(pix)
+    finite = np.all(np.isfinite(bearings), axis=1)
+    assert np.array_equal(ok, finite)  # no valid pixel without a bearing, no bearing refused
+    assert ok.mean() > 0.15
+    back = cam.project(bearings[ok])
+    assert np.abs(back - pix[ok]).max() < 1e-6
+    polar = np.arccos(np.clip(bearings[ok, 2], -1, 1))
+    assert polar.max() <= cam.fold_angle + 1e-9
+
+
+@pytest.mark.parametrize("xi", [1.5, 2.0, 3.0])
+def test_rays_beyond_the_fold_are_not_imaged(xi):
+    cam = fisheye(xi, k1=0.0, k2=0.0, p1=0.0)
+    fold = np.arccos(-1.0 / xi)  # ρ(θ) turns back here: two directions, one pixel
+    for theta, imaged in [(fold - 0.05, True), (fold + 0.01, False), (fold + 0.3, False)]:
+        ray = np.array([[np.sin(theta), 0.0, np.cos(theta)]])
+        pix, ok = cam.visible(ray)
+        assert bool(np.all(np.isfinite(pix))) == imaged and ok[0] == (imaged and cam.valid(pix)[0])
+    # beyond the fold the model would give a pixel another direction owns
+    a, b = fold - 0.3, fold + 0.3
+    rho = lambda t: np.sin(t) / (np.cos(t) + xi)  # noqa: E731
+    assert rho(a) == pytest.approx(rho(b), rel=0.05)  # (what the fold check prevents)
+
+
+def test_distortion_fold_is_refused_both_ways():
+    """A strong barrel term turns r(1 + k1 r²) back: no pixel beyond it, no ray past it."""
+    cam = OmniRadtanCamera(0.8, 300, 300, 320, 240, -0.6, 0.0, 0, 0, 640, 480)
+    r_star = np.sqrt(1.0 / (3 * 0.6))  # d/dr of r(1 - 0.6 r²) is 0 here
+    m = np.array([[r_star * 1.2, 0.0]])  # beyond: distorted back inside, folded branch
+    assert not cam.one_to_one(m)[0]
+    md = cam.distort(m)
+    assert np.all(np.isnan(cam.undistort(md)) | (np.abs(cam.undistort(md)) < r_star))
+    far = np.array([[0.9, 0.0, 0.1]])  # its m is beyond r*: refused
+    assert np.all(np.isnan(cam.project(far)))
+
+
+def test_camera_info_is_never_nan_and_json_is_strict(tmp_path, capsys):
+    import json
+
+    from mowerhw.cli import main
+
+    path = tmp_path / "fisheye.yaml"
+    save_camchain({"cam0": fisheye(2.9), "cam1": fisheye(1.2)}, path)
+    assert main(["camera", "info", "--calibration", str(path), "--camera", "all"]) == 0
+    text = capsys.readouterr().out
+    import re
+
+    assert not re.search(r"\bnan\b", text.lower()) and text.count("calibration  ") == 2
+    assert main(["camera", "info", "--calibration", str(path), "--camera", "cam0", "--json"]) == 0
+
+    def refuse(token):
+        raise AssertionError(f"non-strict JSON constant {token}")
+
+    report = json.loads(capsys.readouterr().out, parse_constant=refuse)
+    fov = report["field_of_view"]
+    assert fov["polar_angle_max_deg"] <= fov["model_limit_deg"] < 180.0
+    assert main(["camera", "info", "--calibration", str(path), "--camera", "cam7"]) == 78
+    assert "no 'cam7' entry (found: cam0, cam1" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------- Kalibr camchain keys
+
+
+def test_skew_is_read_written_and_kept_only_when_it_matters(tmp_path):
+    cam = fisheye(1.1, fu=300.0, fv=301.0)
+    skewed = OmniRadtanCamera(**{**cam.__dict__, "skew": -0.002})
+    for c, kept in ((skewed, True), (OmniRadtanCamera(**{**cam.__dict__, "skew": 1e-9}), False)):
+        path = tmp_path / "c.yaml"
+        save_camchain(c, path)
+        assert ("skew" in yaml.safe_load(path.read_text())["cam0"]) == kept
+        back = load_camchain(path)
+        assert back.skew == (c.skew if kept else 0.0)
+    # skew as OpenCV has it: K[0, 1] = skew · fu
+    assert skewed.K[0, 1] == pytest.approx(-0.002 * 300.0)
+    pts = np.array([[0.2, -0.3, 1.0], [-0.5, 0.4, 0.6]])
+    import cv2
+
+    cv_pix, _ = cv2.omnidir.projectPoints(
+        pts.reshape(1, -1, 3), np.zeros(3), np.zeros(3), skewed.K, skewed.xi, skewed.D
+    )
+    assert np.abs(cv_pix.reshape(-1, 2) - skewed.project(pts)).max() < 1e-9
+
+
+def test_kalibr_extra_keys_time_shift_and_camera_choice(tmp_path):
+    doc = {
+        "cam0": {**fisheye(2.0).to_kalibr(), "rostopic": "/fisheye1", "cam_overlaps": [1]},
+        "cam1": {
+            **fisheye(2.07, cu=300.0).to_kalibr(),
+            "T_cn_cnm1": np.eye(4).tolist(),
+            "timeshift_cam_imu": 0.0045,
+            "rostopic": "/fisheye2",
+        },
+    }
+    path = tmp_path / "chain.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    assert load_camchain(path, "cam1").cu == 300.0
+    assert load_camchain(path, "cam1").timeshift_cam_imu == 0.0045
+    doc["cam1"]["T_cn_cnm1"] = [[1, 0], [0, 1]]
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(CameraCalibrationError, match=r"cam1\.T_cn_cnm1"):
+        load_camchain(path, "cam1")
+
+
+def test_time_shift_moves_frame_times_onto_the_imu_clock():
+    from mowerhw.vision import TeachVision
+
+    class _Teacher:  # the vision layer only needs somewhere to put bearings
+        pass
+
+    cam = OmniRadtanCamera(**{**fisheye(1.5).__dict__, "timeshift_cam_imu": 0.004})
+    vision = TeachVision(_Teacher(), cam)
+    tracks = vision.track(10.0, np.zeros((480, 640), np.uint8), None)
+    assert tracks.t == pytest.approx(10.004)
+
+
+def test_config_takes_the_camera_rotation_from_t_cam_imu(tmp_path):
+    from mowerhw.config import ConfigError, config_from_dict
+
+    t = np.eye(4)
+    t[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # camera yawed 90° from the IMU
+    cam = OmniRadtanCamera(**{**fisheye(1.6).__dict__, "T_cam_imu": t})
+    path = tmp_path / "chain.yaml"
+    save_camchain({"cam0": fisheye(1.0), "cam1": cam}, path)
+    base = {
+        "camera": {"calibration": str(path), "camchain_key": "cam1", "width": 640, "height": 480},
+        "imu": {"q_bi": [1, 0, 0, 0]},
+    }
+    cfg = config_from_dict(base)
+    from mowerhw.geometry import quat_to_rotmat
+
+    assert np.allclose(quat_to_rotmat(cfg.camera.q_bc), t[:3, :3].T, atol=1e-12)  # R_bc = R_ci^T
+    agrees = {**base, "camera": {**base["camera"], "q_bc": list(cfg.camera.q_bc)}}
+    assert config_from_dict(agrees).camera.q_bc == pytest.approx(cfg.camera.q_bc)
+    conflict = {**base, "camera": {**base["camera"], "q_bc": [0, 1, 0, 0]}}
+    with pytest.raises(ConfigError, match=r"camera.q_bc: .* differs by 180.0° .*camera.extrinsics"):
+        config_from_dict(conflict)
+    override = {**base, "camera": {**conflict["camera"], "extrinsics": "config"}}
+    assert config_from_dict(override).camera.q_bc == (0, 1, 0, 0)
+    no_t = {"camera": {**base["camera"], "camchain_key": "cam0"}}
+    assert config_from_dict(no_t).camera.q_bc == (0.0, 1.0, 0.0, 0.0)  # the mirror-up default
+    missing = {"camera": {**base["camera"], "camchain_key": "cam2"}}
+    with pytest.raises(ConfigError, match="no 'cam2' entry"):
+        config_from_dict(missing)
+
+
+# ------------------------------------------------------------------ real third-party data
+
+
+def _load_tool(name: str):
+    import importlib.util
+
+    path = Path(__file__).resolve().parent.parent / "tools" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+real_cameras = _load_tool("check_real_cameras")
+
+
+@pytest.mark.skipif(
+    not real_cameras.T265.exists(), reason=f"no T265 camchain at {real_cameras.T265}"
+)
+def test_real_t265_camchain_both_cameras_and_the_factory_model():
+    """A real Kalibr camchain (ξ 2.00 / 2.07, two cameras, T_cam_imu, extra keys) loads; its
+    Mei calibration and the factory Kannala–Brandt one of the same lens agree to a few px."""
+    res = real_cameras.mei_vs_factory(max_deg=55.0)
+    print(res)
+    assert [r["camera"] for r in res] == ["cam0", "cam1"]
+    for r in res:
+        assert r["xi"] > 2.0 and r["max_px_diff_to_55deg"] < 5.0
+        assert r["polar_deg_range"][1] < 120.0  # stops before the fold (acos(-1/ξ) ≈ 120°)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    not real_cameras.MIRROR.exists(), reason=f"no mirror photos at {real_cameras.MIRROR}"
+)
+def test_calibrate_the_real_mirror_camera(tmp_path):
+    """`mowerhw camera calibrate` on 18 real catadioptric photos (9x6 corners)."""
+    report = real_cameras.calibrate_mirror(tmp_path)
+    print({k: v for k, v in report.items() if k != "views"})
+    assert report["rms_px"] <= 0.45 and report["views_used"] == 17
+    assert [v["image"] for v in report["views"] if not v["used"]] == ["18.jpg"]
+    ann = report["region"]["annulus"]
+    assert 515 < ann["outer_radius_px"] < 535 and 60 < ann["inner_radius_px"] < 80
+    assert abs(ann["center_px"][0] - 630) < 6 and abs(ann["center_px"][1] - 434) < 6
+    check = report["model_check"]
+    assert check["project_vs_opencv_px_max"] < 1e-6
+    assert check["opencv_converged_fraction"] == 1.0
+    assert check["lift_vs_opencv_px_max_where_opencv_converged"] < 1e-6
+    cam = report["camera"]
+    assert cam["xi"] == pytest.approx(0.958, abs=0.01) and cam["skew_px"] == pytest.approx(
+        -0.76, abs=0.1
+    )

@@ -12,7 +12,7 @@ import json
 import time
 
 from mowerhw.camera import paper_table1_camera
-from mowerhw.camera_check import sample_valid_pixels
+from mowerhw.camera.check import sample_valid_pixels
 
 
 def timed(fn, repeat: int) -> float:

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
+
+from mowerhw.cli.common import strict_json
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -60,6 +61,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
         record=args.record,
     )
     result = bench.run()
-    print(json.dumps(result, indent=None if args.json else 2))
+    print(strict_json(result, indent=None if args.json else 2))
     ok = result.get("missed_halts") == 0
     return 0 if ok else 1

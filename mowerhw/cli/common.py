@@ -34,8 +34,30 @@ def report_config_error(exc: ConfigError) -> None:
     print(f"mowerhw: invalid configuration\n{exc}", file=sys.stderr)
 
 
-def print_json(obj: Any) -> None:
-    print(json.dumps(obj, indent=2, sort_keys=False, default=_json_default))
+def print_json(obj: Any, indent: int | None = 2) -> None:
+    """Print ``obj`` as strict JSON (RFC 8259): NaN and infinities become null."""
+    print(strict_json(obj, indent))
+
+
+def strict_json(obj: Any, indent: int | None = None) -> str:
+    """``obj`` as strict JSON text: numpy values converted, non-finite numbers as null."""
+    return json.dumps(_finite(obj), indent=indent, allow_nan=False, default=_json_default)
+
+
+def _finite(value: Any) -> Any:
+    import math
+
+    import numpy as np
+
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _finite(value.tolist())
+    return value
 
 
 def _json_default(value: Any) -> Any:

@@ -24,10 +24,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _camera_section(cfg: Any) -> dict[str, Any]:
     from mowerhw.camera import load_camchain
-    from mowerhw.camera_check import angle_between, check_against_opencv, field_of_view
+    from mowerhw.camera.check import angle_between, check_against_opencv, field_of_view
     from mowerhw.geometry import quat_to_rotmat
 
-    cam = load_camchain(cfg.camera.calibration)
+    cam = load_camchain(cfg.camera.calibration, cfg.camera.camchain_key)
     # Landmarks around the mower: a ring of window corners 8 m away, 1 m above the camera.
     az = np.linspace(0.0, 2 * np.pi, 12, endpoint=False)
     pts_b = np.stack([8 * np.cos(az), 8 * np.sin(az), np.ones_like(az)], axis=-1)

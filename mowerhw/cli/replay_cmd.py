@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from mowerhw.cli.common import load_config_or_exit
+from mowerhw.cli.common import load_config_or_exit, strict_json
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -64,7 +63,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return 1
     if "warning" in out:
         print(f"mowerhw replay: warning: {out['warning']}", file=sys.stderr)
-    print(json.dumps(out, indent=None if args.json else 2))
+    print(strict_json(out, indent=None if args.json else 2))
     return 0
 
 

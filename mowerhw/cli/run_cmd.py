@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
 
-from mowerhw.cli.common import add_config_argument, load_config_or_exit
+from mowerhw.cli.common import add_config_argument, load_config_or_exit, strict_json
 from mowerhw.runtime.control import COMMANDS
 
 
@@ -94,7 +93,7 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         print(f"mowerhw ctl: cannot reach the daemon at {sock}: {exc}", file=sys.stderr)
         return 1
     if args.json or args.command == "status":
-        print(json.dumps(reply, indent=2))
+        print(strict_json(reply, indent=2))
     else:
-        print(reply.get("error") or json.dumps(reply))
+        print(reply.get("error") or strict_json(reply))
     return 0 if reply.get("ok") else 1

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from mowerhw.cli.common import add_config_argument, load_config_or_exit, print_json
+from mowerhw.cli.common import add_config_argument, load_config_or_exit, print_json, strict_json
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -127,9 +126,9 @@ def _teach(args: argparse.Namespace) -> int:
 
             metrics["figures"] = [str(f) for f in teach_figures(outcome, out)]
     out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    (out / "metrics.json").write_text(strict_json(metrics, indent=1) + "\n")
     if args.json:
-        print(json.dumps(metrics))
+        print(strict_json(metrics))
     else:
         print_json(metrics)
     if not args.json and metrics.get("error"):
@@ -235,9 +234,9 @@ def _mow(args: argparse.Namespace) -> int:
 
         metrics["figures"] = [str(f) for f in mow_figures(outcome, out)]
     out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    (out / "metrics.json").write_text(strict_json(metrics, indent=1) + "\n")
     if args.json:
-        print(json.dumps(metrics))
+        print(strict_json(metrics))
     else:
         print_json(metrics)
     return 0 if metrics["missed_halts"] == 0 else 1

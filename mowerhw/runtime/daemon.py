@@ -84,7 +84,7 @@ class Daemon:
         if self.start_mode not in MODES:
             raise ValueError(f"mode {self.start_mode!r} is not one of {', '.join(MODES)}")
         self.mode = "idle"
-        self.camera_model = load_camchain(config.camera.calibration)
+        self.camera_model = load_camchain(config.camera.calibration, config.camera.camchain_key)
         self.r_bi = quat_to_rotmat(np.asarray(config.imu.q_bi, dtype=np.float64))
         self.buffer = SensorBuffer(capacity={TRACKS: 16})
         self.gate = PermitGate.from_config(config)

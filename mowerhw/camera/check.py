@@ -10,15 +10,17 @@ from typing import Any
 
 import numpy as np
 
-from mowerhw.camera import OmniRadtanCamera
+from mowerhw.camera.model import OmniRadtanCamera
 from mowerhw.geometry import FloatArray, quat_to_rotmat
 
 
 def sample_valid_pixels(cam: OmniRadtanCamera, n: int, seed: int = 0) -> FloatArray:
-    """``n`` pixels drawn uniformly over the valid area (annulus ∩ image)."""
+    """``n`` pixels drawn uniformly over the valid region (fewer if it is tiny or empty)."""
     rng = np.random.default_rng(seed)
     out = np.empty((0, 2))
-    while out.shape[0] < n:
+    for _ in range(50):
+        if out.shape[0] >= n:
+            break
         pix = rng.uniform([0.0, 0.0], [cam.width - 1.0, cam.height - 1.0], size=(2 * n, 2))
         out = np.concatenate([out, pix[cam.valid(pix)]])
     return out[:n]
@@ -29,18 +31,30 @@ def angle_between(a: FloatArray, b: FloatArray) -> FloatArray:
     return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i->...", a, b))
 
 
-def field_of_view(cam: OmniRadtanCamera, q_bc: Any = (1.0, 0.0, 0.0, 0.0)) -> dict[str, float]:
-    """Polar-angle range of the annulus and the elevation range it gives in the body frame."""
+def field_of_view(cam: OmniRadtanCamera, q_bc: Any = (1.0, 0.0, 0.0, 0.0)) -> dict[str, Any]:
+    """What the valid region sees: the polar-angle range of its bearings (from the camera
+    axis), the elevation range they give in the body frame, its radii around the principal
+    point and its share of the image. Measured on valid pixels, so always finite."""
     pix = sample_valid_pixels(cam, 20000, seed=1)
-    bearings_b = cam.lift(pix) @ quat_to_rotmat(q_bc).T
+    if pix.shape[0] == 0:
+        return {"valid_pixel_fraction": 0.0}
+    rays = cam.lift(pix)
+    bearings_b = rays @ quat_to_rotmat(q_bc).T
     elevation = np.degrees(np.arcsin(np.clip(bearings_b[:, 2], -1.0, 1.0)))
-    inner = cam.mask.inner_radius_px if cam.mask else 0.0
-    outer = cam.mask.outer_radius_px if cam.mask else min(cam.width, cam.height) / 2
+    polar = np.degrees(np.arccos(np.clip(rays[:, 2], -1.0, 1.0)))
+    radius = np.hypot(pix[:, 0] - cam.cu, pix[:, 1] - cam.cv)
     return {
-        "inner_radius_px": inner,
-        "outer_radius_px": outer,
-        "polar_angle_min_deg": float(np.degrees(cam.polar_angle_of_radius(inner))),
-        "polar_angle_max_deg": float(np.degrees(cam.polar_angle_of_radius(outer))),
+        "mask": None
+        if cam.mask is None
+        else {
+            "center_px": list(cam.mask.center_px),
+            "inner_radius_px": cam.mask.inner_radius_px,
+            "outer_radius_px": cam.mask.outer_radius_px,
+        },
+        "radius_px_range": [float(radius.min()), float(radius.max())],
+        "polar_angle_min_deg": float(polar.min()),
+        "polar_angle_max_deg": float(polar.max()),
+        "model_limit_deg": float(np.degrees(cam.fold_angle)),
         "elevation_min_deg": float(elevation.min()),
         "elevation_max_deg": float(elevation.max()),
         "valid_pixel_fraction": float(cam.valid(_all_pixels(cam, step=8)).mean()),
@@ -98,13 +112,17 @@ def check_against_opencv(
     lift_px = np.linalg.norm(cam.project(cv_bearing) - cam.project(ours), axis=-1)
     lift_ang = angle_between(cv_bearing, ours)
     radius = np.linalg.norm(pix - [cam.cu, cam.cv], axis=-1)
+
+    def worst(values: FloatArray) -> float:
+        return float(values.max()) if values.size else 0.0
+
     return {
-        "points": int(n),
+        "points": int(pix.shape[0]),
         "roundtrip_px_max": float(roundtrip.max()),
         "roundtrip_bearing_rad_max": float(angle_between(cam.lift(cam.project(ours)), ours).max()),
         "project_vs_opencv_px_max": float(project_err.max()),
-        "lift_vs_opencv_px_max_where_opencv_converged": float(lift_px[converged].max()),
-        "lift_vs_opencv_rad_max_where_opencv_converged": float(lift_ang[converged].max()),
+        "lift_vs_opencv_px_max_where_opencv_converged": worst(lift_px[converged]),
+        "lift_vs_opencv_rad_max_where_opencv_converged": worst(lift_ang[converged]),
         "opencv_converged_fraction": float(converged.mean()),
         "opencv_unconverged_px_max": float(cv_self_err[~converged].max())
         if (~converged).any()
