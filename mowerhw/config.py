@@ -239,6 +239,11 @@ class FrontendConfig:
         -25.0, "detect nothing lower (grass near the deck is not a landmark)", ge=-90.0, le=90.0
     )
     max_elevation_deg: float = opt(60.0, "detect nothing higher", ge=-90.0, le=90.0)
+    gyro_prediction: bool = opt(
+        True,
+        "start Lucas–Kanade where the gyro's rotation moves each feature, on the previous "
+        "image turned by the same amount (false: from where it was; for comparison)",
+    )
     klt_window_px: int = opt(21, "Lucas–Kanade window (px)", ge=5, le=101)
     klt_levels: int = opt(3, "Lucas–Kanade pyramid levels above full size", ge=0, le=6)
     fb_max_px: float = opt(0.7, "largest forward–backward tracking error kept (px)", gt=0.0)

@@ -251,7 +251,7 @@ class FrontEnd:
         c = self.cfg
         prev = self._prev_pyr
         p0 = self._pts.reshape(-1, 2).copy()
-        guess = self._predict(r21)
+        guess = self._predict(r21) if c.gyro_prediction else p0.copy()
         # Lucas–Kanade follows translations; a turn rotates every patch too (12° per frame
         # at 0.8 rad/s and 4 Hz). Undo the turn on the previous image first, so what is
         # left to track is the parallax of the mower's own travel.
