@@ -199,22 +199,43 @@ class OmniRadtanCamera(CameraModel):
         """Invert :meth:`distort` by Newton's method (vectorised; quadratic convergence).
         NaN where it does not converge, or converges onto the distortion's folded branch."""
         md = np.asarray(md, dtype=np.float64)
-        r2 = np.sum(md * md, axis=-1, keepdims=True)
-        m = md / (1.0 + self.k1 * r2 + self.k2 * r2 * r2)  # one radial step: Newton's start
+        x, y = self._undistort_xy(md[..., 0], md[..., 1], iterations)
+        return np.stack([x, y], axis=-1)
+
+    def _undistort_xy(
+        self, xd: FloatArray, yd: FloatArray, iterations: int = 12
+    ) -> tuple[FloatArray, FloatArray]:
+        """:meth:`undistort` on coordinate arrays (fewer temporaries: this is ``lift``'s
+        inner loop, and a frame's few hundred features make it overhead-bound)."""
+        k1, k2, p1, p2 = self.k1, self.k2, self.p1, self.p2
+        r2 = xd * xd + yd * yd
+        scale = 1.0 / (1.0 + k1 * r2 + k2 * r2 * r2)  # one radial step: Newton's start
+        x, y = xd * scale, yd * scale
         tol = 1e-14  # ≈ 5e-12 px
-        for _ in range(iterations):
-            residual = self.distort(m) - md
-            if not np.any(np.abs(residual) > tol):
+        for _ in range(iterations + 1):
+            xx, yy, xy = x * x, y * y, x * y
+            r2 = xx + yy
+            radial = 1.0 + r2 * (k1 + k2 * r2)
+            ex = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx) - xd
+            ey = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy - yd
+            if not (np.abs(ex).max(initial=0.0) > tol or np.abs(ey).max(initial=0.0) > tol):
                 break
-            j00, j01, j10, j11 = self._distort_jacobian(m)
-            det = j00 * j11 - j01 * j10
-            # Newton step J⁻¹ r with the explicit 2×2 inverse (J is near identity here).
-            step_x = (j11 * residual[..., 0] - j01 * residual[..., 1]) / det
-            step_y = (j00 * residual[..., 1] - j10 * residual[..., 0]) / det
-            m = m - np.stack([step_x, step_y], axis=-1)
-        scale = np.maximum(1.0, np.abs(md))
-        ok = np.all(np.abs(self.distort(m) - md) <= 1e-9 * scale, axis=-1) & self.one_to_one(m)
-        return np.where(ok[..., None], m, np.nan)
+            dradial = 2.0 * k1 + 4.0 * k2 * r2
+            off = dradial * xy + 2.0 * (p1 * x + p2 * y)
+            j00 = radial + dradial * xx + 2.0 * p1 * y + 6.0 * p2 * x
+            j11 = radial + dradial * yy + 6.0 * p1 * y + 2.0 * p2 * x
+            inv_det = 1.0 / (j00 * j11 - off * off)
+            # Newton step J⁻¹ e with the explicit 2×2 inverse (J is symmetric here)
+            x = x - (j11 * ex - off * ey) * inv_det
+            y = y - (j00 * ey - off * ex) * inv_det
+        # converged (the loop's last residual), on the unfolded branch (det J > 0)
+        bound = 1e-9 * np.maximum(1.0, np.maximum(np.abs(xd), np.abs(yd)))
+        dradial = 2.0 * k1 + 4.0 * k2 * r2
+        j00 = radial + dradial * xx + 2.0 * p1 * y + 6.0 * p2 * x
+        j11 = radial + dradial * yy + 6.0 * p1 * y + 2.0 * p2 * x
+        off = dradial * xy + 2.0 * (p1 * x + p2 * y)
+        ok = (np.abs(ex) <= bound) & (np.abs(ey) <= bound) & (j00 * j11 - off * off > 0.0)
+        return np.where(ok, x, np.nan), np.where(ok, y, np.nan)
 
     def normalized_to_pixels(self, md: FloatArray) -> FloatArray:
         u = self.fu * (md[..., 0] + self.skew * md[..., 1]) + self.cu
@@ -251,16 +272,47 @@ class OmniRadtanCamera(CameraModel):
 
     def project(self, points_c: ArrayLike) -> FloatArray:
         pts = np.asarray(points_c, dtype=np.float64)
-        norm = np.linalg.norm(pts, axis=-1, keepdims=True)
-        xs = pts / np.where(norm > 0, norm, np.nan)
-        m = self.sphere_to_normalized(xs)
-        m = np.where(self.one_to_one(m)[..., None], m, np.nan)
-        return self.normalized_to_pixels(self.distort(m))
+        px, py, pz = pts[..., 0], pts[..., 1], pts[..., 2]
+        norm = np.sqrt(px * px + py * py + pz * pz)
+        z = pz / norm  # NaN for a zero vector
+        xi = self.xi
+        ok = z + xi > self.min_denominator
+        if xi > 1.0:
+            ok &= 1.0 + xi * z > self.min_fold_margin
+        inv = np.where(ok, 1.0 / (norm * (z + xi)), np.nan)
+        x, y = px * inv, py * inv
+        k1, k2, p1, p2 = self.k1, self.k2, self.p1, self.p2
+        xx, yy, xy = x * x, y * y, x * y
+        r2 = xx + yy
+        radial = 1.0 + r2 * (k1 + k2 * r2)
+        xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
+        yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
+        # only where the distortion is one-to-one (det ∂distort/∂m > 0)
+        dradial = 2.0 * k1 + 4.0 * k2 * r2
+        off = dradial * xy + 2.0 * (p1 * x + p2 * y)
+        j00 = radial + dradial * xx + 2.0 * p1 * y + 6.0 * p2 * x
+        j11 = radial + dradial * yy + 6.0 * p1 * y + 2.0 * p2 * x
+        keep = j00 * j11 - off * off > 0.0
+        u = np.where(keep, self.fu * (xd + self.skew * yd) + self.cu, np.nan)
+        v = np.where(keep, self.fv * yd + self.cv, np.nan)
+        return np.stack([u, v], axis=-1)
 
     def lift(self, pixels: ArrayLike) -> FloatArray:
         pix = np.asarray(pixels, dtype=np.float64)
-        xs = self.normalized_to_sphere(self.undistort(self.pixels_to_normalized(pix)))
-        return np.where(self.imaged(xs)[..., None], xs, np.nan)
+        yd = (pix[..., 1] - self.cv) * (1.0 / self.fv)
+        xd = (pix[..., 0] - self.cu) * (1.0 / self.fu) - self.skew * yd
+        x, y = self._undistort_xy(xd, yd)
+        # paper eq. (24), NaN past the fold (1 + (1 − ξ²) ρ² < 0 for ξ > 1)
+        rho2 = x * x + y * y
+        xi = self.xi
+        disc = 1.0 + (1.0 - xi * xi) * rho2
+        f = (xi + np.sqrt(np.where(disc >= 0.0, disc, np.nan))) / (rho2 + 1.0)
+        z = f - xi
+        ok = z + xi > self.min_denominator
+        if xi > 1.0:
+            ok &= 1.0 + xi * z > self.min_fold_margin
+        f = np.where(ok, f, np.nan)
+        return np.stack([f * x, f * y, np.where(ok, z, np.nan)], axis=-1)
 
     def in_image(self, pixels: FloatArray) -> BoolArray:
         """Inside the image and the mask (no model check)."""
