@@ -714,6 +714,7 @@ class Vn100:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._low_latency_warned = False
+        self._warned_fields: set[str] = set()
         self._last_t = -math.inf
 
     # -- connection -------------------------------------------------------------------------
@@ -872,6 +873,19 @@ class Vn100:
         if self.on_raw is not None:
             self.on_raw(data, host_ns)
         self._deliver([(item, host_ns) for item in self.parser.feed(data)])
+        self._warn_unknown_fields()
+
+    def _warn_unknown_fields(self) -> None:
+        """A field the sensor sends at its output rate that no manual sizes: say which, once
+        (a few in garbage are noise; ten of the same are the sensor's configuration)."""
+        for name, count in self.parser.stats.unknown_field_bits.items():
+            if count >= 10 and name not in self._warned_fields:
+                self._warned_fields.add(name)
+                log.warning(
+                    "vn100: packets with a field of unknown size (%s) are refused; turn it "
+                    "off in the sensor's binary output register (75-77)",
+                    name,
+                )
 
     def _read_available(self) -> bytes:
         """Wait (up to the port timeout) for data, then take all there is. ``read(4096)``

@@ -840,6 +840,8 @@ class Daemon:
             "halt_latencies": self.halt_latencies[-200:],
             "loop_lag_ms_over_5": self.loop_lag_ms[-50:],
             "imu_driver": vars(self.imu_dev.stats) if self.imu_dev else {},
+            "imu_parser": self.imu_dev.parser.stats.as_dict() if self.imu_dev else {},
+            "imu_messages": vars(self.imu_dev.extractor.stats) if self.imu_dev else {},
             "speed_reader": vars(self.speed_reader.stats),
             "permit_sender": vars(self.sender.stats) if self.sender else {},
             "recording": self.recorder.status() if self.recorder is not None else None,

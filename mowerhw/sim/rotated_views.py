@@ -55,9 +55,7 @@ class RotatedViews:
         idx = np.flatnonzero(self._valid)[held]
         src[idx] = pix[held]
         maps = src.reshape(cam.height, cam.width, 2)
-        return cv2.remap(
-            self.photo, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderValue=0
-        )
+        return cv2.remap(self.photo, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderValue=0)
 
     def truth(self, pixels_j: FloatArray, r_j: FloatArray, r_k: FloatArray) -> FloatArray:
         """Where points seen at ``pixels_j`` in the view rotated by ``r_j`` are in view ``r_k``."""
