@@ -5,6 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from _tools import load_tool
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -359,17 +360,7 @@ def test_config_takes_the_camera_rotation_from_t_cam_imu(tmp_path):
 # ------------------------------------------------------------------ real third-party data
 
 
-def _load_tool(name: str):
-    import importlib.util
-
-    path = Path(__file__).resolve().parent.parent / "tools" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-real_cameras = _load_tool("check_real_cameras")
+real_cameras = load_tool("check_real_cameras")
 
 
 @pytest.mark.skipif(

@@ -1,15 +1,10 @@
 """The vision front end on real photos: detection in the valid region only, and KLT on real
 texture under known rotations (the full run: tools/bench_klt_real.py)."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
+from _tools import load_tool
 
-_path = Path(__file__).resolve().parent.parent / "tools" / "bench_klt_real.py"
-_spec = importlib.util.spec_from_file_location("bench_klt_real", _path)
-klt = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(klt)
+klt = load_tool("bench_klt_real")
 
 needs_photos = pytest.mark.skipif(
     not klt.PHOTOS.exists(), reason=f"real mirror photos not present ({klt.PHOTOS})"

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import can
 import pytest
+from _tools import load_tool
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -520,17 +521,7 @@ def test_a_failing_bus_is_counted_not_raised():
 # --- a real tractor's bus --------------------------------------------------------------------
 
 
-def _load_tool(name: str):
-    import importlib.util
-
-    path = Path(__file__).resolve().parent.parent / "tools" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-real_can = _load_tool("check_real_can")
+real_can = load_tool("check_real_can")
 TRACTOR_LOGS = sorted(real_can.LOGS.glob("*.log")) if real_can.LOGS.exists() else []
 
 

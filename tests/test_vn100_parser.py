@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _tools import load_tool
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -295,17 +296,7 @@ def test_imu_samples_from_packets():
 # ------------------------------------------------------------ the whole binary protocol
 
 
-def _load_tool(name: str):
-    import importlib.util
-
-    path = Path(__file__).resolve().parent.parent / "tools" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-real_vn100 = _load_tool("check_real_vn100")
+real_vn100 = load_tool("check_real_vn100")
 needs_real_log = pytest.mark.skipif(
     not real_vn100.LOGS.exists(), reason=f"real VN-100 log not present ({real_vn100.LOGS})"
 )

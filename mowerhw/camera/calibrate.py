@@ -118,7 +118,6 @@ class Calibration:
         return [v for v in self.views if v.used]
 
     def as_dict(self) -> dict[str, Any]:
-        cam = self.camera
         return {
             "rms_px": round(self.rms_px, 4),
             "views_used": len(self.used),
@@ -126,16 +125,7 @@ class Calibration:
             "image_size": list(self.image_size),
             "pattern": f"{self.pattern[0]}x{self.pattern[1]}",
             "square_m": self.square_m,
-            "camera": {
-                "xi": cam.xi,
-                "fu": cam.fu,
-                "fv": cam.fv,
-                "cu": cam.cu,
-                "cv": cam.cv,
-                "skew": cam.skew,
-                "skew_px": cam.skew * cam.fu,
-                "distortion": [cam.k1, cam.k2, cam.p1, cam.p2],
-            },
+            "camera": self.camera.intrinsics(),
             "region": self.region.as_dict(),
             "coverage": self.coverage,
             "views": [v.as_dict() for v in self.views],

@@ -353,6 +353,22 @@ class OmniRadtanCamera(CameraModel):
         ang_v = np.arccos(np.clip(np.einsum("...i,...i->...", b0, dv), -1, 1)) / h
         return sigma_px * np.sqrt(0.5 * (ang_u**2 + ang_v**2))
 
+    def intrinsics(self) -> dict[str, object]:
+        """The calibration's numbers, for reports (skew also in pixels, as OpenCV's K[0,1])."""
+        return {
+            "model": "omni (Mei) + radtan",
+            "resolution": [self.width, self.height],
+            "xi": self.xi,
+            "fu": self.fu,
+            "fv": self.fv,
+            "cu": self.cu,
+            "cv": self.cv,
+            "skew": self.skew,
+            "skew_px": self.skew * self.fu,
+            "distortion": [self.k1, self.k2, self.p1, self.p2],
+            "timeshift_cam_imu_s": self.timeshift_cam_imu,
+        }
+
     def with_mask(self, mask: Annulus | None) -> OmniRadtanCamera:
         return replace(self, mask=mask)
 
