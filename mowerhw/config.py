@@ -102,6 +102,21 @@ class ImuConfig:
     rate_hz: int = opt(
         100, "IMU output rate (800 Hz divided by a whole number)", choices=VN100_RATES_HZ
     )
+    grade: str = opt(
+        "vn100",
+        "the gyro's grade: its noise figures (below, when null) come from its datasheet; "
+        "measure your own unit with `mowerhw imu characterize`",
+        choices=("vn100", "bmi088", "mpu6050"),
+    )
+    gyro_noise_density: float | None = opt(
+        None, "white noise (angle random walk), rad/s/√Hz; null: the grade's", gt=0.0, le=0.1
+    )
+    gyro_bias_instability: float | None = opt(
+        None, "bias instability (the Allan floor), rad/s; null: the grade's", ge=0.0, le=0.1
+    )
+    gyro_random_walk: float | None = opt(
+        None, "rate random walk, rad/s/√s; null: the grade's", ge=0.0, le=0.01
+    )
     gyro_source: str = opt(
         "auto",
         "where the angular rate comes from: angular_rate (Common/IMU AngularRate, "
@@ -289,8 +304,12 @@ class TeachConfig:
     )
     standstill_s: float = opt(2.0, "initial standstill used to calibrate the gyro bias", ge=0.0)
     bearing_sigma_rad: float = opt(0.008, "bearing noise (1σ per axis)", gt=0.0, lt=0.5)
-    gyro_noise: float = opt(1e-4, "gyro white noise density, rad/s/√Hz (VN-100: 6e-5)", gt=0.0)
-    gyro_bias_walk: float = opt(2e-6, "gyro bias random walk, rad/s²/√Hz", ge=0.0)
+    gyro_noise: float | None = opt(
+        None, "estimator's gyro white noise, rad/s/√Hz; null: from the imu section", gt=0.0
+    )
+    gyro_bias_walk: float | None = opt(
+        None, "estimator's gyro bias random walk, rad/s/√s; null: from the imu section", ge=0.0
+    )
     speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
     lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
     boundary_simplify_m: float = opt(0.02, "Douglas–Peucker tolerance of the boundary", ge=0.0)
@@ -318,8 +337,12 @@ class TeachConfig:
 class MowConfig:
     """Mow phase: world-centric EKF localizer (eqs 21–23)."""
 
-    gyro_noise: float = opt(1e-4, "gyro white noise density, rad/s/√Hz (VN-100: 6e-5)", gt=0.0)
-    gyro_bias_walk: float = opt(2e-6, "gyro bias random walk, rad/s²/√Hz", ge=0.0)
+    gyro_noise: float | None = opt(
+        None, "estimator's gyro white noise, rad/s/√Hz; null: from the imu section", gt=0.0
+    )
+    gyro_bias_walk: float | None = opt(
+        None, "estimator's gyro bias random walk, rad/s/√s; null: from the imu section", ge=0.0
+    )
     speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
     lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
     bearing_sigma_rad: float = opt(0.008, "bearing noise (1σ per axis)", gt=0.0, lt=0.5)
@@ -557,7 +580,47 @@ def config_from_dict(raw: Any, base_dir: Path | None = None, source: str | None 
     if problems:
         raise ConfigError(problems, source)
     cfg = _resolve_camera_rotation(cfg)
+    cfg = _resolve_imu_noise(cfg)
     return dataclasses.replace(cfg, source=Path(source) if source else None)
+
+
+def imu_noise(imu: ImuConfig) -> tuple[float, float, float]:
+    """The gyro's Allan figures (noise density, bias instability, random walk): the config's
+    own where given, else its grade's (:data:`mowerhw.imu_grades.IMU_GRADES`)."""
+    from mowerhw.imu_grades import IMU_GRADES
+
+    g = IMU_GRADES[imu.grade]
+    return (
+        g.noise_density if imu.gyro_noise_density is None else imu.gyro_noise_density,
+        g.bias_instability if imu.gyro_bias_instability is None else imu.gyro_bias_instability,
+        g.rate_random_walk if imu.gyro_random_walk is None else imu.gyro_random_walk,
+    )
+
+
+def with_imu_noise(section: Any, imu: ImuConfig | None = None) -> Any:
+    """A teach or mow section with its null gyro process noise filled in from ``imu`` (the
+    defaults' VN-100 when not given): the one place the estimators' gyro noise is decided."""
+    if section.gyro_noise is not None and section.gyro_bias_walk is not None:
+        return section
+    from mowerhw.imu_grades import gyro_process_noise
+
+    white, walk = gyro_process_noise(*imu_noise(imu or ImuConfig()))
+    return dataclasses.replace(
+        section,
+        gyro_noise=white if section.gyro_noise is None else section.gyro_noise,
+        gyro_bias_walk=walk if section.gyro_bias_walk is None else section.gyro_bias_walk,
+    )
+
+
+def _resolve_imu_noise(cfg: Config) -> Config:
+    """The config with the imu figures and the estimators' gyro noise all numbers."""
+    n, b, k = imu_noise(cfg.imu)
+    imu = dataclasses.replace(
+        cfg.imu, gyro_noise_density=n, gyro_bias_instability=b, gyro_random_walk=k
+    )
+    return dataclasses.replace(
+        cfg, imu=imu, teach=with_imu_noise(cfg.teach, imu), mow=with_imu_noise(cfg.mow, imu)
+    )
 
 
 def _resolve_camera_rotation(cfg: Config) -> Config:

@@ -210,3 +210,24 @@ def run_teach(
         return TeachOutcome(run, None, metrics, hist, str(exc))
     finish = time.perf_counter() - t0
     return TeachOutcome(run, result, teach_metrics(run, result, wall, finish), hist)
+
+
+def sim_map(
+    result: TeachResult,
+    scenario: str,
+    seed: int,
+    level: str = "bearing",
+    truth: dict[int, FloatArray] | None = None,
+) -> Any:
+    """The map of a simulated teach run, remembering which simulated yard it belongs to (and,
+    at pixel level, each landmark's true position, to score re-identification when mowing)."""
+    from mowerhw.map import LawnMap
+
+    lawn_map = LawnMap.from_teach_result(result)
+    sim: dict[str, Any] = {"scenario": scenario, "seed": seed, "level": level}
+    if truth is not None:
+        sim["landmark_truth"] = {
+            str(i): [round(float(v), 5) for v in truth[i]] for i in result.landmarks if i in truth
+        }
+    lawn_map.teach["sim"] = sim
+    return lawn_map

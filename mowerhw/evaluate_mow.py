@@ -69,7 +69,7 @@ def run_mow(
     duration_s: float = 500.0,
     config: Config | None = None,
     vision_dropout: tuple[float, float] | None = None,
-    frame_latency_s: float = 0.15,
+    frame_latency_s: float | None = None,
     mow_seed: int | None = None,
     level: str = "bearing",
 ) -> MowOutcome:
@@ -99,7 +99,8 @@ def run_mow(
     geom = loc.geometry
     controller = BangBangMower(geom.inward_direction, np.random.default_rng([run_seed, 30]))
     truth_geom = LawnGeometry(
-        plant.frame.outline_world(world.lawn), [(z.name, z.polygon) for z in lawn_map.keepouts]
+        plant.outline_world(world.lawn.outline(1440)),
+        [(z.name, z.polygon) for z in lawn_map.keepouts],
     )
     n = round(duration_s * plant.rates.imu_hz)
     t_arr = np.zeros(n + 1)
@@ -192,7 +193,7 @@ def run_mow(
         permit,
         state,
         sigma,
-        plant.frame.outline_world(world.lawn),
+        plant.outline_world(world.lawn.outline(1440)),
         lawn_map,
         plant.landmarks_w,
         dict(reasons),
@@ -214,12 +215,12 @@ def _judge(vision: Any, plant: MowerPlant, frame: Any, truth: dict[int, FloatArr
     _, lm, _ = vision.last_associated
     if lm.size == 0:
         return []
-    f = plant.frame
+    f = plant.frame  # the pixel level is flat: world = map turned and shifted in the plane
     x, y, yaw_map = frame.map_pose
-    c, s = np.cos(f.origin_yaw), np.sin(f.origin_yaw)
-    d = np.array([x, y]) - f.origin_xy
+    c, s = np.cos(f.yaw), np.sin(f.yaw)
+    d = np.array([x, y]) - f.origin[:2]
     xy_w = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
-    yaw_w = yaw_map - f.origin_yaw
+    yaw_w = yaw_map - f.yaw
     bearings = vision.last_bearings
     out = []
     nan = np.full(3, np.nan)

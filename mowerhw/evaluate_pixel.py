@@ -38,14 +38,6 @@ FloatArray = NDArray[np.float64]
 SAME_POINT_M = 0.05
 
 
-def map_pose(origin_xy: FloatArray, origin_yaw: float, xy_w: FloatArray, yaw_w: float):
-    """A world-frame planar pose in the simulator's map frame (what the renderer takes)."""
-    c, s = np.cos(origin_yaw), np.sin(origin_yaw)
-    x = origin_xy[0] + c * xy_w[0] - s * xy_w[1]
-    y = origin_xy[1] + s * xy_w[0] + c * xy_w[1]
-    return float(x), float(y), float(yaw_w + origin_yaw)
-
-
 @dataclass
 class TrackTruth:
     """The true 3-D point (world frame) each track sees in each frame (ray cast in the
@@ -187,7 +179,11 @@ def run_teach_pixel(
         else:
             t = payload.t
             k = truth.index_at(t)
-            pose = map_pose(truth.origin_xy, truth.origin_yaw, truth.xy[k], float(truth.yaw[k]))
+            pose = (
+                float(truth.map_xy[k, 0]),
+                float(truth.map_xy[k, 1]),
+                float(truth.map_heading[k]),
+            )
             r0 = time.perf_counter()
             image = renderer.render(*pose)
             wall_render += time.perf_counter() - r0

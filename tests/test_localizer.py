@@ -57,7 +57,7 @@ def test_localizes_and_permits_inside(lawn_map):
     _, pos, _, _ = loc.pose()
     assert np.linalg.norm(pos[:2] - plant.xy) < 0.05
     assert loc.calibrating is False
-    assert np.abs(loc.ekf.bg - plant.bias).max() < 5e-4  # calibrated on the standstill
+    assert np.abs(loc.ekf.bg - plant.gyro.bias).max() < 5e-4  # calibrated on the standstill
 
 
 def test_late_frames_are_applied_exactly_at_their_time(lawn_map):
@@ -68,7 +68,7 @@ def test_late_frames_are_applied_exactly_at_their_time(lawn_map):
     late = Localizer(lawn_map)
     late_plant = MowerPlant(world, 2, frame_latency_s=0.15)
     drive(late, late_plant, cmds)
-    for f in late_plant._pending:  # the frames still in flight arrive now, late
+    for f in late_plant.in_flight():  # the frames still in flight arrive now, late
         late.bearings(f.t, f.ids, f.bearings)
     # (the frame taken at t = 0 arrives one IMU period later even without latency)
     assert late.counters.late_frames > 20 and on_time.counters.late_frames <= 1

@@ -1,12 +1,14 @@
 """The bearing-level simulator: repeatable, physically consistent streams (DESIGN.md §9)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from mowerhw.geometry import quat_to_rotmat
-from mowerhw.sim import SCENARIOS, SensorNoise, simulate_teach
+from mowerhw.sim import IMU_GRADES, SCENARIOS, SensorSuite, simulate_teach
 from mowerhw.sim.lawn import HarmonicLawn
-from mowerhw.sim.sensors import body_points
+from mowerhw.sim.sensors import CameraTiming, SpeedModel, body_points
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +59,9 @@ def test_rates_quantisation_and_noise(paper_run):
 
 
 def test_noise_free_gyro_integrates_to_the_true_heading():
-    run = simulate_teach("paper", seed=2, noise=SensorNoise(0, 0, 0, 0, 1e-9, 0))
+    still = replace(IMU_GRADES["vn100"], noise_density=0, rate_random_walk=0, turn_on_bias=0)
+    quiet = SensorSuite(still, SpeedModel(white=0.0, quantum=1e-9), CameraTiming(pixel_sigma=0))
+    run = simulate_teach("paper", seed=2, sensors=quiet)
     yaw = np.concatenate([[0.0], np.cumsum(run.streams.gyro[1:, 2] * 0.01)])
     assert np.abs(yaw - run.truth.yaw).max() < 1e-9
 

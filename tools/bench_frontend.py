@@ -39,11 +39,9 @@ def main() -> None:
     frames, render_ms = [], []
     for f in st.frames[: args.frames]:
         k = tr.index_at(f.t)
-        c, s = np.cos(tr.origin_yaw), np.sin(tr.origin_yaw)
-        x = tr.origin_xy[0] + c * tr.xy[k, 0] - s * tr.xy[k, 1]
-        y = tr.origin_xy[1] + s * tr.xy[k, 0] + c * tr.xy[k, 1]
+        x, y = tr.map_xy[k]
         t0 = time.perf_counter()
-        frames.append((f.t, renderer.render(x, y, float(tr.yaw[k] + tr.origin_yaw))))
+        frames.append((f.t, renderer.render(float(x), float(y), float(tr.map_heading[k]))))
         render_ms.append((time.perf_counter() - t0) * 1e3)
     cfg = FrontendConfig(max_features=args.max_features)
     fe = FrontEnd(run.world.camera, run.world.q_bc, cfg)

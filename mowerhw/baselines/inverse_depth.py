@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
-from mowerhw.config import TeachConfig
+from mowerhw.config import TeachConfig, with_imu_noise
 from mowerhw.geometry import (
     IDENTITY_QUAT,
     quat_exp,
@@ -59,7 +59,7 @@ class InverseDepthEkfMapper:
     SIGMA_RHO = 0.5  # its σ: from "right here" to "at infinity"
 
     def __init__(self, config: TeachConfig | None = None) -> None:
-        self.cfg = config or TeachConfig()
+        self.cfg = with_imu_noise(config or TeachConfig())
         c = self.cfg
         self.sigma = c.bearing_sigma_rad
         self.x = np.zeros(3)

@@ -321,7 +321,7 @@ class Bench:
         if teach["state"] != "saved":
             raise RuntimeError(f"teach failed in the daemon: {teach['state']}")
         lawn_map = load_map(teach["map"])
-        true_edge = self.mower.frame.outline_world(world.lawn)
+        true_edge = self.mower.true_outline(world.lawn.outline(1440))
         err = _boundary_errors(lawn_map.boundary, true_edge)
         return {
             "boundary_rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
@@ -460,7 +460,7 @@ class Bench:
         (self.out / "timeline.json").write_text(json.dumps(self.timeline))
         sel = log_arr[:, 6] == 2  # mowing phase
         t, x, y, deck = log_arr[sel, 0], log_arr[sel, 1], log_arr[sel, 2], log_arr[sel, 5] > 0
-        true_geom = LawnGeometry(self.mower.frame.outline_world(world.lawn), [])
+        true_geom = LawnGeometry(self.mower.true_outline(world.lawn.outline(1440)), [])
         s_true = true_geom.signed_distances(np.column_stack([x, y]))
         missed = deck & (s_true < -MISSED_HALT_M)
         first_permit = t[np.argmax(deck)] if deck.any() else math.inf

@@ -29,9 +29,8 @@ from numpy.typing import NDArray
 
 from drivers.mock.vn100 import MockImuState
 from mowerhw.geometry import quat_to_rotmat
-from mowerhw.sim.motion import PlanarTruth
-from mowerhw.sim.plant import WorldFrame
-from mowerhw.sim.sensors import SensorNoise
+from mowerhw.sim.motion import Truth, camera_xy_world, start_frame
+from mowerhw.sim.sensors import SensorSuite
 from mowerhw.sim.world import World
 
 FloatArray = NDArray[np.float64]
@@ -46,18 +45,20 @@ class RealTimeMower:
     def __init__(
         self,
         world: World,
-        teach_truth: PlanarTruth,
+        teach_truth: Truth,
         seed: int,
         q_bi: Any = (1.0, 0.0, 0.0, 0.0),
-        noise: SensorNoise | None = None,
+        sensors: SensorSuite | None = None,
     ) -> None:
         self.world = world
         self.truth = teach_truth
-        self.frame = WorldFrame.of(world.lawn, world.scenario.camera_height_m)
-        self.noise = noise or SensorNoise()
+        if not world.terrain.flat:
+            raise ValueError("the real-time bench drives on flat ground only")
+        self.frame = start_frame(world)
+        self.sensors = sensors or world.scenario.sensors
         self.rng = np.random.default_rng([seed, 40])
         self.r_ib = quat_to_rotmat(np.asarray(q_bi, dtype=np.float64)).T  # body → IMU frame
-        self.bias = self.rng.normal(0.0, self.noise.gyro_bias, size=3)
+        self.bias = self.rng.normal(0.0, self.sensors.imu.turn_on_bias, size=3)
         self.phase = "still"
         self.xy = np.zeros(2)
         self.yaw = 0.0
@@ -196,12 +197,16 @@ class RealTimeMower:
         """The true pose in the simulator's map frame (the renderer's)."""
         x, y, yaw, _ = self.pose_at(t)
         f = self.frame
-        c, s = math.cos(f.origin_yaw), math.sin(f.origin_yaw)
+        c, s = math.cos(f.yaw), math.sin(f.yaw)
         return (
-            float(f.origin_xy[0] + c * x - s * y),
-            float(f.origin_xy[1] + s * x + c * y),
-            float(yaw + f.origin_yaw),
+            float(f.origin[0] + c * x - s * y),
+            float(f.origin[1] + s * x + c * y),
+            float(yaw + f.yaw),
         )
+
+    def true_outline(self, outline_map: FloatArray) -> FloatArray:
+        """A map-frame ground outline in the world frame (xy)."""
+        return camera_xy_world(self.world, self.frame, outline_map)
 
     # ------------------------------------------------------------------- sensor sources
 
@@ -216,9 +221,9 @@ class RealTimeMower:
             dt = now - self._imu_prev[0]
             rate = (yaw - self._imu_prev[1]) / dt
         self._imu_prev = (now, yaw)
-        n = self.noise
-        self.bias = self.bias + self.rng.normal(0.0, n.gyro_bias_walk * math.sqrt(dt), 3)
-        white = n.gyro_white * math.sqrt(0.01 / max(dt, 1e-3))
+        g = self.sensors.imu
+        self.bias = self.bias + self.rng.normal(0.0, g.rate_random_walk * math.sqrt(dt), 3)
+        white = g.noise_density / math.sqrt(max(dt, 1e-3))
         gyro_b = np.array([0.0, 0.0, rate]) + self.bias + self.rng.normal(0.0, white, 3)
         accel_b = np.array([0.0, 0.0, 9.80665])  # specific force at rest, body z up
         return MockImuState(
@@ -234,9 +239,9 @@ class RealTimeMower:
         _, _, _, v = self.pose_at(time.monotonic())
         if abs(v) < 1e-9:
             return 0.0
-        n = self.noise
-        meas = v + float(self.rng.normal(0.0, n.speed_white))
-        return round(meas / n.speed_quantum) * n.speed_quantum
+        n = self.sensors.speed
+        meas = v + float(self.rng.normal(0.0, n.white))
+        return round(meas / n.quantum) * n.quantum
 
     def log_array(self) -> FloatArray:
         return np.array(self.log, dtype=np.float64).reshape(-1, 7)

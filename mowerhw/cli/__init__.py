@@ -18,6 +18,8 @@ from mowerhw.cli import (
     camera_cmd,
     config_cmd,
     demo_cmd,
+    eval_cmd,
+    imu_cmd,
     map_cmd,
     replay_cmd,
     run_cmd,
@@ -31,6 +33,8 @@ COMMAND_MODULES = (
     config_cmd,
     camera_cmd,
     sim_cmd,
+    eval_cmd,
+    imu_cmd,
     map_cmd,
     demo_cmd,
 )

@@ -44,8 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     mow.add_argument(
         "--latency",
         type=float,
-        default=0.15,
-        help="camera frames arrive this late (s, default 0.15)",
+        default=None,
+        help="camera frames arrive this late (s; default: the scenario's, 0.15 for paper)",
     )
     mow.set_defaults(handler=_mow)
 
@@ -137,17 +137,10 @@ def _teach(args: argparse.Namespace) -> int:
 
 
 def _save_sim_map(result, path: Path, scenario: str, seed: int, level: str = "bearing", truth=None):
-    """Save a simulated teach map, remembering which simulated yard it belongs to (and, at
-    pixel level, each landmark's true position, to score re-identification when mowing)."""
-    from mowerhw.map import LawnMap
+    """Save a simulated teach map (:func:`mowerhw.evaluate.sim_map`)."""
+    from mowerhw.evaluate import sim_map
 
-    lawn_map = LawnMap.from_teach_result(result)
-    sim = {"scenario": scenario, "seed": seed, "level": level}
-    if truth is not None:
-        sim["landmark_truth"] = {
-            str(i): [round(float(v), 5) for v in truth[i]] for i in result.landmarks if i in truth
-        }
-    lawn_map.teach["sim"] = sim
+    lawn_map = sim_map(result, scenario, seed, level, truth)
     lawn_map.save(path)
     return lawn_map
 

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mowerhw.config import Config, ContainmentConfig, MowConfig
+from mowerhw.config import Config, ContainmentConfig, MowConfig, with_imu_noise
 from mowerhw.geometry import rotmat_to_quat
 from mowerhw.map import LawnMap
 from mowerhw.map import load as load_map
@@ -104,16 +104,16 @@ class _Step:
 def _configs(config: Any) -> tuple[MowConfig, ContainmentConfig, dict[str, float]]:
     stale = {"imu": 0.1, "speed": 0.3, "camera": 1.0}
     if config is None:
-        return MowConfig(), ContainmentConfig(), stale
+        return with_imu_noise(MowConfig()), ContainmentConfig(), stale
     if isinstance(config, Config):
         stale = {
             "imu": config.imu.stale_after_s,
             "speed": config.speed.stale_after_s,
             "camera": config.camera.stale_after_s,
         }
-        return config.mow, config.containment, stale
+        return with_imu_noise(config.mow, config.imu), config.containment, stale
     if isinstance(config, MowConfig):
-        return config, ContainmentConfig(), stale
+        return with_imu_noise(config), ContainmentConfig(), stale
     raise TypeError(f"config must be a Config or MowConfig, not {type(config).__name__}")
 
 

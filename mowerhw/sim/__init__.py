@@ -11,18 +11,29 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mowerhw.sim.motion import PlanarTruth, teach_loop
-from mowerhw.sim.sensors import Rates, SensorNoise, SensorStreams, simulate_sensors
-from mowerhw.sim.world import SCENARIOS, Scenario, World, make_world
+from mowerhw.sim.motion import Truth, teach_loop
+from mowerhw.sim.scenarios import MATRIX, SCENARIOS, Scenario
+from mowerhw.sim.sensors import (
+    IMU_GRADES,
+    PAPER_SENSORS,
+    Rates,
+    SensorStreams,
+    SensorSuite,
+    simulate_sensors,
+)
+from mowerhw.sim.world import World, make_world
 
 __all__ = [
+    "IMU_GRADES",
+    "MATRIX",
+    "PAPER_SENSORS",
     "SCENARIOS",
-    "PlanarTruth",
     "Rates",
     "Scenario",
-    "SensorNoise",
     "SensorStreams",
+    "SensorSuite",
     "TeachRun",
+    "Truth",
     "World",
     "make_world",
     "simulate_teach",
@@ -36,7 +47,7 @@ class TeachRun:
     scenario: str
     seed: int
     world: World
-    truth: PlanarTruth
+    truth: Truth
     landmarks_w: NDArray[np.float64]  # (N, 3) true landmark positions, world frame
     streams: SensorStreams
 
@@ -53,16 +64,21 @@ def simulate_teach(
     scenario: str | Scenario = "paper",
     seed: int = 0,
     n_landmarks: int | None = None,
-    noise: SensorNoise | None = None,
-    rates: Rates | None = None,
+    sensors: SensorSuite | None = None,
 ) -> TeachRun:
-    """One teach drive around a random lawn of ``scenario``; ``seed`` makes it repeatable."""
+    """One teach drive around a random lawn of ``scenario``; ``seed`` makes it repeatable.
+    ``sensors`` replaces the scenario's own."""
     world = make_world(scenario, seed, n_landmarks)
     sc = world.scenario
-    rates = rates or Rates()
+    sensors = sensors or sc.sensors
     truth = teach_loop(
-        world.lawn, sc.speed_mps, sc.camera_height_m, rates.imu_hz, standstill_s=sc.standstill_s
+        world.lawn,
+        sc.speed_mps,
+        sc.camera_height_m,
+        sensors.rates.imu_hz,
+        standstill_s=sc.standstill_s,
+        terrain=world.terrain,
     )
     landmarks_w = truth.map_to_world(world.landmarks_map)
-    streams = simulate_sensors(world, truth, landmarks_w, seed, noise, rates)
+    streams = simulate_sensors(world, truth, landmarks_w, seed, sensors)
     return TeachRun(sc.name, seed, world, truth, landmarks_w, streams)

@@ -102,3 +102,115 @@ def random_lawn(
         if np.abs(kappa).max() <= max_curvature:
             return lawn
     raise RuntimeError("could not draw a lawn with bounded curvature; lower the amplitude")
+
+
+@dataclass(frozen=True)
+class _Piece:
+    """A straight segment (``kappa`` 0) or a circular arc of a :class:`PathLawn`."""
+
+    s0: float
+    length: float
+    start: tuple[float, float]
+    heading0: float  # unwrapped
+    kappa: float
+
+
+class PathLawn:
+    """A polygonal lawn (counter-clockwise corners) whose corners are rounded to arcs of
+    ``fillet_m``: the path a mower traces along an L, a U, a strip. Same interface as
+    :class:`HarmonicLawn` (arc length → point, heading, curvature); concave corners turn
+    right (negative curvature)."""
+
+    def __init__(self, corners: FloatArray | list[tuple[float, float]], fillet_m: float = 1.0):
+        pts = np.asarray(corners, dtype=np.float64)
+        if pts.shape[0] < 3 or pts.shape[1] != 2:
+            raise ValueError("a lawn needs at least 3 corners (x, y)")
+        area = 0.5 * np.sum(pts[:, 0] * np.roll(pts[:, 1], -1) - np.roll(pts[:, 0], -1) * pts[:, 1])
+        if area < 0:
+            pts = pts[::-1]
+        self.corners = pts
+        self.fillet_m = fillet_m
+        n = len(pts)
+        d = np.roll(pts, -1, axis=0) - pts  # edge i: corner i → i+1
+        length = np.linalg.norm(d, axis=1)
+        u = d / length[:, None]
+        # turn at corner i (between edge i-1 and edge i), left positive
+        u_in = np.roll(u, 1, axis=0)
+        turn = np.arctan2(u_in[:, 0] * u[:, 1] - u_in[:, 1] * u[:, 0], np.sum(u_in * u, axis=1))
+        cut = fillet_m * np.tan(np.abs(turn) / 2.0)
+        if np.any(length < cut + np.roll(cut, -1) + 1e-9):
+            raise ValueError(f"edges too short for {fillet_m} m rounded corners")
+        pieces: list[_Piece] = []
+        s = 0.0
+        heading = float(np.arctan2(u[0, 1], u[0, 0]))
+        for i in range(n):  # edge i (after corner i's arc), then corner i+1's arc
+            start = pts[i] + u[i] * cut[i]
+            seg = length[i] - cut[i] - cut[(i + 1) % n]
+            pieces.append(_Piece(s, float(seg), (float(start[0]), float(start[1])), heading, 0.0))
+            s += seg
+            j = (i + 1) % n
+            arc_start = pts[j] - u[i] * cut[j]
+            k = float(np.sign(turn[j]) / fillet_m)
+            arc_len = float(abs(turn[j]) * fillet_m)
+            pieces.append(
+                _Piece(s, arc_len, (float(arc_start[0]), float(arc_start[1])), heading, k)
+            )
+            s += arc_len
+            heading += float(turn[j])
+        self._pieces = pieces
+        self._s0 = np.array([p.s0 for p in pieces])
+        self.perimeter = float(s)
+
+    def _locate(self, s: FloatArray) -> tuple[NDArray[np.int64], FloatArray]:
+        s = np.mod(np.asarray(s, dtype=np.float64), self.perimeter)
+        idx = np.clip(np.searchsorted(self._s0, s, side="right") - 1, 0, len(self._pieces) - 1)
+        return idx, s - self._s0[idx]
+
+    def point(self, s: FloatArray) -> FloatArray:
+        idx, ds = self._locate(s)
+        out = np.empty((*ds.shape, 2))
+        for i in np.unique(idx):
+            p = self._pieces[int(i)]
+            m = idx == i
+            a = ds[m]
+            if p.kappa == 0.0:
+                out[m, 0] = p.start[0] + a * np.cos(p.heading0)
+                out[m, 1] = p.start[1] + a * np.sin(p.heading0)
+            else:
+                h = p.heading0 + p.kappa * a
+                out[m, 0] = p.start[0] + (np.sin(h) - np.sin(p.heading0)) / p.kappa
+                out[m, 1] = p.start[1] - (np.cos(h) - np.cos(p.heading0)) / p.kappa
+        return out
+
+    def heading(self, s: FloatArray) -> FloatArray:
+        """Direction of travel (rad), unwrapped along the first lap; later laps add 2π."""
+        s = np.asarray(s, dtype=np.float64)
+        laps = np.floor(s / self.perimeter)
+        idx, ds = self._locate(s)
+        h0 = np.array([self._pieces[int(i)].heading0 for i in idx.ravel()]).reshape(idx.shape)
+        k = np.array([self._pieces[int(i)].kappa for i in idx.ravel()]).reshape(idx.shape)
+        return h0 + k * ds + 2.0 * np.pi * laps
+
+    def curvature(self, s: FloatArray) -> FloatArray:
+        idx, _ = self._locate(s)
+        return np.array([self._pieces[int(i)].kappa for i in idx.ravel()]).reshape(idx.shape)
+
+    def outline(self, n: int = 720) -> FloatArray:
+        return self.point(np.linspace(0.0, self.perimeter, n, endpoint=False))
+
+
+#: lawn shapes by name: corners (m, counter-clockwise) and corner radius
+SHAPES: dict[str, tuple[list[tuple[float, float]], float]] = {
+    "L": ([(0, 0), (14, 0), (14, 6), (6, 6), (6, 12), (0, 12)], 1.0),
+    "U": (
+        [(0, 0), (15, 0), (15, 11), (10.5, 11), (10.5, 4.5), (4.5, 4.5), (4.5, 11), (0, 11)],
+        1.0,
+    ),
+    "strip": ([(0, 0), (32, 0), (32, 4), (0, 4)], 1.2),
+    "rectangle": ([(0, 0), (12, 0), (12, 8), (0, 8)], 1.5),
+}
+
+
+def shaped_lawn(name: str) -> PathLawn:
+    corners, fillet = SHAPES[name]
+    return PathLawn(corners, fillet)

@@ -1,53 +1,31 @@
 """The simulated mower for closed-loop mowing: true motion from commands, and its sensors.
 
-The mower is driven by commanded forward speed and turn rate (the mower's own controller
-decides them, from the *estimate*). The true pose is integrated exactly at the IMU rate; the
-sensors are those of :mod:`mowerhw.sim.sensors` (gyro with bias and noise at 100 Hz, ground
-speed at 10 Hz quantised to 0.001 m/s, bearings at 4 Hz with pixel noise through the omni
-camera). Camera frames are *late*: a frame taken at ``t`` is delivered at
-``t + frame_latency_s`` (exposure and processing), stamped with ``t``.
+The mower is driven by commanded along-ground speed and heading rate (the mower's own
+controller decides them, from the *estimate*). Its contact point moves on the ground of
+:mod:`mowerhw.sim.terrain` (exact arcs in the horizontal plane, at the IMU rate); attitude and
+camera position follow from the ground (:func:`mowerhw.sim.motion.pose_on_ground`). The sensors
+are those of :mod:`mowerhw.sim.sensors` (the scenario's gyro grade at 100 Hz, its ground-speed
+sensor at 10 Hz, bearings at 4 Hz through the omni camera). Camera frames are *late*: a frame
+taken at ``t`` is delivered after the scenario's latency (or ``frame_latency_s``), stamped with
+``t`` (plus the stamp jitter); frames and single bearings are lost as the scenario says.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from mowerhw.samples import BearingObservation
-from mowerhw.sim.lawn import HarmonicLawn
-from mowerhw.sim.sensors import Rates, SensorNoise, observe_at
+from mowerhw.sim.motion import MapFrame, camera_xy_world, pose_on_ground, start_frame
+from mowerhw.sim.sensors import CameraTiming, Gyro, SensorSuite, Speedometer, observe_at
 from mowerhw.sim.world import World
 
 FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class WorldFrame:
-    """The world frame of a teach run: the body frame at the start of the lawn-edge drive."""
-
-    origin_xy: FloatArray
-    origin_yaw: float
-    camera_height_m: float
-
-    @classmethod
-    def of(cls, lawn: HarmonicLawn, camera_height_m: float) -> WorldFrame:
-        return cls(
-            lawn.point(np.array([0.0]))[0], float(lawn.heading(np.array([0.0]))[0]), camera_height_m
-        )
-
-    def map_to_world(self, points_map: FloatArray) -> FloatArray:
-        """Map-frame points (x, y, height above ground) → world frame."""
-        c, s = np.cos(self.origin_yaw), np.sin(self.origin_yaw)
-        d = points_map[:, :2] - self.origin_xy
-        z = points_map[:, 2] - self.camera_height_m if points_map.shape[1] > 2 else 0.0 * d[:, 0]
-        return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], z])
-
-    def outline_world(self, lawn: HarmonicLawn, n: int = 1440) -> FloatArray:
-        pts = lawn.outline(n)
-        return self.map_to_world(np.column_stack([pts, np.zeros(len(pts))]))[:, :2]
 
 
 @dataclass(frozen=True)
@@ -69,15 +47,14 @@ class PlantOutput:
 
 
 class MowerPlant:
-    """True planar pose + sensors, stepped at the IMU rate by (v, ω) commands."""
+    """The true mower + sensors, stepped at the IMU rate by (v, ω) commands."""
 
     def __init__(
         self,
         world: World,
         seed: int,
-        noise: SensorNoise | None = None,
-        rates: Rates | None = None,
-        frame_latency_s: float = 0.15,
+        sensors: SensorSuite | None = None,
+        frame_latency_s: float | None = None,
         start_xy: tuple[float, float] = (0.0, 0.0),
         start_yaw: float = 0.0,
         vision_dropout: tuple[float, float] | None = None,
@@ -87,34 +64,71 @@ class MowerPlant:
     ) -> None:
         """With a ``renderer`` (:class:`mowerhw.sim.render.OmniRenderer`) the camera delivers
         rendered images (:class:`PixelFrame`, pixel level); without, noisy bearings of known
-        landmark ids (bearing level)."""
+        landmark ids (bearing level). ``start_xy``/``start_yaw``: the start pose in the world
+        frame (the dock is the origin); ``frame_latency_s`` overrides the scenario's."""
         self.world = world
         self.renderer = renderer
         self.max_accel = max_accel  # m/s²: a mower cannot stop or start in no time
         self.max_yaw_accel = max_yaw_accel  # rad/s²
-        self.w = 0.0
-        self.noise = noise or SensorNoise()
-        self.rates = rates or Rates()
-        self.frame_latency_s = frame_latency_s
-        self.frame = WorldFrame.of(world.lawn, world.scenario.camera_height_m)
+        self.sensors = sensors or world.scenario.sensors
+        cam = self.sensors.camera
+        if frame_latency_s is not None:
+            cam = CameraTiming(
+                (frame_latency_s, frame_latency_s),
+                cam.stamp_jitter_s,
+                cam.frame_drop,
+                cam.bearing_drop,
+                cam.pixel_sigma,
+            )
+        self.camera_timing = cam
+        self.rates = self.sensors.rates
+        self.frame: MapFrame = start_frame(world)
         self.landmarks_w = self.frame.map_to_world(world.landmarks_map)
         self.rng = np.random.default_rng([seed, 20])
         self.cam_rng = np.random.default_rng([seed, 21])
+        self.timing_rng = np.random.default_rng([seed, 22])
+        self.gyro = Gyro(self.sensors.imu, np.random.default_rng([seed, 23]), self.rates.imu_hz)
+        self.speedometer = Speedometer(self.sensors.speed, np.random.default_rng([seed, 24]))
         self.dt = 1.0 / self.rates.imu_hz
         self.t = 0.0
         self.k = 0
-        self.xy = np.array(start_xy, dtype=np.float64)
-        self.yaw = float(start_yaw)
+        start_map = self.frame.world_to_map(np.array([[start_xy[0], start_xy[1], 0.0]]))[0]
+        self.map_xy = start_map[:2].copy()
+        self.map_heading = float(start_yaw) + self.frame.yaw
         self.v = 0.0
-        self.bias = self.rng.normal(0.0, self.noise.gyro_bias, size=3)
+        self.w = 0.0
         self.vision_dropout = vision_dropout
-        self._pending: list[Any] = []  # taken, not yet delivered
+        self._pending: list[tuple[float, Any]] = []  # (delivery time, frame), taken in order
         self._speed_every = round(self.rates.imu_hz / self.rates.speed_hz)
         self._frame_every = round(self.rates.imu_hz / self.rates.camera_hz)
+        self._update_pose()
+
+    # -- truth --------------------------------------------------------------------------------
+
+    def _update_pose(self) -> None:
+        h = self.world.scenario.camera_height_m
+        cam, r_mb = pose_on_ground(
+            self.world.terrain, self.map_xy[None], np.array([self.map_heading]), h
+        )
+        self.position = self.frame.map_to_world(cam)[0]
+        self.rot = self.frame.r_mw.T @ r_mb[0]  # R_wb
+
+    @property
+    def xy(self) -> FloatArray:
+        """World xy of the camera (the body origin)."""
+        return self.position[:2]
+
+    @property
+    def yaw(self) -> float:
+        return float(math.atan2(self.rot[1, 0], self.rot[0, 0]))
+
+    def outline_world(self, outline_map: FloatArray) -> FloatArray:
+        """A map-frame ground outline as the camera traces it, world xy."""
+        return camera_xy_world(self.world, self.frame, outline_map)
 
     def first_output(self) -> PlantOutput:
         """The readings at t = 0, before any motion."""
-        gyro = self.bias + self.rng.normal(0.0, self.noise.gyro_white, size=3)
+        gyro, _ = self.gyro.measure(np.zeros(3))
         out = PlantOutput((0.0, gyro), (0.0, 0.0))
         self._take_frame()
         return out
@@ -127,56 +141,81 @@ class MowerPlant:
         v_cmd = float(np.clip(v_cmd, self.v - dv, self.v + dv))
         w_cmd = float(np.clip(w_cmd, self.w - dw, self.w + dw))
         self.w = w_cmd
+        # the contact point rolls v dt along the ground: its horizontal run is shorter on a slope
+        terrain = self.world.terrain
+        stretch = 1.0
+        if not terrain.flat:
+            gx, gy = terrain.gradient(self.map_xy[:1], self.map_xy[1:])
+            along = float(gx[0] * math.cos(self.map_heading) + gy[0] * math.sin(self.map_heading))
+            stretch = math.sqrt(1.0 + along * along)
+        vh = v_cmd / stretch
+        psi = self.map_heading
         if abs(w_cmd) > 1e-12:  # exact arc
-            r = v_cmd / w_cmd
-            self.xy = self.xy + r * np.array(
+            r = vh / w_cmd
+            self.map_xy = self.map_xy + r * np.array(
                 [
-                    np.sin(self.yaw + w_cmd * dt) - np.sin(self.yaw),
-                    -np.cos(self.yaw + w_cmd * dt) + np.cos(self.yaw),
+                    math.sin(psi + w_cmd * dt) - math.sin(psi),
+                    -math.cos(psi + w_cmd * dt) + math.cos(psi),
                 ]
             )
         else:
-            self.xy = self.xy + v_cmd * dt * np.array([np.cos(self.yaw), np.sin(self.yaw)])
-        self.yaw += w_cmd * dt
+            self.map_xy = self.map_xy + vh * dt * np.array([math.cos(psi), math.sin(psi)])
+        self.map_heading = psi + w_cmd * dt
+        rot_prev = self.rot
+        self._update_pose()
         self.v = v_cmd
         self.t = round(self.t + dt, 9)
         self.k += 1
-        n = self.noise
-        self.bias = self.bias + self.rng.normal(0.0, n.gyro_bias_walk * np.sqrt(dt), size=3)
-        gyro = np.array([0.0, 0.0, w_cmd]) + self.bias + self.rng.normal(0.0, n.gyro_white, 3)
+        rate = Rotation.from_matrix(rot_prev.T @ self.rot).as_rotvec() / dt
+        gyro, _ = self.gyro.measure(rate)
         out = PlantOutput((self.t, gyro))
         if self.k % self._speed_every == 0:
-            meas = 0.0 if abs(v_cmd) < 1e-9 else v_cmd + self.rng.normal(0.0, n.speed_white)
-            out.speed = (self.t, round(meas / n.speed_quantum) * n.speed_quantum)
+            meas = self.speedometer.measure(self.t, v_cmd, self._speed_every * dt)
+            out.speed = (self.t, meas)
         if self.k % self._frame_every == 0:
             self._take_frame()
-        due = [f for f in self._pending if f.t + self.frame_latency_s <= self.t + 1e-9]
+        due = [f for when, f in self._pending if when <= self.t + 1e-9]
         if due:
-            self._pending = self._pending[len(due) :]  # taken in time order
-            out.frames = due
+            self._pending = [(when, f) for when, f in self._pending if when > self.t + 1e-9]
+            out.frames = sorted(due, key=lambda f: f.t)
         return out
 
+    def in_flight(self) -> list[Any]:
+        """Frames taken but not delivered yet, in time order."""
+        return sorted((f for _, f in self._pending), key=lambda f: f.t)
+
     def map_pose(self) -> tuple[float, float, float]:
-        """The true pose in the simulator's map frame (what the renderer takes)."""
-        f = self.frame
-        c, s = np.cos(f.origin_yaw), np.sin(f.origin_yaw)
-        x = f.origin_xy[0] + c * self.xy[0] - s * self.xy[1]
-        y = f.origin_xy[1] + s * self.xy[0] + c * self.xy[1]
-        return float(x), float(y), float(self.yaw + f.origin_yaw)
+        """The true planar pose in the simulator's map frame (what the renderer takes)."""
+        return float(self.map_xy[0]), float(self.map_xy[1]), float(self.map_heading)
 
     def _take_frame(self) -> None:
+        timing = self.camera_timing
         d = self.vision_dropout
         dark = d is not None and d[0] <= self.t < d[0] + d[1]
+        lo, hi = timing.latency_s
+        deliver = self.t + (self.timing_rng.uniform(lo, hi) if hi > lo else lo)
+        if timing.frame_drop and self.timing_rng.random() < timing.frame_drop:
+            return
+        stamp = self.t + (
+            self.timing_rng.normal(0.0, timing.stamp_jitter_s) if timing.stamp_jitter_s else 0.0
+        )
         if self.renderer is not None:
             pose = self.map_pose()
             image = self.renderer.render(*pose)
             if dark:  # the lens is covered: the camera still delivers, but sees nothing
                 image = np.zeros_like(image)
-            self._pending.append(PixelFrame(self.t, image, pose))
+            self._pending.append((deliver, PixelFrame(stamp, image, pose)))
             return
         obs, _ = observe_at(
-            self.world, self.t, self.xy, self.yaw, self.landmarks_w, self.cam_rng, self.noise.pixel
+            self.world,
+            stamp,
+            self.position,
+            self.rot,
+            self.landmarks_w,
+            self.cam_rng,
+            timing.pixel_sigma,
+            timing.bearing_drop,
         )
         if dark:  # the camera sees nothing it knows
             obs = BearingObservation(t=obs.t, ids=np.zeros(0, np.int64), bearings=np.zeros((0, 3)))
-        self._pending.append(obs)
+        self._pending.append((deliver, obs))

@@ -1,39 +1,143 @@
-"""Sensor models of the bearing-level bench (DESIGN.md §9, level 1).
+"""Sensor models of the simulated bench (DESIGN.md §9): gyro grades, ground speed, camera.
 
-* gyro at 100 Hz: true body rate + a constant per-run bias + a slow bias random walk + white
-  noise (VN-100-like figures);
-* signed ground speed at 10 Hz: true speed + white noise, quantised to 0.001 m/s as on CAN;
-* camera at 4 Hz: every landmark inside the camera's range is projected through the omni
-  camera model (DESIGN.md §6), kept if its pixel is inside the mirror annulus, perturbed with
-  Gaussian pixel noise, kept if the noisy pixel is still valid, and lifted back to a unit
-  bearing in the body frame: the estimators get ids and unit vectors, as from a front end.
+* **gyro** (:class:`Gyro`): true body rate × (1 + scale-factor error) + turn-on bias + bias
+  instability (a first-order Gauss–Markov process) + rate random walk + white noise, per
+  :class:`~mowerhw.imu_grades.ImuGrade`; three grades from their datasheets
+  (:data:`~mowerhw.imu_grades.IMU_GRADES`);
+* **ground speed** (:class:`Speedometer`): signed along-ground speed × (1 + scale error) +
+  white noise, wheel-slip events (the wheels turn faster than the mower moves), quantised as
+  on CAN; a standing mower reads exactly 0;
+* **camera** (:class:`CameraTiming`, :func:`observe_at`): every landmark inside the camera's
+  range is projected through the omni camera model (DESIGN.md §6), kept if its pixel is valid,
+  perturbed with Gaussian pixel noise, kept if the noisy pixel is still valid, and lifted back
+  to a unit bearing in the body frame; frames are dropped, single bearings missed, frames
+  delivered late by a jittered latency and stamped with a little jitter.
+
+The paper scenario uses :data:`PAPER_SENSORS` (a VN-100, 3 px, 0.15 s latency as before).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mowerhw.geometry import quat_to_rotmat
+from mowerhw.imu_grades import FLICKER_ALLAN, FLICKER_TIMES_S, IMU_GRADES, ImuGrade
 from mowerhw.samples import BearingObservation
-from mowerhw.sim.motion import PlanarTruth
+from mowerhw.sim.motion import Truth
 from mowerhw.sim.world import World
 
 FloatArray = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class SensorNoise:
-    """Noise of the simulated sensors (1σ)."""
+class Gyro:
+    """A gyro of one grade, sampled at ``rate_hz``; ``measure`` gives the reading and the true
+    bias (everything but the white noise and the scale error) for the evaluation."""
 
-    gyro_white: float = 6e-4  # rad/s per 100 Hz sample (VN-100: 0.0035 °/s/√Hz)
-    gyro_bias: float = 2e-3  # rad/s, constant per run and axis (removed by the standstill)
-    gyro_bias_walk: float = 2e-6  # rad/s/√s (≈ 10 °/h after 10 min, the VN-100's stability)
-    speed_white: float = 0.005  # m/s per 10 Hz sample
-    speed_quantum: float = 0.001  # m/s, the GBSD resolution
-    pixel: float = 3.0  # px (the paper's §V)
+    def __init__(self, grade: ImuGrade, rng: np.random.Generator, rate_hz: float) -> None:
+        self.grade = grade
+        self.rng = rng
+        self.dt = 1.0 / rate_hz
+        self.turn_on = rng.normal(0.0, grade.turn_on_bias, 3) if grade.turn_on_bias else np.zeros(3)
+        self.scale = 1.0 + (rng.normal(0.0, grade.scale_factor, 3) if grade.scale_factor else 0.0)
+        self._flicker_sigma = grade.bias_instability / FLICKER_ALLAN
+        self._phi = np.exp(-self.dt / np.asarray(FLICKER_TIMES_S))[:, None]  # (M, 1)
+        self.flicker = (
+            rng.normal(0.0, self._flicker_sigma, (len(FLICKER_TIMES_S), 3))
+            if self._flicker_sigma
+            else np.zeros((len(FLICKER_TIMES_S), 3))
+        )
+        self.walk = np.zeros(3)
+
+    @property
+    def bias(self) -> FloatArray:
+        return self.turn_on + self.flicker.sum(axis=0) + self.walk
+
+    def measure(self, true_rate: FloatArray) -> tuple[FloatArray, FloatArray]:
+        g, rng, dt = self.grade, self.rng, self.dt
+        if self._flicker_sigma:
+            drive = self._flicker_sigma * np.sqrt(1.0 - self._phi**2)
+            self.flicker = self._phi * self.flicker + drive * rng.normal(size=self.flicker.shape)
+        if g.rate_random_walk:
+            self.walk = self.walk + rng.normal(0.0, g.rate_random_walk * math.sqrt(dt), 3)
+        white = rng.normal(0.0, g.noise_density / math.sqrt(dt), 3)
+        bias = self.bias
+        return self.scale * np.asarray(true_rate) + bias + white, bias
+
+    def measure_all(self, true_rates: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Readings and biases (K, 3) for a whole sequence of true rates: the same processes as
+        :meth:`measure`, run as filters over the whole sequence at once."""
+        from scipy.signal import lfilter
+
+        g, rng, dt = self.grade, self.rng, self.dt
+        k = true_rates.shape[0]
+        bias = np.tile(self.turn_on, (k, 1))
+        if self._flicker_sigma:
+            for m, phi in enumerate(self._phi[:, 0]):
+                drive = rng.normal(0.0, self._flicker_sigma * math.sqrt(1.0 - phi**2), (k, 3))
+                drive[0] += phi * self.flicker[m]
+                state = lfilter([1.0], [1.0, -phi], drive, axis=0)
+                self.flicker[m] = state[-1]
+                bias += state
+        if g.rate_random_walk:
+            steps = rng.normal(0.0, g.rate_random_walk * math.sqrt(dt), (k, 3))
+            walk = self.walk + np.cumsum(steps, axis=0)
+            self.walk = walk[-1].copy()
+            bias += walk
+        white = rng.normal(0.0, g.noise_density / math.sqrt(dt), (k, 3))
+        return self.scale * np.asarray(true_rates) + bias + white, bias
+
+
+@dataclass(frozen=True)
+class SpeedModel:
+    """Ground-speed sensor: white noise (m/s per sample), scale error (1σ fraction, per run),
+    slip events (per minute of driving; each ``slip_s`` long, the wheels turning
+    ``slip_fraction`` faster than the mower moves), quantum (m/s)."""
+
+    white: float = 0.005
+    scale_sigma: float = 0.0
+    slip_per_min: float = 0.0
+    slip_s: float = 1.0
+    slip_fraction: float = 0.15
+    quantum: float = 0.001
+
+
+class Speedometer:
+    """:class:`SpeedModel` applied to true speeds, one reading at a time."""
+
+    def __init__(self, model: SpeedModel, rng: np.random.Generator) -> None:
+        self.model = model
+        self.rng = rng
+        self.scale = 1.0 + (rng.normal(0.0, model.scale_sigma) if model.scale_sigma else 0.0)
+        self._slip_until = -1.0
+        self.slipping = False
+
+    def measure(self, t: float, true_speed: float, dt: float) -> float:
+        m, rng = self.model, self.rng
+        if true_speed == 0.0:
+            self.slipping = False
+            return 0.0  # a standing mower reads exactly 0
+        if m.slip_per_min and t >= self._slip_until and rng.random() < m.slip_per_min * dt / 60:
+            self._slip_until = t + m.slip_s
+        self.slipping = t < self._slip_until
+        v = true_speed * self.scale * (1.0 + (m.slip_fraction if self.slipping else 0.0))
+        v += rng.normal(0.0, m.white)
+        return round(v / m.quantum) * m.quantum
+
+
+@dataclass(frozen=True)
+class CameraTiming:
+    """Camera delivery: latency ``latency_s`` (lo, hi) uniform per frame, capture-stamp
+    jitter (1σ, s), frames lost (probability), single bearings missed (probability), pixel
+    noise (1σ px)."""
+
+    latency_s: tuple[float, float] = (0.15, 0.15)
+    stamp_jitter_s: float = 0.0
+    frame_drop: float = 0.0
+    bearing_drop: float = 0.0
+    pixel_sigma: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -41,6 +145,19 @@ class Rates:
     imu_hz: float = 100.0
     speed_hz: float = 10.0
     camera_hz: float = 4.0
+
+
+@dataclass(frozen=True)
+class SensorSuite:
+    """Everything about the sensors of a scenario."""
+
+    imu: ImuGrade = field(default_factory=lambda: IMU_GRADES["vn100"])
+    speed: SpeedModel = field(default_factory=SpeedModel)
+    camera: CameraTiming = field(default_factory=CameraTiming)
+    rates: Rates = field(default_factory=Rates)
+
+
+PAPER_SENSORS = SensorSuite()
 
 
 @dataclass
@@ -54,6 +171,7 @@ class SensorStreams:
     frames: list[BearingObservation]
     gyro_bias: FloatArray  # (K, 3) the true bias at each IMU sample (for evaluation)
     frame_pixels: list[FloatArray] = field(default_factory=list)  # true pixels per frame
+    slipping: NDArray[np.bool_] | None = None  # (M,) wheel slip at each speed reading
 
     def events(self):
         """(kind, sample) in time order; at equal times imu, then speed, then bearings."""
@@ -66,91 +184,97 @@ class SensorStreams:
             yield kind, payload
 
 
-def body_points(truth: PlanarTruth, idx: int, points_world: FloatArray) -> FloatArray:
-    """World points in the body frame of truth sample ``idx``: ``R_wbᵀ (p − x_b)``."""
-    return points_in_body(truth.xy[idx], float(truth.yaw[idx]), points_world)
+def points_in_body(position: FloatArray, r_wb: FloatArray, points_world: FloatArray) -> FloatArray:
+    """World points in the body frame of a pose: ``R_wbᵀ (p − x_b)`` (row vectors)."""
+    return (points_world - np.asarray(position)) @ np.asarray(r_wb)
 
 
-def points_in_body(xy: FloatArray, yaw: float, points_world: FloatArray) -> FloatArray:
-    """World points in the body frame of a planar pose (camera at z = 0)."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    d = points_world - np.array([xy[0], xy[1], 0.0])
-    return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
+def body_points(truth: Truth, idx: int, points_world: FloatArray) -> FloatArray:
+    """World points in the body frame of truth sample ``idx``."""
+    return points_in_body(truth.position[idx], truth.rot[idx], points_world)
+
+
+def planar_pose(xy: FloatArray, yaw: float) -> tuple[FloatArray, FloatArray]:
+    """Position (camera at z = 0) and ``R_wb`` of a planar pose."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([xy[0], xy[1], 0.0]), np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def observe_at(
     world: World,
     t: float,
-    xy: FloatArray,
-    yaw: float,
+    position: FloatArray,
+    r_wb: FloatArray,
     landmarks_w: FloatArray,
     rng: np.random.Generator,
     pixel_sigma: float,
+    bearing_drop: float = 0.0,
 ) -> tuple[BearingObservation, FloatArray]:
-    """The landmarks the camera sees from a planar pose: noisy bearings + true pixels."""
-    pb = points_in_body(xy, yaw, landmarks_w)
+    """The landmarks the camera sees from a pose: noisy bearings + true pixels."""
+    from mowerhw.geometry import quat_to_rotmat
+
+    pb = points_in_body(position, r_wb, landmarks_w)
     rng_ok = np.linalg.norm(pb, axis=-1) <= world.scenario.max_range_m
     r_bc = quat_to_rotmat(world.q_bc)
     pix, vis = world.camera.visible(pb @ r_bc)  # R_bcᵀ p (row vectors)
     vis &= rng_ok
     noisy = pix[vis] + rng.normal(0.0, pixel_sigma, size=(int(vis.sum()), 2))
     still_ok = world.camera.valid(noisy)
+    if bearing_drop:
+        still_ok &= rng.random(still_ok.size) >= bearing_drop
     ids = world.landmark_ids[vis][still_ok]
     bearings = world.camera.lift(noisy[still_ok]) @ r_bc.T
     obs = BearingObservation(t=float(t), ids=ids, bearings=bearings)
     return obs, pix[vis][still_ok]
 
 
-def observe(
-    world: World,
-    truth: PlanarTruth,
-    idx: int,
-    landmarks_w: FloatArray,
-    rng: np.random.Generator,
-    pixel_sigma: float,
-) -> tuple[BearingObservation, FloatArray]:
-    """The landmarks the camera sees at truth sample ``idx``."""
-    return observe_at(
-        world,
-        float(truth.t[idx]),
-        truth.xy[idx],
-        float(truth.yaw[idx]),
-        landmarks_w,
-        rng,
-        pixel_sigma,
-    )
-
-
 def simulate_sensors(
     world: World,
-    truth: PlanarTruth,
+    truth: Truth,
     landmarks_w: FloatArray,
     seed: int,
-    noise: SensorNoise | None = None,
-    rates: Rates | None = None,
+    sensors: SensorSuite | None = None,
 ) -> SensorStreams:
     """Sensor streams for a truth trajectory (bearing level)."""
-    noise = noise or SensorNoise()
-    rates = rates or Rates()
-    rng = np.random.default_rng([seed, 2])
-    k = truth.t.size
-    dt = 1.0 / rates.imu_hz
-    bias0 = rng.normal(0.0, noise.gyro_bias, size=3)
-    walk = np.cumsum(rng.normal(0.0, noise.gyro_bias_walk * np.sqrt(dt), size=(k, 3)), axis=0)
-    bias = bias0 + walk
-    gyro = truth.body_rate + bias + rng.normal(0.0, noise.gyro_white, size=(k, 3))
+    sensors = sensors or PAPER_SENSORS
+    rates = sensors.rates
+    gyro_sim = Gyro(sensors.imu, np.random.default_rng([seed, 2]), rates.imu_hz)
+    gyro, bias = gyro_sim.measure_all(truth.body_rate)
 
+    k = truth.t.size
     step = round(rates.imu_hz / rates.speed_hz)
     sidx = np.arange(0, k, step)
-    v = truth.speed[sidx] + rng.normal(0.0, noise.speed_white, size=sidx.size)
-    v = np.where(truth.speed[sidx] == 0.0, 0.0, v)  # a standing mower reads exactly 0
-    v = np.round(v / noise.speed_quantum) * noise.speed_quantum
+    meter = Speedometer(sensors.speed, np.random.default_rng([seed, 4]))
+    dt_speed = 1.0 / rates.speed_hz
+    v = np.empty(sidx.size)
+    slipping = np.zeros(sidx.size, dtype=bool)
+    for j, i in enumerate(sidx):
+        v[j] = meter.measure(float(truth.t[i]), float(truth.speed[i]), dt_speed)
+        slipping[j] = meter.slipping
 
+    cam = sensors.camera
     cam_rng = np.random.default_rng([seed, 3])
+    timing_rng = np.random.default_rng([seed, 5])
     cstep = round(rates.imu_hz / rates.camera_hz)
     frames, pixels = [], []
     for idx in range(0, k, cstep):
-        obs, pix = observe(world, truth, idx, landmarks_w, cam_rng, noise.pixel)
+        obs, pix = observe_at(
+            world,
+            float(truth.t[idx]),
+            truth.position[idx],
+            truth.rot[idx],
+            landmarks_w,
+            cam_rng,
+            cam.pixel_sigma,
+            cam.bearing_drop,
+        )
+        if cam.frame_drop and timing_rng.random() < cam.frame_drop:
+            continue
+        if cam.stamp_jitter_s:
+            stamp = obs.t + timing_rng.normal(0.0, cam.stamp_jitter_s)
+            obs = BearingObservation(t=stamp, ids=obs.ids, bearings=obs.bearings)
         frames.append(obs)
         pixels.append(pix)
-    return SensorStreams(truth.t.copy(), gyro, truth.t[sidx].copy(), v, frames, bias, pixels)
+    return SensorStreams(
+        truth.t.copy(), gyro, truth.t[sidx].copy(), v, frames, bias, pixels, slipping
+    )

@@ -1,78 +1,40 @@
-"""Simulated yards: a lawn, landmarks around it, and the camera that sees them.
+"""Simulated yards: a lawn, the ground, landmarks around it, beds inside, and the camera.
 
-Coordinates here are the *map* frame of the simulator (x, y on the ground, z = height above
-the ground). The estimators never see this frame: :mod:`mowerhw.sim.motion` expresses the
-truth in the world frame of DESIGN.md §3 (the body frame at the first sample).
+Coordinates here are the *map* frame of the simulator (x, y on the ground plane, z up; the
+ground is at ``terrain.height(x, y)``). The estimators never see this frame:
+:mod:`mowerhw.sim.motion` expresses the truth in the world frame of DESIGN.md §3 (the body
+frame at the first sample). Scenario presets: :mod:`mowerhw.sim.scenarios`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import shapely
 from numpy.typing import NDArray
 
 from mowerhw.camera import OmniRadtanCamera, paper_table1_camera
-from mowerhw.sim.lawn import HarmonicLawn, random_lawn
+from mowerhw.sim.lawn import random_lawn, shaped_lawn
+from mowerhw.sim.terrain import Terrain, random_bumps
 
 FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
-class Scenario:
-    """What a simulated yard looks like; a seed draws one instance."""
-
-    name: str
-    perimeter_m: float
-    n_landmarks: int
-    speed_mps: float
-    landmark_distance_m: tuple[float, float]  # from the lawn edge (inside or outside)
-    landmark_height_m: tuple[float, float]  # above the ground
-    max_range_m: float  # the camera resolves a landmark up to this distance
-    n_harmonics: int = 2
-    amplitude: float = 0.15
-    camera_height_m: float = 0.8
-    standstill_s: float = 2.0
-
-
-SCENARIOS: dict[str, Scenario] = {
-    # The paper's §V: 15 landmarks at random in 3D, a closed teach loop of about 60 s.
-    "paper": Scenario(
-        name="paper",
-        perimeter_m=26.0,
-        n_landmarks=15,
-        speed_mps=0.45,
-        landmark_distance_m=(1.5, 6.0),
-        landmark_height_m=(0.3, 2.5),
-        max_range_m=30.0,
-    ),
-    # A larger, gently concave lawn for scaling: ≥ 150 m perimeter, ≥ 60 landmarks, a
-    # limited camera range so landmarks come and go (keyframes change).
-    "large": Scenario(
-        name="large",
-        perimeter_m=160.0,
-        n_landmarks=80,
-        speed_mps=0.6,
-        landmark_distance_m=(1.5, 8.0),
-        landmark_height_m=(0.3, 3.0),
-        max_range_m=15.0,
-        n_harmonics=3,
-        amplitude=0.25,
-    ),
-}
-
-
-@dataclass(frozen=True)
 class World:
-    """One yard: the lawn edge (map frame), landmarks (map frame, z above ground), camera."""
+    """One yard: the lawn edge, the ground, landmarks (map frame, absolute z), flower beds
+    (keep-out polygons, map frame), the camera."""
 
-    scenario: Scenario
-    lawn: HarmonicLawn
+    scenario: Any  # mowerhw.sim.scenarios.Scenario
+    lawn: Any  # HarmonicLawn or PathLawn: arc length → point, heading
     landmark_ids: NDArray[np.int64]
     landmarks_map: FloatArray  # (N, 3)
     camera: OmniRadtanCamera = field(default_factory=paper_table1_camera)
     q_bc: tuple[float, float, float, float] = (0.0, 1.0, 0.0, 0.0)
+    terrain: Terrain = field(default_factory=Terrain)
+    beds: tuple[FloatArray, ...] = ()  # (M, 2) outlines, map frame
 
     @property
     def n_landmarks(self) -> int:
@@ -80,11 +42,11 @@ class World:
 
 
 def place_landmarks(
-    rng: np.random.Generator, lawn: HarmonicLawn, scenario: Scenario, n: int
+    rng: np.random.Generator, outline: FloatArray, distance_m: tuple[float, float], n: int
 ) -> FloatArray:
-    """``n`` landmarks uniformly around the lawn edge, within the scenario's distance band."""
-    edge = shapely.LinearRing(lawn.outline(1440))
-    lo, hi = scenario.landmark_distance_m
+    """``n`` points (x, y) uniformly around a lawn edge, within a distance band of it."""
+    edge = shapely.LinearRing(outline)
+    lo, hi = distance_m
     region = shapely.Polygon(edge).buffer(hi)
     minx, miny, maxx, maxy = region.bounds
     points: list[FloatArray] = []
@@ -93,16 +55,80 @@ def place_landmarks(
         inside = shapely.contains_xy(region, cand[:, 0], cand[:, 1])
         far = shapely.distance(edge, shapely.points(cand)) >= lo
         points.extend(cand[inside & far])
-    xy = np.asarray(points[:n])
-    z = rng.uniform(*scenario.landmark_height_m, size=n)
-    return np.column_stack([xy, z])
+    return np.asarray(points[:n])
 
 
-def make_world(scenario: str | Scenario, seed: int, n_landmarks: int | None = None) -> World:
-    """Draw a yard for ``scenario`` (a name in :data:`SCENARIOS` or a :class:`Scenario`)."""
+def place_beds(
+    rng: np.random.Generator,
+    outline: FloatArray,
+    n: int,
+    radius_m: tuple[float, float] = (0.7, 1.1),
+) -> list[tuple[FloatArray, float]]:
+    """``n`` round beds inside the lawn, at least 1.5 m from its edge and from each other:
+    (centre, radius)."""
+    lawn = shapely.Polygon(outline)
+    minx, miny, maxx, maxy = lawn.bounds
+    beds: list[tuple[FloatArray, float]] = []
+    for _ in range(2000):
+        if len(beds) == n:
+            break
+        c = rng.uniform([minx, miny], [maxx, maxy])
+        r = float(rng.uniform(*radius_m))
+        disc = shapely.Point(c).buffer(r + 1.5)
+        if not lawn.contains(disc):
+            continue
+        if any(np.linalg.norm(c - c2) < r + r2 + 1.5 for c2, r2 in beds):
+            continue
+        beds.append((c, r))
+    return beds
+
+
+def make_world(scenario: Any, seed: int, n_landmarks: int | None = None) -> World:
+    """Draw a yard for ``scenario`` (a preset name of :mod:`mowerhw.sim.scenarios` or a
+    :class:`~mowerhw.sim.scenarios.Scenario`)."""
+    from mowerhw.sim.scenarios import SCENARIOS
+
     sc = SCENARIOS[scenario] if isinstance(scenario, str) else scenario
     rng = np.random.default_rng([seed, 1])
-    lawn = random_lawn(rng, sc.perimeter_m, sc.n_harmonics, sc.amplitude)
+    if sc.shape:
+        lawn: Any = shaped_lawn(sc.shape)
+    else:
+        lawn = random_lawn(rng, sc.perimeter_m, sc.n_harmonics, sc.amplitude)
+    outline = lawn.outline(1440)
     n = sc.n_landmarks if n_landmarks is None else n_landmarks
-    landmarks = place_landmarks(rng, lawn, sc, n)
-    return World(sc, lawn, np.arange(n, dtype=np.int64), landmarks)
+    xy = place_landmarks(rng, outline, sc.landmark_distance_m, n)
+    height = rng.uniform(*sc.landmark_height_m, size=n)
+    beds = place_beds(rng, outline, sc.beds) if sc.beds else []
+    terrain = Terrain()
+    if sc.slope_deg or sc.bumps_per_m2:
+        bumps: tuple = ()
+        if sc.bumps_per_m2:
+            lx0, ly0 = outline.min(axis=0) - 2.0
+            lx1, ly1 = outline.max(axis=0) + 2.0
+            bumps = random_bumps(
+                rng, (lx0, ly0, lx1, ly1), sc.bumps_per_m2, (0.03, 0.08), (0.3, 0.6)
+            )
+        centre = outline.mean(axis=0) + rng.uniform(-2.0, 2.0, size=2)
+        terrain = Terrain(
+            sc.slope_deg,
+            float(rng.uniform(0, 360)),
+            bumps,
+            slope_origin=(float(centre[0]), float(centre[1])),
+        )
+    trees = np.array([[c[0], c[1]] for c, _ in beds]).reshape(-1, 2)
+    tree_h = rng.uniform(1.5, 3.0, size=len(beds))
+    xy = np.vstack([xy, trees])
+    height = np.concatenate([height, tree_h])
+    z = terrain.height(xy[:, 0], xy[:, 1]) + height
+    landmarks = np.column_stack([xy, z])
+    bed_outlines = tuple(
+        np.asarray(shapely.Point(c).buffer(r, quad_segs=8).exterior.coords)[:-1] for c, r in beds
+    )
+    return World(
+        sc,
+        lawn,
+        np.arange(landmarks.shape[0], dtype=np.int64),
+        landmarks,
+        terrain=terrain,
+        beds=bed_outlines,
+    )

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mowerhw.config import Config, TeachConfig
+from mowerhw.config import Config, TeachConfig, with_imu_noise
 from mowerhw.geometry import (
     IDENTITY_QUAT,
     quat_conjugate,
@@ -177,10 +177,10 @@ class _Growable:
 
 def _teach_config(config: Config | TeachConfig | None) -> TeachConfig:
     if config is None:
-        return TeachConfig()
+        return with_imu_noise(TeachConfig())
     if isinstance(config, Config):
-        return config.teach
-    return config
+        return with_imu_noise(config.teach, config.imu)
+    return with_imu_noise(config)
 
 
 class Teacher:

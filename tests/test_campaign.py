@@ -1,0 +1,97 @@
+"""Evaluation campaigns (`mowerhw eval`): local processes and a Dask cluster give one table;
+IMU noise from data (`mowerhw imu characterize`)."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from mowerhw.campaign import RunSpec, run_campaign, seeds_of, summarise, write_table
+from mowerhw.cli import main
+
+WALL = ("teach_wall_s", "mow_wall_s")
+
+
+def _table(rows):
+    return [{k: v for k, v in r.items() if k not in WALL} for r in rows]
+
+
+def test_seed_lists():
+    assert seeds_of("1-3,7") == [1, 2, 3, 7] and seeds_of("5") == [5]
+
+
+@pytest.mark.slow
+def test_local_workers_and_a_dask_cluster_give_the_same_table(tmp_path):
+    distributed = pytest.importorskip("distributed", reason="dask[distributed] not installed")
+    specs = [RunSpec(s, seed, "bearing", 15.0) for s in ("paper", "U-sparse") for seed in (1, 2)]
+    local = run_campaign(specs, workers=2, progress=False)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        remote = run_campaign(specs, scheduler=client, progress=False)
+    assert _table(local) == _table(remote)
+    assert [r["scenario"] for r in local] == ["paper", "paper", "U-sparse", "U-sparse"]
+    assert all(r["error"] is None and r["teach_ok"] for r in local), local
+    path = write_table(local, tmp_path / "results.csv")
+    with path.open() as fh:
+        assert len(list(csv.DictReader(fh))) == 4
+    summary = {s["scenario"]: s for s in summarise(local)}
+    assert summary["paper"]["runs"] == 2 and summary["paper"]["missed_halts"] == 0
+
+
+def test_eval_command_refuses_unknown_scenarios_and_rough_ground_at_pixel_level(capsys):
+    assert main(["eval", "--scenarios", "moon"]) == 2
+    assert "unknown scenario moon" in capsys.readouterr().err
+    assert main(["eval", "--scenarios", "strip-bumps", "--level", "pixel"]) == 2
+    assert "flat ground only" in capsys.readouterr().err
+
+
+def test_eval_command_writes_the_table_and_summary(tmp_path, capsys):
+    out = tmp_path / "ev"
+    code = main(
+        ["eval", "--scenarios", "paper", "--seeds", "1", "--mow-s", "5", "--workers", "1"]
+        + ["--out", str(out), "--json"]
+    )
+    report = json.loads(capsys.readouterr().out)
+    assert code == 0 and report["runs"] == 1 and (out / "results.csv").exists()
+    assert report["summary"][0]["scenario"] == "paper"
+
+
+@pytest.mark.parametrize("grade", ["vn100", "bmi088", "mpu6050"])
+def test_characterize_recovers_the_simulated_white_noise(grade, tmp_path, capsys):
+    from mowerhw.imu_grades import IMU_GRADES
+
+    path = tmp_path / f"{grade}.csv"
+    assert main(["imu", "simulate", "--grade", grade, "--duration", "600", "--out", str(path)]) == 0
+    capsys.readouterr()
+    assert main(["imu", "characterize", str(path), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    n = report["config"]["imu"]["gyro_noise_density"]
+    assert n == pytest.approx(IMU_GRADES[grade].noise_density, rel=0.05)
+
+
+def test_characterize_reads_a_vn100_mcap_through_the_parser(tmp_path, capsys):
+    path = tmp_path / "still.mcap"
+    args = ["imu", "simulate", "--grade", "bmi088", "--duration", "120", "--out", str(path)]
+    assert main(args) == 0
+    capsys.readouterr()
+    assert main(["imu", "characterize", str(path), "--json", "--plot"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["samples"] == 12000 and report["rate_hz"] == pytest.approx(100.0)
+    assert report["source"].startswith("MCAP")
+    assert (tmp_path / "still.allan.png").exists()
+
+
+def test_characterize_refuses_what_it_cannot_use(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,gx,gy,gz\n0,1,2\n")
+    assert main(["imu", "characterize", str(bad)]) == 1
+    assert "expected columns t, gx, gy, gz" in capsys.readouterr().err
+    short = tmp_path / "short.csv"
+    np.savetxt(short, np.column_stack([np.arange(50) * 0.01, np.zeros((50, 3))]), delimiter=",")
+    assert main(["imu", "characterize", str(short)]) == 1
+    assert "at least 1000" in capsys.readouterr().err
