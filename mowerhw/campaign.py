@@ -41,12 +41,17 @@ COLUMNS = (
     "boundary_rmse_m",
     "boundary_max_m",
     "landmark_rmse_m",
+    "map_scale",
+    "boundary_rmse_scale_free_m",
+    "landmark_rmse_scale_free_m",
+    "speed_scale_true",
     "landmarks_mapped",
     "loop_closed",
     "diverged",
     "mow_s",
     "position_rmse_m",
     "position_max_m",
+    "position_rmse_scale_free_m",
     "missed_halts",
     "false_halt_fraction",
     "permit_fraction",
@@ -107,7 +112,16 @@ def _run(spec: RunSpec, row: dict[str, Any]) -> None:
     m = taught.metrics
     row["teach_ok"] = taught.result is not None
     row["diverged"] = bool(m.get("diverged"))
-    for key in ("boundary_rmse_m", "boundary_max_m", "landmark_rmse_m", "landmarks_mapped"):
+    for key in (
+        "boundary_rmse_m",
+        "boundary_max_m",
+        "landmark_rmse_m",
+        "landmarks_mapped",
+        "map_scale",
+        "boundary_rmse_scale_free_m",
+        "landmark_rmse_scale_free_m",
+        "speed_scale_true",
+    ):
         row[key] = m.get(key)
     closure = m.get("loop_closure") or {}
     row["loop_closed"] = bool(closure.get("applied"))
@@ -127,6 +141,19 @@ def _run(spec: RunSpec, row: dict[str, Any]) -> None:
     row["permit_fraction"] = mm.get("permit_fraction")
     row["halts_by_reason"] = json.dumps(mm.get("halts_by_reason", {}), sort_keys=True)
     row["lockouts"] = (mm.get("localizer") or {}).get("lockouts")
+    row["position_rmse_scale_free_m"] = _scale_free_mow_rmse(mowed, row.get("map_scale"))
+
+
+def _scale_free_mow_rmse(mowed: Any, map_scale: float | None) -> float | None:
+    """The mowing position error with the map's own scale taken out (see
+    :func:`mowerhw.evaluate._scale_free_errors`): the map and the mower's odometry share the
+    ground-speed sensor's scale, so the estimate is right in the map's units."""
+    if map_scale is None:
+        return None
+    after = mowed.t >= 2.0
+    est = mowed.est[after, :2] * map_scale
+    err = np.linalg.norm(est - mowed.true_xy[after], axis=1)
+    return round(float(np.sqrt(np.mean(err**2))), 5) if err.size else None
 
 
 def scenario_config(scenario: str) -> Any:
@@ -263,6 +290,18 @@ def summarise(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             "landmark_rmse_median": _quantile([r["landmark_rmse_m"] for r in ok], 50),
             "landmark_rmse_p95": _quantile([r["landmark_rmse_m"] for r in ok], 95),
             "mow_rmse_median": _quantile([r["position_rmse_m"] for r in ok], 50),
+            "boundary_rmse_scale_free_median": _quantile(
+                [r["boundary_rmse_scale_free_m"] for r in ok], 50
+            ),
+            "boundary_rmse_scale_free_p95": _quantile(
+                [r["boundary_rmse_scale_free_m"] for r in ok], 95
+            ),
+            "landmark_rmse_scale_free_median": _quantile(
+                [r["landmark_rmse_scale_free_m"] for r in ok], 50
+            ),
+            "mow_rmse_scale_free_median": _quantile(
+                [r["position_rmse_scale_free_m"] for r in ok], 50
+            ),
             "missed_halts": int(sum(r.get("missed_halts") or 0 for r in rs)),
             "false_halt_fraction": round(float(np.mean(fh)), 4) if fh else None,
             "false_halt_fraction_max": round(float(np.max(fh)), 4) if fh else None,
@@ -274,6 +313,17 @@ def summarise(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             for key, limit in GOALS.items()
             if s.get(key) is None or s[key] > limit  # type: ignore[operator]
         ]
+        scale_free = {
+            "boundary_rmse_median": "boundary_rmse_scale_free_median",
+            "boundary_rmse_p95": "boundary_rmse_scale_free_p95",
+            "landmark_rmse_median": "landmark_rmse_scale_free_median",
+            "mow_rmse_median": "mow_rmse_scale_free_median",
+        }
+        s["missed_goals_scale_free"] = [
+            key
+            for key, limit in GOALS.items()
+            if (v := s.get(scale_free.get(key, key))) is None or v > limit
+        ]
         out.append(s)
     return out
 
@@ -281,21 +331,26 @@ def summarise(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 def format_summary(summary: Sequence[dict[str, Any]]) -> str:
     head = (
         "| scenario | level | runs | boundary RMSE median / p95 (m) | landmark RMSE median / p95 "
-        "(m) | mow RMSE median (m) | missed halts | false halts mean / max | diverged | "
-        "goals missed |"
+        "(m) | mow RMSE median (m) | scale-free: boundary median / p95, landmark, mow (m) | "
+        "missed halts | false halts mean / max | diverged | goals missed (raw; scale-free) |"
     )
-    lines = [head, "|" + "---|" * 10]
+    lines = [head, "|" + "---|" * 11]
 
     def f(v: Any) -> str:
         return "—" if v is None else f"{v:g}" if isinstance(v, float) else str(v)
 
     for s in summary:
+        raw = ", ".join(s["missed_goals"]) or "none"
+        free = ", ".join(s["missed_goals_scale_free"]) or "none"
         lines.append(
             f"| {s['scenario']} | {s['level']} | {s['runs']} | {f(s['boundary_rmse_median'])} / "
             f"{f(s['boundary_rmse_p95'])} | {f(s['landmark_rmse_median'])} / "
-            f"{f(s['landmark_rmse_p95'])} | {f(s['mow_rmse_median'])} | {s['missed_halts']} | "
+            f"{f(s['landmark_rmse_p95'])} | {f(s['mow_rmse_median'])} | "
+            f"{f(s['boundary_rmse_scale_free_median'])} / {f(s['boundary_rmse_scale_free_p95'])}, "
+            f"{f(s['landmark_rmse_scale_free_median'])}, {f(s['mow_rmse_scale_free_median'])} | "
+            f"{s['missed_halts']} | "
             f"{f(s['false_halt_fraction'])} / {f(s['false_halt_fraction_max'])} | "
-            f"{s['diverged']} | {', '.join(s['missed_goals']) or 'none'} |"
+            f"{s['diverged']} | {raw}; {free} |"
         )
     return "\n".join(lines)
 

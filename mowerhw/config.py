@@ -117,6 +117,13 @@ class ImuConfig:
     gyro_random_walk: float | None = opt(
         None, "rate random walk, rad/s/√s; null: the grade's", ge=0.0, le=0.01
     )
+    gyro_scale_error: float | None = opt(
+        None,
+        "1σ of the gyro's scale-factor error (fraction); the estimators estimate the yaw "
+        "rate's scale with this prior; null: the grade's",
+        ge=0.0,
+        le=0.2,
+    )
     gyro_source: str = opt(
         "auto",
         "where the angular rate comes from: angular_rate (Common/IMU AngularRate, "
@@ -310,6 +317,13 @@ class TeachConfig:
     gyro_bias_walk: float | None = opt(
         None, "estimator's gyro bias random walk, rad/s/√s; null: from the imu section", ge=0.0
     )
+    gyro_scale_sigma: float | None = opt(
+        None,
+        "prior σ of the yaw rate's scale error the estimator estimates; null: from the imu "
+        "section (imu.gyro_scale_error)",
+        ge=0.0,
+        le=0.2,
+    )
     speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
     lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
     boundary_simplify_m: float = opt(0.02, "Douglas–Peucker tolerance of the boundary", ge=0.0)
@@ -342,6 +356,13 @@ class MowConfig:
     )
     gyro_bias_walk: float | None = opt(
         None, "estimator's gyro bias random walk, rad/s/√s; null: from the imu section", ge=0.0
+    )
+    gyro_scale_sigma: float | None = opt(
+        None,
+        "prior σ of the yaw rate's scale error the estimator estimates; null: from the imu "
+        "section (imu.gyro_scale_error)",
+        ge=0.0,
+        le=0.2,
     )
     speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
     lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
@@ -584,6 +605,15 @@ def config_from_dict(raw: Any, base_dir: Path | None = None, source: str | None 
     return dataclasses.replace(cfg, source=Path(source) if source else None)
 
 
+def gyro_scale_sigma(imu: ImuConfig) -> float:
+    """The prior σ of the gyro's yaw-rate scale error: the config's, else its grade's (never
+    below 0.5 %: no unit is calibrated better in the field)."""
+    from mowerhw.imu_grades import IMU_GRADES
+
+    given = imu.gyro_scale_error
+    return max(IMU_GRADES[imu.grade].scale_factor if given is None else given, 0.005)
+
+
 def imu_noise(imu: ImuConfig) -> tuple[float, float, float]:
     """The gyro's Allan figures (noise density, bias instability, random walk): the config's
     own where given, else its grade's (:data:`mowerhw.imu_grades.IMU_GRADES`)."""
@@ -600,15 +630,19 @@ def imu_noise(imu: ImuConfig) -> tuple[float, float, float]:
 def with_imu_noise(section: Any, imu: ImuConfig | None = None) -> Any:
     """A teach or mow section with its null gyro process noise filled in from ``imu`` (the
     defaults' VN-100 when not given): the one place the estimators' gyro noise is decided."""
-    if section.gyro_noise is not None and section.gyro_bias_walk is not None:
+    if None not in (section.gyro_noise, section.gyro_bias_walk, section.gyro_scale_sigma):
         return section
     from mowerhw.imu_grades import gyro_process_noise
 
-    white, walk = gyro_process_noise(*imu_noise(imu or ImuConfig()))
+    imu = imu or ImuConfig()
+    white, walk = gyro_process_noise(*imu_noise(imu))
     return dataclasses.replace(
         section,
         gyro_noise=white if section.gyro_noise is None else section.gyro_noise,
         gyro_bias_walk=walk if section.gyro_bias_walk is None else section.gyro_bias_walk,
+        gyro_scale_sigma=gyro_scale_sigma(imu)
+        if section.gyro_scale_sigma is None
+        else section.gyro_scale_sigma,
     )
 
 
@@ -616,7 +650,11 @@ def _resolve_imu_noise(cfg: Config) -> Config:
     """The config with the imu figures and the estimators' gyro noise all numbers."""
     n, b, k = imu_noise(cfg.imu)
     imu = dataclasses.replace(
-        cfg.imu, gyro_noise_density=n, gyro_bias_instability=b, gyro_random_walk=k
+        cfg.imu,
+        gyro_noise_density=n,
+        gyro_bias_instability=b,
+        gyro_random_walk=k,
+        gyro_scale_error=gyro_scale_sigma(cfg.imu),
     )
     return dataclasses.replace(
         cfg, imu=imu, teach=with_imu_noise(cfg.teach, imu), mow=with_imu_noise(cfg.mow, imu)

@@ -153,6 +153,7 @@ def teach_metrics(
     est = np.array([result.landmarks[i] for i in ids]).reshape(-1, 3)
     lm_err = np.linalg.norm(est - true_xyz, axis=1) if ids.size else np.zeros(0)
     boundary_rmse = float(np.sqrt(np.mean(e**2)))
+    scale_free = _scale_free_errors(result, run, first, ids, true_xyz)
     landmark_rmse = float(np.sqrt(np.mean(lm_err**2))) if lm_err.size else float("nan")
     finite = bool(np.all(np.isfinite(result.trajectory)) and np.all(np.isfinite(est)))
     diverged = (not finite) or not (boundary_rmse < DIVERGENCE_M and landmark_rmse < DIVERGENCE_M)
@@ -162,6 +163,7 @@ def teach_metrics(
         "boundary_rmse_no_closure_m": round(float(np.sqrt(np.mean(e0**2))), 5),
         "landmark_rmse_m": round(landmark_rmse, 5),
         "landmark_max_m": round(float(lm_err.max()), 5) if lm_err.size else None,
+        **scale_free,
         "landmarks_mapped": int(ids.size),
         "landmarks_in_world": int(run.landmarks_w.shape[0]),
         "diverged": bool(diverged),
@@ -178,6 +180,32 @@ def teach_metrics(
         "finish_wall_s": round(finish_s, 4),
         "real_time_factor": round(run.duration_s / max(wall_s + finish_s, 1e-9), 1),
     }
+
+
+def _scale_free_errors(
+    result: TeachResult, run: TeachRun, first: int, ids: Any, true_xyz: FloatArray
+) -> dict[str, Any]:
+    """Errors once a uniform scale about the start is taken out. Bearings and a ground-speed
+    sensor cannot tell a map from the same map a few per cent larger: a speed sensor that
+    reads 3 % high makes a map 3 % large, and it mows on it consistently (it localises with
+    the same sensor). What is left after the best such scale is the estimator's own error."""
+    traj = result.trajectory[first:]
+    idx = np.clip(np.searchsorted(run.truth.t, traj[:, 0] - 1e-9), 0, run.truth.t.size - 1)
+    est, ref = traj[:, 1:3], run.truth.xy[idx]
+    denom = float(np.sum(est * est))
+    scale = float(np.sum(est * ref) / denom) if denom > 0 else 1.0
+    e = np.linalg.norm(scale * est - ref, axis=1)
+    out = {
+        "map_scale": round(scale, 5),
+        "boundary_rmse_scale_free_m": round(float(np.sqrt(np.mean(e**2))), 5),
+    }
+    if ids.size:
+        lm = np.array([result.landmarks[i] for i in ids.tolist()]).reshape(-1, 3)
+        err = np.linalg.norm(scale * lm - true_xyz, axis=1)
+        out["landmark_rmse_scale_free_m"] = round(float(np.sqrt(np.mean(err**2))), 5)
+    streams = run.streams
+    out["speed_scale_true"] = round(float(getattr(streams, "speed_scale", 1.0)), 5)
+    return out
 
 
 def run_teach(

@@ -37,6 +37,7 @@ from mowerhw.sim import make_world
 from mowerhw.sim.controller import BangBangMower
 from mowerhw.sim.plant import MowerPlant
 from mowerhw.sim.render import OmniRenderer
+from mowerhw.sim.sensors import mower_speed_scale
 from mowerhw.vision import MowVision
 
 FloatArray = NDArray[np.float64]
@@ -84,6 +85,7 @@ def run_mow(
     plant = MowerPlant(
         world,
         run_seed * 7919 + 13,
+        speed_scale=mower_speed_scale(world.scenario.sensors, seed),
         frame_latency_s=frame_latency_s,
         vision_dropout=vision_dropout,
         renderer=renderer,

@@ -239,6 +239,7 @@ class LawnMap:
             "duration_s": float(result.trajectory[-1, 0] - result.trajectory[0, 0]),
             "distance_m": float(result.diagnostics.get("distance_m", 0.0)),
             "keyframes": len(result.keyframes),
+            "gyro_yaw_scale_error": float(result.diagnostics.get("gyro_yaw_scale_error", 0.0)),
             "loop_closure": {
                 "applied": closure.applied,
                 "reason": closure.reason,

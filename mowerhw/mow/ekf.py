@@ -1,15 +1,17 @@
 """World-centric error-state EKF of the mow phase (paper §IV, eqs 21–23; DESIGN.md §5).
 
-State: the body's world position ``x = x_b^w``, orientation ``q = q_wb`` and the gyro bias.
-Error state (9): ``δθ`` (world frame, ``R_wb = exp([δθ]×) R̂_wb``), ``δx``, ``δb``.
+State: the body's world position ``x = x_b^w``, orientation ``q = q_wb``, the gyro bias and
+the yaw rate's scale error ``k`` (beyond the paper: a MEMS gyro that reads 3 % high turns
+every 180° edge turn into 185°). Error state (10): ``δθ`` (world frame,
+``R_wb = exp([δθ]×) R̂_wb``), ``δx``, ``δb``, ``δk``.
 
-Propagation (eq. 21): ``ẋ = R(q) v``, ``q̇ = ½ q ⊗ (0, ω)`` with ``ω = ω_m − b``,
-``v = (s, 0, 0)``; the mean moves by the exact rigid motion of one IMU interval
-(:class:`mowerhw.odometry.BodyMotion`), the error by
+Propagation (eq. 21): ``ẋ = R(q) v``, ``q̇ = ½ q ⊗ (0, ω)`` with ``ω = (ω_m − b)`` and its z
+component times ``1 − k``, ``v = (speed, 0, 0)``; the mean moves by the exact rigid motion of
+one IMU interval (:class:`mowerhw.odometry.BodyMotion`), the error by
 
-    δθ' = δθ − R̂' Δt (δb + n_g)
+    δθ' = δθ − R̂' Δt (δb + ω_z ẑ δk + n_g)
     δx' = δx − [R̂ Δ]× δθ + R̂ Δt n_v
-    δb' = δb + n_b
+    δb' = δb + n_b,  δk' = δk + n_k
 
 Update (eqs 22–23): a map landmark at ``L_i`` (world) is seen along
 ``h = normalize(R(q)ᵀ (L_i − x))``; the residual lives in the tangent plane of the measured
@@ -42,7 +44,10 @@ from mowerhw.odometry import BodyMotion
 
 FloatArray = NDArray[np.float64]
 
-TH, X, BG = slice(0, 3), slice(3, 6), slice(6, 9)
+TH, X, BG, SC = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 10)
+N_ERR = 10  # error-state size
+#: the yaw-rate scale error drifts this much per √s (temperature): a little, so it can follow
+SCALE_WALK = 2e-5
 
 
 @dataclass
@@ -51,6 +56,7 @@ class LocalizerNoise:
     gyro_bias_walk: float = 2e-6  # rad/s²/√Hz
     speed: float = 2e-3  # m/s/√Hz
     lateral: float = 3e-3  # m/s/√Hz
+    scale_sigma: float = 0.005  # prior σ of the yaw rate's scale error
 
 
 @dataclass
@@ -70,10 +76,11 @@ class EkfState:
     bg: FloatArray
     P: FloatArray
     pxl: FloatArray = field(repr=False)
+    k: float = 0.0  # yaw-rate scale error
 
     def copy(self) -> EkfState:
         return EkfState(
-            self.x.copy(), self.q.copy(), self.bg.copy(), self.P.copy(), self.pxl.copy()
+            self.x.copy(), self.q.copy(), self.bg.copy(), self.P.copy(), self.pxl.copy(), self.k
         )
 
 
@@ -90,9 +97,11 @@ class WorldPoseEKF:
         self.x = np.zeros(3)
         self.q = IDENTITY_QUAT.copy()
         self.bg = np.zeros(3)
-        self.P = np.zeros((9, 9))
+        self.k = 0.0
+        self.P = np.zeros((N_ERR, N_ERR))
+        self.P[SC, SC] = noise.scale_sigma**2
         self.landmark_cov = np.asarray(landmark_cov, dtype=np.float64).reshape(-1, 3, 3)
-        self.pxl = np.zeros((9, 3 * self.landmark_cov.shape[0]))  # P_xL (consider)
+        self.pxl = np.zeros((N_ERR, 3 * self.landmark_cov.shape[0]))  # P_xL (consider)
         self.gate = float(chi2.ppf(gate_probability, df=2))
         self._qv = np.array([noise.speed**2, noise.lateral**2, noise.lateral**2])
 
@@ -100,12 +109,18 @@ class WorldPoseEKF:
 
     def snapshot(self) -> EkfState:
         return EkfState(
-            self.x.copy(), self.q.copy(), self.bg.copy(), self.P.copy(), self.pxl.copy()
+            self.x.copy(), self.q.copy(), self.bg.copy(), self.P.copy(), self.pxl.copy(), self.k
         )
 
     def snapshot_view(self) -> EkfState:
         """The current state without copying (read only)."""
-        return EkfState(self.x, self.q, self.bg, self.P, self.pxl)
+        return EkfState(self.x, self.q, self.bg, self.P, self.pxl, self.k)
+
+    def corrected_rate(self, gyro: FloatArray) -> FloatArray:
+        """The body rate from a gyro reading: bias out, the yaw rate's scale error out."""
+        w = np.asarray(gyro, dtype=np.float64) - self.bg
+        w[2] *= 1.0 - self.k
+        return w
 
     def predict_bearings(
         self,
@@ -127,6 +142,7 @@ class WorldPoseEKF:
     def restore(self, s: EkfState) -> None:
         self.x, self.q, self.bg = s.x.copy(), s.q.copy(), s.bg.copy()
         self.P, self.pxl = s.P.copy(), s.pxl.copy()
+        self.k = s.k
 
     def reset(
         self,
@@ -142,11 +158,12 @@ class WorldPoseEKF:
         self.q = quat_normalize(q)
         if bias is not None:
             self.bg = np.asarray(bias, dtype=np.float64).copy()
-        p = np.zeros((9, 9))
+        p = np.zeros((N_ERR, N_ERR))
         p[TH, TH] = np.diag(np.asarray(sigma_rot, dtype=np.float64) ** 2)
         p[X, X] = np.eye(3) * sigma_pos**2
         old_bias = self.P[BG, BG].copy()
         p[BG, BG] = np.eye(3) * bias_var if bias_var is not None else old_bias
+        p[SC, SC] = self.P[SC, SC]  # what is known of the gyro's scale survives a restart
         self.P = p
         self.pxl[:] = 0.0
 
@@ -165,6 +182,7 @@ class WorldPoseEKF:
             and np.all(np.isfinite(self.q))
             and np.all(np.isfinite(self.P))
             and np.all(np.isfinite(self.bg))
+            and np.isfinite(self.k)
         )
 
     # -- eq. (21): propagation ------------------------------------------------------------------
@@ -176,13 +194,15 @@ class WorldPoseEKF:
         self.q = quat_normalize(quat_multiply(self.q, m.dq))
         r_new = quat_to_rotmat(self.q)
         dt = m.dt
-        phi = np.eye(9)
+        phi = np.eye(N_ERR)
         phi[TH, BG] = -r_new * dt
+        phi[TH, 9] = -r_new[:, 2] * (m.w[2] * dt)  # the yaw rate's scale error
         phi[X, TH] = -skew(disp_w)
-        q = np.zeros((9, 9))
+        q = np.zeros((N_ERR, N_ERR))
         q[TH, TH] = np.eye(3) * (self.noise.gyro**2 * dt)
         q[X, X] = (r * self._qv) @ r.T * dt
         q[BG, BG] = np.eye(3) * (self.noise.gyro_bias_walk**2 * dt)
+        q[9, 9] = SCALE_WALK**2 * dt
         self.P = phi @ self.P @ phi.T + q
         if self.pxl.shape[1]:
             self.pxl = phi @ self.pxl
@@ -210,7 +230,7 @@ class WorldPoseEKF:
         if not ok.any():
             return out
         k = int(ok.sum())
-        Hx = hx[ok].reshape(2 * k, 9)
+        Hx = hx[ok].reshape(2 * k, N_ERR)
         # H_L as a dense (2k, 3·len(map)) matrix over the observed landmarks' columns only
         sel = rows[ok]
         r_idx = (2 * np.arange(k)[:, None, None] + np.arange(2)[None, :, None]).repeat(3, 2)
@@ -219,7 +239,7 @@ class WorldPoseEKF:
         hl_full[r_idx, c_idx] = hl[ok]
         pll_hl = np.zeros_like(hl_full)  # H_L P_LL (P_LL is block diagonal)
         pll_hl[r_idx, c_idx] = hl[ok] @ self.landmark_cov[sel]
-        ph = self.P @ Hx.T + self.pxl @ hl_full.T  # (9, 2k)
+        ph = self.P @ Hx.T + self.pxl @ hl_full.T  # (10, 2k)
         S = Hx @ ph + hl_full @ (self.pxl.T @ Hx.T) + pll_hl @ hl_full.T
         S += sigma**2 * np.eye(2 * k)
         K = np.linalg.solve(S, ph.T).T
@@ -231,6 +251,7 @@ class WorldPoseEKF:
         self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
         self.x = self.x + dx[X]
         self.bg = self.bg + dx[BG]
+        self.k = self.k + float(dx[9])
         return out
 
 
@@ -243,7 +264,7 @@ def _bearing_model(
     sigma: float,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Eq. (22) linearised at ``st``: predicted bearings ``h``, the residual basis (that of
-    the measured bearings, or of ``h`` for a prediction), ``H_x`` (N, 2, 9), ``H_L`` (N, 2, 3)
+    the measured bearings, or of ``h`` for a prediction), ``H_x`` (N, 2, 10), ``H_L`` (N, 2, 3)
     and each landmark's innovation covariance with its consider terms (N, 2, 2)."""
     n = rows.size
     r = quat_to_rotmat(st.q)
@@ -254,13 +275,13 @@ def _bearing_model(
     dh = (np.eye(3)[None] - np.einsum("ni,nj->nij", h, h)) / norm[:, None, None]
     bt = np.swapaxes(tangent_basis(h if bearings is None else bearings), 1, 2)
     a = np.einsum("nij,njk->nik", bt, dh) @ r.T  # (N, 2, 3): ∂r/∂(world vector)
-    hx = np.zeros((n, 2, 9))
+    hx = np.zeros((n, 2, N_ERR))
     hx[:, :, TH] = np.einsum("nij,njk->nik", a, skew(d))  # ∂ℓ/∂δθ = Rᵀ [d]×
     hx[:, :, X] = -a
     hl = a  # ∂/∂L
     # per-landmark innovation covariance, with the consider terms of that landmark
     cols = 3 * rows[:, None] + np.arange(3)[None, :]  # (N, 3) columns in P_xL
-    pxl_i = st.pxl[:, cols]  # (9, N, 3)
+    pxl_i = st.pxl[:, cols]  # (10, N, 3)
     cov_l = landmark_cov[rows]
     s_each = (
         np.einsum("nij,jk,nlk->nil", hx, st.P, hx)

@@ -139,8 +139,14 @@ class Localizer:
             self.map.boundary, [(z.name, z.polygon) for z in self.map.keepouts]
         )
         self._containment = Containment(self.geometry, ccfg)
-        noise = LocalizerNoise(c.gyro_noise, c.gyro_bias_walk, c.speed_noise, c.lateral_noise)
+        noise = LocalizerNoise(
+            c.gyro_noise, c.gyro_bias_walk, c.speed_noise, c.lateral_noise, c.gyro_scale_sigma
+        )
         self.ekf = WorldPoseEKF(noise, self.map.landmark_covariances(), c.gate_probability)
+        # the gyro's yaw-rate scale error as teaching found it (the same unit, most likely)
+        taught_k = self.map.teach.get("gyro_yaw_scale_error") if self.map.teach else None
+        if isinstance(taught_k, int | float) and math.isfinite(taught_k) and abs(taught_k) < 0.2:
+            self.ekf.k = float(taught_k)
         self.counters = LocalizerCounters()
         self._speeds = SpeedTrack()
         self._history: deque[_Step] = deque()
@@ -253,7 +259,7 @@ class Localizer:
             self._late_frame(float(t), rows, u)
         else:
             if t > self.t_imu:  # a frame slightly ahead of the IMU: extrapolate to it
-                self._step(self.t_imu, float(t), self._w_last + self.ekf.bg)
+                self._step(self.t_imu, float(t), self._w_last)
                 self.t_imu = float(t)
             self._frame_update(float(t), rows, u)
         self._check_fault()
@@ -301,8 +307,8 @@ class Localizer:
             self._history.popleft()
 
     def _propagate(self, t0: float, t1: float, gyro: FloatArray, speed: float) -> None:
-        w = gyro - self.ekf.bg
-        self._w_last = w
+        w = self.ekf.corrected_rate(gyro)
+        self._w_last = gyro.copy()
         self.ekf.propagate(BodyMotion.of(w, np.array([speed, 0.0, 0.0]), t1 - t0))
 
     #: an IMU interval longer than this (s) is a gap (the IMU was unplugged): it is

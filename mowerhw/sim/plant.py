@@ -61,11 +61,14 @@ class MowerPlant:
         max_accel: float = 1.0,
         max_yaw_accel: float = 4.0,
         renderer: Any = None,
+        speed_scale: float | None = None,
     ) -> None:
         """With a ``renderer`` (:class:`mowerhw.sim.render.OmniRenderer`) the camera delivers
         rendered images (:class:`PixelFrame`, pixel level); without, noisy bearings of known
         landmark ids (bearing level). ``start_xy``/``start_yaw``: the start pose in the world
-        frame (the dock is the origin); ``frame_latency_s`` overrides the scenario's."""
+        frame (the dock is the origin); ``frame_latency_s`` overrides the scenario's;
+        ``speed_scale``: the scale of this mower's ground-speed sensor (its teach run's),
+        changed by the model's day-to-day σ (default: drawn for this run)."""
         self.world = world
         self.renderer = renderer
         self.max_accel = max_accel  # m/s²: a mower cannot stop or start in no time
@@ -88,7 +91,10 @@ class MowerPlant:
         self.cam_rng = np.random.default_rng([seed, 21])
         self.timing_rng = np.random.default_rng([seed, 22])
         self.gyro = Gyro(self.sensors.imu, np.random.default_rng([seed, 23]), self.rates.imu_hz)
-        self.speedometer = Speedometer(self.sensors.speed, np.random.default_rng([seed, 24]))
+        speed_rng = np.random.default_rng([seed, 24])
+        if speed_scale is not None and self.sensors.speed.day_sigma:
+            speed_scale *= 1.0 + speed_rng.normal(0.0, self.sensors.speed.day_sigma)
+        self.speedometer = Speedometer(self.sensors.speed, speed_rng, speed_scale)
         self.dt = 1.0 / self.rates.imu_hz
         self.t = 0.0
         self.k = 0

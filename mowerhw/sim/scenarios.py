@@ -102,7 +102,7 @@ SCENARIOS: dict[str, Scenario] = {
         slope_deg=7.0,
         sensors=_sensors(
             "bmi088",
-            SpeedModel(white=0.005, scale_sigma=0.03),
+            SpeedModel(white=0.005, scale_sigma=0.03, day_sigma=0.005),
             _JITTERY,
         ),
         description="an L-shaped lawn on a 7° slope, BMI088, 3 % speed scale error, "
@@ -119,7 +119,7 @@ SCENARIOS: dict[str, Scenario] = {
         max_range_m=25.0,
         sensors=_sensors(
             "mpu6050",
-            SpeedModel(white=0.008, scale_sigma=0.02),
+            SpeedModel(white=0.008, scale_sigma=0.02, day_sigma=0.005),
             CameraTiming((0.05, 0.15), 0.003, frame_drop=0.2, bearing_drop=0.1, pixel_sigma=5.0),
         ),
         description="a U-shaped lawn, 11 landmarks (≈ 8 in view), MPU-6050, 5 px, 20 % frames "
@@ -137,7 +137,9 @@ SCENARIOS: dict[str, Scenario] = {
         bumps_per_m2=0.15,
         sensors=_sensors(
             "bmi088",
-            SpeedModel(white=0.006, scale_sigma=0.02, slip_per_min=2.0, slip_fraction=0.15),
+            SpeedModel(
+                white=0.006, scale_sigma=0.02, day_sigma=0.005, slip_per_min=2.0, slip_fraction=0.15
+            ),
             _JITTERY,
         ),
         description="a 32 x 4 m strip on bumpy ground, near and far landmarks, BMI088, "
@@ -170,7 +172,7 @@ SCENARIOS: dict[str, Scenario] = {
         bumps_per_m2=0.1,
         sensors=_sensors(
             "mpu6050",
-            SpeedModel(white=0.006, scale_sigma=0.02),
+            SpeedModel(white=0.006, scale_sigma=0.02, day_sigma=0.005),
             CameraTiming((0.05, 0.15), 0.003, bearing_drop=0.1, pixel_sigma=3.0),
         ),
         description="a concave lawn, 30 landmarks up to 12 m, bumps, MPU-6050, 10 % bearings lost",
@@ -186,7 +188,9 @@ SCENARIOS: dict[str, Scenario] = {
         slope_deg=10.0,
         sensors=_sensors(
             "mpu6050",
-            SpeedModel(white=0.005, scale_sigma=0.05, slip_per_min=3.0, slip_fraction=0.2),
+            SpeedModel(
+                white=0.005, scale_sigma=0.05, day_sigma=0.01, slip_per_min=3.0, slip_fraction=0.2
+            ),
             CameraTiming((0.05, 0.15), 0.003, frame_drop=0.3, pixel_sigma=3.0),
         ),
         description="a 10° slope, MPU-6050, 5 % speed scale error, slip three times a "

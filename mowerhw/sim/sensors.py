@@ -98,6 +98,7 @@ class SpeedModel:
 
     white: float = 0.005
     scale_sigma: float = 0.0
+    day_sigma: float = 0.0  # the scale's change from one day to another (grass, tyre wear)
     slip_per_min: float = 0.0
     slip_s: float = 1.0
     slip_fraction: float = 0.15
@@ -107,10 +108,13 @@ class SpeedModel:
 class Speedometer:
     """:class:`SpeedModel` applied to true speeds, one reading at a time."""
 
-    def __init__(self, model: SpeedModel, rng: np.random.Generator) -> None:
+    def __init__(
+        self, model: SpeedModel, rng: np.random.Generator, scale: float | None = None
+    ) -> None:
         self.model = model
         self.rng = rng
-        self.scale = 1.0 + (rng.normal(0.0, model.scale_sigma) if model.scale_sigma else 0.0)
+        drawn = 1.0 + (rng.normal(0.0, model.scale_sigma) if model.scale_sigma else 0.0)
+        self.scale = drawn if scale is None else scale
         self._slip_until = -1.0
         self.slipping = False
 
@@ -172,6 +176,8 @@ class SensorStreams:
     gyro_bias: FloatArray  # (K, 3) the true bias at each IMU sample (for evaluation)
     frame_pixels: list[FloatArray] = field(default_factory=list)  # true pixels per frame
     slipping: NDArray[np.bool_] | None = None  # (M,) wheel slip at each speed reading
+    speed_scale: float = 1.0  # the speed sensor's true scale (1 + its scale error)
+    gyro_scale: FloatArray | None = None  # (3,) the gyro's true scale per axis
 
     def events(self):
         """(kind, sample) in time order; at equal times imu, then speed, then bearings."""
@@ -228,6 +234,12 @@ def observe_at(
     return obs, pix[vis][still_ok]
 
 
+def mower_speed_scale(sensors: SensorSuite, seed: int) -> float:
+    """The scale of the ground-speed sensor of yard ``seed``'s mower, as its teach run has
+    it (the same tyres mow the lawn later)."""
+    return Speedometer(sensors.speed, np.random.default_rng([seed, 4])).scale
+
+
 def simulate_sensors(
     world: World,
     truth: Truth,
@@ -276,5 +288,14 @@ def simulate_sensors(
         frames.append(obs)
         pixels.append(pix)
     return SensorStreams(
-        truth.t.copy(), gyro, truth.t[sidx].copy(), v, frames, bias, pixels, slipping
+        truth.t.copy(),
+        gyro,
+        truth.t[sidx].copy(),
+        v,
+        frames,
+        bias,
+        pixels,
+        slipping,
+        float(meter.scale),
+        np.broadcast_to(gyro_sim.scale, (3,)).copy(),
     )

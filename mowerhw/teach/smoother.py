@@ -9,13 +9,16 @@ say. Distributing that disagreement well over the drive is a least-squares probl
 * every landmark's world position, and
 * the gyro bias, one value per segment of the drive (``bias_segment``), tied by
   random-walk factors, with the standstill calibration as the prior of the first,
+* the gyro's yaw-rate scale error ``s`` (one value: ``ω_z = (1 − s)(ω_m − b)_z``; MEMS gyros
+  are off by up to a few per cent, which turns a 360° loop into 370°), with a prior,
 
 with two kinds of factors:
 
 * **odometry** between consecutive frames: the gyro and ground speed preintegrated into a
   relative rotation ``ΔR`` and translation ``Δp`` (body frame of the earlier frame), with
-  their covariance and first-order bias Jacobians (``ΔR(b) ≈ ΔR Exp(J_R δb)``,
-  ``Δp(b) ≈ Δp + J_p δb``);
+  their covariance and first-order bias and scale Jacobians (``ΔR(b, s) ≈ ΔR Exp(J_R δb +
+  J_Rs s)``, ``Δp(b, s) ≈ Δp + J_p δb + J_ps s``), Huber-weighted: a wheel that slips for a
+  second makes a few odometry factors wrong, and they must not bend the whole drive;
 * **bearings**: ``u_ki ≈ normalize(R_kᵀ (L_i − t_k))``, residual in the tangent plane of the
   measured bearing, Huber-weighted against outliers.
 
@@ -70,6 +73,8 @@ class Preintegrated:
     j_rb: FloatArray  # ∂(ΔR)/∂b as right-perturbation Jacobian (3, 3)
     j_pb: FloatArray  # ∂(Δp)/∂b (3, 3)
     dt: float
+    j_rs: FloatArray  # ∂(ΔR)/∂s (3,): the yaw-rate scale error
+    j_ps: FloatArray  # ∂(Δp)/∂s (3,)
 
 
 def preintegrate_segments(
@@ -106,6 +111,8 @@ def preintegrate_segments(
     cov = np.zeros((nseg, 6, 6))
     j_rb = np.zeros((nseg, 3, 3))
     j_pb = np.zeros((nseg, 3, 3))
+    j_rs = np.zeros((nseg, 3))
+    j_ps = np.zeros((nseg, 3))
     for j in range(width):
         d = dt[:, j]
         live = d > 0
@@ -129,12 +136,20 @@ def preintegrate_segments(
         # bends with the rate (first order: ½ [v]× Δt²)
         j_pb = j_pb - dr_sd @ j_rb + dR @ skew(v) * (0.5 * d * d)[:, None, None]
         j_rb = np.swapaxes(step, 1, 2) @ j_rb - jr * d[:, None, None]
+        # a scale error s changes this step's rate by −s (ω − b)_z ẑ: the bias's effect
+        # through the column (ω − b)_z ẑ
+        wz = np.zeros((nseg, 3))
+        wz[:, 2] = w[:, j, 2]
+        arc = np.einsum("nij,nj->ni", dR @ skew(v), wz) * (0.5 * d * d)[:, None]
+        j_ps = j_ps - np.einsum("nij,nj->ni", dr_sd, j_rs) + arc
+        j_rs = np.einsum("nji,nj->ni", step, j_rs) - np.einsum("nij,nj->ni", jr, wz) * d[:, None]
         dp = dp + np.einsum("nij,nj->ni", dR, disp)
         dR = dR @ step
     cov = cov + np.eye(6)[None] * 1e-12
     total = dt.sum(axis=1)
     return [
-        Preintegrated(dR[k], dp[k], cov[k], j_rb[k], j_pb[k], float(total[k])) for k in range(nseg)
+        Preintegrated(dR[k], dp[k], cov[k], j_rb[k], j_pb[k], float(total[k]), j_rs[k], j_ps[k])
+        for k in range(nseg)
     ]
 
 
@@ -153,6 +168,8 @@ class SmootherProblem:
     bias_prior_cov: FloatArray  # (3, 3)
     bias_segment: NDArray[np.int64] | None = None  # (K − 1,) bias segment of each factor
     bias_walk_cov: FloatArray | None = None  # (S − 1, 3, 3) between consecutive segments
+    scale_prior_sigma: float = 0.0  # σ of the yaw-rate scale error (0: not estimated)
+    odometry_huber: float = 3.0  # whitened odometry residual beyond which factors weigh less
 
 
 @dataclass
@@ -162,6 +179,7 @@ class SmootherResult:
     landmarks: FloatArray
     landmark_cov: FloatArray  # (N, 3, 3) marginal covariances
     bias: FloatArray  # (S, 3) per bias segment
+    scale: float  # the yaw-rate scale error s
     cost_initial: float
     cost_final: float
     iterations: int
@@ -179,7 +197,8 @@ class _Layout:
         self.pose0 = 0  # poses 1..K-1: 6 each
         self.lm0 = 6 * (k - 1)
         self.bias0 = self.lm0 + 3 * n
-        self.size = self.bias0 + 3 * nseg
+        self.scale = self.bias0 + 3 * nseg
+        self.size = self.scale + 1
 
     def bias(self, s: NDArray[np.int64]) -> NDArray[np.int64]:
         return self.bias0 + 3 * s
@@ -223,7 +242,9 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
     )
     nseg = int(seg.max(initial=0)) + 1
     bias = np.tile(problem.bias0, (nseg, 1))
+    scale = 0.0
     lay = _Layout(k, n, nseg)
+    scale_w = 1.0 / problem.scale_prior_sigma if problem.scale_prior_sigma > 0 else 1e9
     odo = problem.odometry
     m_odo = len(odo)
     if m_odo:
@@ -232,22 +253,24 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
         dp = np.stack([f.dp for f in odo])
         j_rb = np.stack([f.j_rb for f in odo])
         j_pb = np.stack([f.j_pb for f in odo])
+        j_rs = np.stack([f.j_rs for f in odo])
+        j_ps = np.stack([f.j_ps for f in odo])
     b_w = _whiten(problem.bias_prior_cov[None])[0]
     walk_w = _whiten(problem.bias_walk_cov) if nseg > 1 else np.zeros((0, 3, 3))
     basis = np.swapaxes(tangent_basis(problem.obs_bearing), 1, 2)  # (M, 2, 3)
     fi, li = problem.obs_frame, problem.obs_landmark
     i0 = np.arange(m_odo)
 
-    def residuals(r_wb, t_wb, lms, bias):
+    def residuals(r_wb, t_wb, lms, bias, scale):
         out = {}
         if m_odo:
             db = bias[seg] - problem.bias0  # (K−1, 3)
-            pred_r = dR @ rotmat_exp(np.einsum("nij,nj->ni", j_rb, db))
+            pred_r = dR @ rotmat_exp(np.einsum("nij,nj->ni", j_rb, db) + j_rs * scale)
             rk, rk1 = r_wb[i0], r_wb[i0 + 1]
             r_th = rotmat_log(np.swapaxes(pred_r, 1, 2) @ np.swapaxes(rk, 1, 2) @ rk1)
             r_th = np.atleast_2d(r_th)
             r_p = np.einsum("nji,nj->ni", rk, t_wb[i0 + 1] - t_wb[i0]) - (
-                dp + np.einsum("nij,nj->ni", j_pb, db)
+                dp + np.einsum("nij,nj->ni", j_pb, db) + j_ps * scale
             )
             out["th"] = r_th
             out["odo"] = np.einsum("nij,nj->ni", o_w, np.concatenate([r_th, r_p], axis=1))
@@ -262,15 +285,20 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
         )
         out["prior"] = b_w @ (bias[0] - problem.bias_prior)
         out["walk"] = np.einsum("nij,nj->ni", walk_w, bias[1:] - bias[:-1])
+        out["scale"] = np.array([scale_w * scale])
         return out
+
+    def huber(norm: FloatArray, k: float) -> FloatArray:
+        return np.where(norm <= k, 0.5 * norm**2, k * norm - 0.5 * k**2)
 
     def cost_of(parts) -> float:
         nb = np.linalg.norm(parts["b"], axis=1)
-        hub = np.where(nb <= 2.5, 0.5 * nb**2, 2.5 * nb - 0.5 * 2.5**2)  # Huber on bearings
-        quad = np.sum(parts["odo"] ** 2) + np.sum(parts["prior"] ** 2) + np.sum(parts["walk"] ** 2)
-        return float(0.5 * quad + np.sum(hub))
+        no = np.linalg.norm(parts["odo"], axis=1)
+        quad = np.sum(parts["prior"] ** 2) + np.sum(parts["walk"] ** 2) + parts["scale"][0] ** 2
+        robust = np.sum(huber(nb, 2.5)) + np.sum(huber(no, problem.odometry_huber))
+        return float(0.5 * quad + robust)
 
-    parts = residuals(r_wb, t_wb, lms, bias)
+    parts = residuals(r_wb, t_wb, lms, bias, scale)
     cost0 = cost = cost_of(parts)
     lam = 1e-4
     it = 0
@@ -290,13 +318,22 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
             blk_k1[:, :3, :3] = jinv
             blk_k1[:, 3:, 3:] = np.swapaxes(rk, 1, 2)
             blk_b = np.zeros((m_odo, 6, 3))
-            blk_b[:, :3] = -jinv @ np.swapaxes(rotmat_exp(r_th), 1, 2) @ j_rb
+            rot_back = -jinv @ np.swapaxes(rotmat_exp(r_th), 1, 2)
+            blk_b[:, :3] = rot_back @ j_rb
             blk_b[:, 3:] = -j_pb
+            blk_s = np.zeros((m_odo, 6, 1))
+            blk_s[:, :3, 0] = np.einsum("nij,nj->ni", rot_back, j_rs)
+            blk_s[:, 3:, 0] = -j_ps
+            # Huber on whole factors through IRLS weights (a slipping wheel)
+            ow = np.sqrt(
+                _huber_weights(np.linalg.norm(parts["odo"], axis=1), problem.odometry_huber)
+            )[:, None, None]
             r0 = row + 6 * i0
-            _scatter(rows, cols, vals, r0, lay.pose(i0), o_w @ blk_k)
-            _scatter(rows, cols, vals, r0, lay.pose(i0 + 1), o_w @ blk_k1)
-            _scatter(rows, cols, vals, r0, lay.bias(seg), o_w @ blk_b)
-            res_all.append(parts["odo"].ravel())
+            _scatter(rows, cols, vals, r0, lay.pose(i0), ow * (o_w @ blk_k))
+            _scatter(rows, cols, vals, r0, lay.pose(i0 + 1), ow * (o_w @ blk_k1))
+            _scatter(rows, cols, vals, r0, lay.bias(seg), ow * (o_w @ blk_b))
+            _scatter(rows, cols, vals, r0, np.full(m_odo, lay.scale), ow * (o_w @ blk_s))
+            res_all.append((parts["odo"] * ow[:, :, 0]).ravel())
             row += 6 * m_odo
         # bearing blocks, 2 rows each, Huber through IRLS weights
         m = fi.size
@@ -324,6 +361,9 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
             _scatter(rows, cols, vals, r0, lay.bias(sidx + 1), walk_w)
             res_all.append(parts["walk"].ravel())
             row += 3 * (nseg - 1)
+        _scatter(rows, cols, vals, np.array([row]), np.array([lay.scale]), np.array([[[scale_w]]]))
+        res_all.append(parts["scale"])
+        row += 1
         jac = sp.csr_matrix(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
             shape=(row, lay.size),
@@ -343,11 +383,11 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
             if not np.all(np.isfinite(step)):
                 lam *= 10
                 continue
-            cand = _apply(step, r_wb, t_wb, lms, bias, lay)
+            cand = _apply(step, r_wb, t_wb, lms, bias, scale, lay)
             cparts = residuals(*cand)
             ccost = cost_of(cparts)
             if ccost < cost:
-                r_wb, t_wb, lms, bias = cand
+                r_wb, t_wb, lms, bias, scale = cand
                 parts, improved = cparts, True
                 rel_drop = (cost - ccost) / max(cost, 1e-12)
                 cost = ccost
@@ -360,11 +400,11 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
     nb = np.linalg.norm(parts["b"], axis=1)
     ang_rms = float(np.sqrt(np.mean((nb * problem.obs_sigma) ** 2 / 2))) if nb.size else 0.0
     return SmootherResult(
-        r_wb, t_wb, lms, lm_cov, bias, cost0, cost, it, int((nb > 5.0).sum()), ang_rms
+        r_wb, t_wb, lms, lm_cov, bias, float(scale), cost0, cost, it, int((nb > 5.0).sum()), ang_rms
     )
 
 
-def _apply(step, r_wb, t_wb, lms, bias, lay: _Layout):
+def _apply(step, r_wb, t_wb, lms, bias, scale, lay: _Layout):
     r_new = r_wb.copy()
     t_new = t_wb.copy()
     if lay.k > 1:
@@ -372,8 +412,8 @@ def _apply(step, r_wb, t_wb, lms, bias, lay: _Layout):
         r_new[1:] = r_wb[1:] @ rotmat_exp(s[:, :3])
         t_new[1:] = t_wb[1:] + s[:, 3:]
     l_new = lms + step[lay.lm0 : lay.bias0].reshape(-1, 3)
-    b_new = bias + step[lay.bias0 :].reshape(-1, 3)
-    return r_new, t_new, l_new, b_new
+    b_new = bias + step[lay.bias0 : lay.scale].reshape(-1, 3)
+    return r_new, t_new, l_new, b_new, scale + float(step[lay.scale])
 
 
 def _landmark_covariances(a: sp.csc_matrix, lay: _Layout, n: int) -> FloatArray:

@@ -704,6 +704,7 @@ class Teacher:
         for j, lid in enumerate(lm_ids):
             landmarks[lid]["rms"] = float(rms[j])
         self.ekf_bias_smoothed = out.bias[-1]
+        self.gyro_scale_error = out.scale
         closed = reobserved >= 4
         return LoopClosure(
             applied=True,
@@ -789,6 +790,7 @@ class Teacher:
             bias0=bias0,
             bias_prior=bias0,
             bias_prior_cov=np.eye(3) * self._bias_var,
+            scale_prior_sigma=float(c.gyro_scale_sigma or 0.0),
             **self._bias_segments(frames),
         )
         return problem, lm_ids, len(early & late)
@@ -819,6 +821,7 @@ class Teacher:
         diagnostics = {
             "standstill_samples": getattr(self, "standstill_samples", 0),
             "gyro_bias": self.ekf.bg.tolist(),
+            "gyro_yaw_scale_error": getattr(self, "gyro_scale_error", 0.0),
             "distance_m": self.distance_m,
             "keyframes": len(self.keyframes),
             "ekf_updates": self.ekf.stats.used,
