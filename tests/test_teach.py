@@ -111,3 +111,20 @@ def test_large_lawn_with_keyframes_and_landmarks_coming_and_going():
     assert m["keyframes"] > 1
     assert out.result.diagnostics["retired"] > 0
     assert m["boundary_rmse_m"] < 0.05
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_smoother_measures_a_mems_gyros_yaw_scale_error(seed):
+    """An MPU-6050-class gyro reads its yaw rate a few per cent off: teaching finds by how
+    much (vision sees the true turn), and the map is not bent by it."""
+    from mowerhw.config import config_from_dict
+    from mowerhw.evaluate import run_teach
+    from mowerhw.sim import simulate_teach
+
+    run = simulate_teach("U-sparse", seed)
+    cfg = config_from_dict({"imu": {"grade": "mpu6050"}})
+    out = run_teach(run=run, config=cfg.teach)
+    true_error = run.streams.gyro_scale[2] - 1.0
+    assert abs(true_error) > 0.015  # these seeds have a scale error worth finding
+    assert out.result.diagnostics["gyro_yaw_scale_error"] == pytest.approx(true_error, abs=0.003)
+    assert out.metrics["boundary_rmse_scale_free_m"] < 0.03
