@@ -183,6 +183,11 @@ class SpeedConfig:
         None, "accept only this source address (null: any)", ge=0, le=253
     )
     stale_after_s: float = opt(0.3, "halt when no valid speed for this long", gt=0.0, le=5.0)
+    contact_point_m: tuple[float, float, float] = opt(
+        (0.0, 0.0, -0.8),
+        "where the ground speed is measured (the wheels' contact with the ground), body frame "
+        "from the camera centre, m: (0, 0, -0.8) for a camera 0.8 m above the ground",
+    )
 
 
 @dataclass(frozen=True)
@@ -324,6 +329,9 @@ class TeachConfig:
         ge=0.0,
         le=0.2,
     )
+    speed_contact_m: tuple[float, float, float] = field(
+        default=(0.0, 0.0, -0.8), metadata={"internal": True}
+    )  # speed.contact_point_m, copied at load
     speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
     lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
     boundary_simplify_m: float = opt(0.02, "Douglas–Peucker tolerance of the boundary", ge=0.0)
@@ -364,6 +372,9 @@ class MowConfig:
         ge=0.0,
         le=0.2,
     )
+    speed_contact_m: tuple[float, float, float] = field(
+        default=(0.0, 0.0, -0.8), metadata={"internal": True}
+    )  # speed.contact_point_m, copied at load
     speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
     lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
     bearing_sigma_rad: float = opt(0.008, "bearing noise (1σ per axis)", gt=0.0, lt=0.5)
@@ -656,9 +667,10 @@ def _resolve_imu_noise(cfg: Config) -> Config:
         gyro_random_walk=k,
         gyro_scale_error=gyro_scale_sigma(cfg.imu),
     )
-    return dataclasses.replace(
-        cfg, imu=imu, teach=with_imu_noise(cfg.teach, imu), mow=with_imu_noise(cfg.mow, imu)
-    )
+    contact = tuple(float(v) for v in cfg.speed.contact_point_m)
+    teach = dataclasses.replace(with_imu_noise(cfg.teach, imu), speed_contact_m=contact)
+    mow = dataclasses.replace(with_imu_noise(cfg.mow, imu), speed_contact_m=contact)
+    return dataclasses.replace(cfg, imu=imu, teach=teach, mow=mow)
 
 
 def _resolve_camera_rotation(cfg: Config) -> Config:

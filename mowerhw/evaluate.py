@@ -21,8 +21,8 @@ from mowerhw.teach import BoundaryError, Teacher, TeachError, TeachResult
 
 FloatArray = NDArray[np.float64]
 
-#: a teach run "diverged" when its landmarks or its boundary are off by more than this, or
-#: produced NaN, or could not make a boundary
+#: a teach run "diverged" when its landmarks or its boundary are off by more than this (once
+#: the speed sensor's scale is taken out), or produced NaN, or could not make a boundary
 DIVERGENCE_M = 1.0
 
 
@@ -156,7 +156,11 @@ def teach_metrics(
     scale_free = _scale_free_errors(result, run, first, ids, true_xyz)
     landmark_rmse = float(np.sqrt(np.mean(lm_err**2))) if lm_err.size else float("nan")
     finite = bool(np.all(np.isfinite(result.trajectory)) and np.all(np.isfinite(est)))
-    diverged = (not finite) or not (boundary_rmse < DIVERGENCE_M and landmark_rmse < DIVERGENCE_M)
+    # diverged: the estimator failed, judged once the speed sensor's scale is out (a map
+    # that is 5 % large is the sensor's doing, not a diverged estimate)
+    b_free = scale_free["boundary_rmse_scale_free_m"]
+    l_free = scale_free.get("landmark_rmse_scale_free_m", landmark_rmse)
+    diverged = (not finite) or not (b_free < DIVERGENCE_M and l_free < DIVERGENCE_M)
     return {
         "boundary_rmse_m": round(boundary_rmse, 5),
         "boundary_max_m": round(float(e.max()), 5),

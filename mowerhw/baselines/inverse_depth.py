@@ -34,7 +34,7 @@ from mowerhw.geometry import (
     skew,
     tangent_basis,
 )
-from mowerhw.odometry import BodyMotion, SpeedTrack
+from mowerhw.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.teach.smoother import right_jacobian
 
 FloatArray = NDArray[np.float64]
@@ -126,7 +126,8 @@ class InverseDepthEkfMapper:
     # -- estimation -----------------------------------------------------------------------------
 
     def _propagate(self, dt: float, w: FloatArray) -> None:
-        v = np.array([self._speeds.at(self.t_imu + 0.5 * dt), 0.0, 0.0])  # type: ignore[operator]
+        speed = self._speeds.at(self.t_imu + 0.5 * dt)  # type: ignore[operator]
+        v = camera_velocity(speed, w, self.cfg.speed_contact_m)
         m = BodyMotion.of(w, v, dt)
         r = quat_to_rotmat(self.q)
         disp_w = r @ m.disp

@@ -51,7 +51,7 @@ from mowerhw.mow.containment import (
     Reason,
 )
 from mowerhw.mow.ekf import EkfState, LocalizerNoise, WorldPoseEKF
-from mowerhw.odometry import BodyMotion, SpeedTrack
+from mowerhw.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.posefit import fit_pose_to_bearings
 
 FloatArray = NDArray[np.float64]
@@ -309,7 +309,8 @@ class Localizer:
     def _propagate(self, t0: float, t1: float, gyro: FloatArray, speed: float) -> None:
         w = self.ekf.corrected_rate(gyro)
         self._w_last = gyro.copy()
-        self.ekf.propagate(BodyMotion.of(w, np.array([speed, 0.0, 0.0]), t1 - t0))
+        v = camera_velocity(speed, w, self.cfg.speed_contact_m)
+        self.ekf.propagate(BodyMotion.of(w, v, t1 - t0))
 
     #: an IMU interval longer than this (s) is a gap (the IMU was unplugged): it is
     #: propagated in sub-steps with the ground speed measured meanwhile, and widened

@@ -200,8 +200,8 @@ class MowerPlant:
         dark = d is not None and d[0] <= self.t < d[0] + d[1]
         lo, hi = timing.latency_s
         deliver = self.t + (self.timing_rng.uniform(lo, hi) if hi > lo else lo)
-        if timing.frame_drop and self.timing_rng.random() < timing.frame_drop:
-            return
+        lost = bool(timing.frame_drop) and self.timing_rng.random() < timing.frame_drop
+        dark = dark or lost  # a frame that recognises nothing (blur, glare) still arrives
         stamp = self.t + (
             self.timing_rng.normal(0.0, timing.stamp_jitter_s) if timing.stamp_jitter_s else 0.0
         )

@@ -102,11 +102,11 @@ SCENARIOS: dict[str, Scenario] = {
         slope_deg=7.0,
         sensors=_sensors(
             "bmi088",
-            SpeedModel(white=0.005, scale_sigma=0.03, day_sigma=0.005),
+            SpeedModel(white=0.005, scale_error=(0.02, 0.05), day_sigma=0.005),
             _JITTERY,
         ),
-        description="an L-shaped lawn on a 7° slope, BMI088, 3 % speed scale error, "
-        "50–150 ms camera latency, 10 % frames lost",
+        description="an L-shaped lawn on a 7° hillside, BMI088, 2–5 % speed scale error, "
+        "50–150 ms camera latency, 10 % frames recognising nothing",
     ),
     "U-sparse": Scenario(
         name="U-sparse",
@@ -119,11 +119,11 @@ SCENARIOS: dict[str, Scenario] = {
         max_range_m=25.0,
         sensors=_sensors(
             "mpu6050",
-            SpeedModel(white=0.008, scale_sigma=0.02, day_sigma=0.005),
+            SpeedModel(white=0.008, scale_error=(0.02, 0.03), day_sigma=0.005),
             CameraTiming((0.05, 0.15), 0.003, frame_drop=0.2, bearing_drop=0.1, pixel_sigma=5.0),
         ),
-        description="a U-shaped lawn, 11 landmarks (≈ 8 in view), MPU-6050, 5 px, 20 % frames "
-        "and 10 % bearings lost",
+        description="a U-shaped lawn, 11 landmarks (≈ 8 in view), MPU-6050, 5 px, 2–3 % speed "
+        "scale error, 20 % frames recognising nothing and 10 % bearings missed",
     ),
     "strip-bumps": Scenario(
         name="strip-bumps",
@@ -138,7 +138,11 @@ SCENARIOS: dict[str, Scenario] = {
         sensors=_sensors(
             "bmi088",
             SpeedModel(
-                white=0.006, scale_sigma=0.02, day_sigma=0.005, slip_per_min=2.0, slip_fraction=0.15
+                white=0.006,
+                scale_error=(0.02, 0.03),
+                day_sigma=0.005,
+                slip_per_min=2.0,
+                slip_fraction=0.15,
             ),
             _JITTERY,
         ),
@@ -172,7 +176,7 @@ SCENARIOS: dict[str, Scenario] = {
         bumps_per_m2=0.1,
         sensors=_sensors(
             "mpu6050",
-            SpeedModel(white=0.006, scale_sigma=0.02, day_sigma=0.005),
+            SpeedModel(white=0.006, scale_error=(0.02, 0.03), day_sigma=0.005),
             CameraTiming((0.05, 0.15), 0.003, bearing_drop=0.1, pixel_sigma=3.0),
         ),
         description="a concave lawn, 30 landmarks up to 12 m, bumps, MPU-6050, 10 % bearings lost",
@@ -189,12 +193,16 @@ SCENARIOS: dict[str, Scenario] = {
         sensors=_sensors(
             "mpu6050",
             SpeedModel(
-                white=0.005, scale_sigma=0.05, day_sigma=0.01, slip_per_min=3.0, slip_fraction=0.2
+                white=0.005,
+                scale_error=(0.03, 0.05),
+                day_sigma=0.01,
+                slip_per_min=3.0,
+                slip_fraction=0.2,
             ),
             CameraTiming((0.05, 0.15), 0.003, frame_drop=0.3, pixel_sigma=3.0),
         ),
-        description="a 10° slope, MPU-6050, 5 % speed scale error, slip three times a "
-        "minute, 30 % frames lost",
+        description="a 10° hillside, MPU-6050, 3–5 % speed scale error, slip three times a "
+        "minute, 30 % frames recognising nothing",
     ),
 }
 

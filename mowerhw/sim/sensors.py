@@ -10,8 +10,9 @@
 * **camera** (:class:`CameraTiming`, :func:`observe_at`): every landmark inside the camera's
   range is projected through the omni camera model (DESIGN.md §6), kept if its pixel is valid,
   perturbed with Gaussian pixel noise, kept if the noisy pixel is still valid, and lifted back
-  to a unit bearing in the body frame; frames are dropped, single bearings missed, frames
-  delivered late by a jittered latency and stamped with a little jitter.
+  to a unit bearing in the body frame; some frames recognise nothing (blur, glare: the frame
+  arrives empty), single bearings are missed, frames are delivered late by a jittered latency
+  and stamped with a little jitter.
 
 The paper scenario uses :data:`PAPER_SENSORS` (a VN-100, 3 px, 0.15 s latency as before).
 """
@@ -92,12 +93,13 @@ class Gyro:
 
 @dataclass(frozen=True)
 class SpeedModel:
-    """Ground-speed sensor: white noise (m/s per sample), scale error (1σ fraction, per run),
-    slip events (per minute of driving; each ``slip_s`` long, the wheels turning
-    ``slip_fraction`` faster than the mower moves), quantum (m/s)."""
+    """Ground-speed sensor: white noise (m/s per sample), scale error (its size uniform in
+    ``scale_error`` (lo, hi), its sign random; per mower: a tyre's circumference), its
+    day-to-day change (1σ), slip events (per minute of driving; each ``slip_s`` long, the
+    wheels turning ``slip_fraction`` faster than the mower moves), quantum (m/s)."""
 
     white: float = 0.005
-    scale_sigma: float = 0.0
+    scale_error: tuple[float, float] = (0.0, 0.0)
     day_sigma: float = 0.0  # the scale's change from one day to another (grass, tyre wear)
     slip_per_min: float = 0.0
     slip_s: float = 1.0
@@ -113,7 +115,8 @@ class Speedometer:
     ) -> None:
         self.model = model
         self.rng = rng
-        drawn = 1.0 + (rng.normal(0.0, model.scale_sigma) if model.scale_sigma else 0.0)
+        lo, hi = model.scale_error
+        drawn = 1.0 + (rng.uniform(lo, hi) * rng.choice([-1.0, 1.0]) if hi > 0 else 0.0)
         self.scale = drawn if scale is None else scale
         self._slip_until = -1.0
         self.slipping = False
@@ -280,8 +283,9 @@ def simulate_sensors(
             cam.pixel_sigma,
             cam.bearing_drop,
         )
-        if cam.frame_drop and timing_rng.random() < cam.frame_drop:
-            continue
+        if cam.frame_drop and timing_rng.random() < cam.frame_drop:  # seen, nothing recognised
+            obs = BearingObservation(t=obs.t, ids=np.zeros(0, np.int64), bearings=np.zeros((0, 3)))
+            pix = np.zeros((0, 2))
         if cam.stamp_jitter_s:
             stamp = obs.t + timing_rng.normal(0.0, cam.stamp_jitter_s)
             obs = BearingObservation(t=stamp, ids=obs.ids, bearings=obs.bearings)

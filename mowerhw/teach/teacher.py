@@ -41,7 +41,7 @@ from mowerhw.geometry import (
     quat_to_rotmat,
     rotmat_log,
 )
-from mowerhw.odometry import BodyMotion, SpeedTrack
+from mowerhw.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.teach.boundary import boundary_from_path
 from mowerhw.teach.depth import depth_pseudo_measurement
 from mowerhw.teach.ekf import EkfNoise, RobotCentricEKF
@@ -387,7 +387,7 @@ class Teacher:
         t_end = self.t_imu + dt  # type: ignore[operator]
         speed = self._speeds.at(t_end - 0.5 * dt)
         self._imu_log.append((dt, gyro_raw[0], gyro_raw[1], gyro_raw[2], speed, t_end))
-        v = np.array([speed, 0.0, 0.0])
+        v = camera_velocity(speed, w, self.cfg.speed_contact_m)
         m = BodyMotion.of(w, v, dt)
         self.ekf.propagate(m)
         self.obs.propagate(m.c, m.disp)
@@ -758,7 +758,13 @@ class Teacher:
         bounds = np.array([0] + [f[5] for f in frames])
         bias0 = self._bias_at_start
         odometry = preintegrate_segments(
-            log_arr, bounds, bias0, c.gyro_noise, c.speed_noise, c.lateral_noise
+            log_arr,
+            bounds,
+            bias0,
+            c.gyro_noise,
+            c.speed_noise,
+            c.lateral_noise,
+            contact=np.asarray(c.speed_contact_m, dtype=np.float64),
         )
         of, ol, ob, osg = [], [], [], []
         for lid, (u, var) in self._still_obs.items():
