@@ -32,6 +32,8 @@ FloatArray = NDArray[np.float64]
 AXES = ("x", "y", "z")
 #: fewest samples worth an Allan analysis
 MIN_SAMPLES = 1000
+#: τ is read only up to the recording's length over this (enough stretches to average)
+MIN_STRETCHES = 9
 
 
 class CharacterizeError(ValueError):
@@ -164,14 +166,25 @@ def characterize(t: FloatArray, gyro: FloatArray, source: str = "") -> AllanResu
         adevs.append(ad[: len(taus)])
     assert taus is not None
     adev = np.stack(adevs, axis=1)
+    duration = float(t[-1] - t[0])
+    # an Allan deviation at τ is worth reading only with enough τ-long stretches to average
+    usable = taus <= duration / MIN_STRETCHES
+    taus, adev = taus[usable], adev[usable]
     n_est, b_est, b_tau, k_est = (np.full(3, np.nan) for _ in range(4))
     for axis in range(3):
         n_est[axis], b_est[axis], b_tau[axis], k_est[axis] = _read_off(taus, adev[:, axis])
-    duration = float(t[-1] - t[0])
+    falling = [
+        AXES[a] for a in range(3) if b_tau[a] >= taus[-1] and _slope_at_end(taus, adev[:, a]) < -0.2
+    ]
+    if falling:
+        notes.append(
+            f"axis {', '.join(falling)}: the curve still falls at the longest usable τ "
+            f"({taus[-1]:.0f} s): its bias instability is at most the value given; record longer"
+        )
     if not np.any(np.isfinite(k_est)):
         notes.append(
-            f"no τ^½ rise within {duration:.0f} s: the rate random walk is not measured; "
-            "record longer (hours) to see it"
+            f"no τ^½ rise up to τ = {taus[-1]:.0f} s (a ninth of the recording): the rate "
+            "random walk is not measured; record longer (hours) to see it"
         )
     return AllanResult(
         rate, duration, int(gyro.shape[0]), taus, adev, n_est, b_est, b_tau, k_est, source, notes
@@ -194,6 +207,12 @@ def _read_off(taus: FloatArray, adev: FloatArray) -> tuple[float, float, float, 
     rising = (slope > 0.35) & (slope < 0.7) & (np.arange(taus.size) > k_min)
     k = float(np.median(adev[rising] * np.sqrt(3.0 / taus[rising]))) if rising.any() else math.nan
     return n, floor, floor_tau, k
+
+
+def _slope_at_end(taus: FloatArray, adev: FloatArray) -> float:
+    if taus.size < 2:
+        return 0.0
+    return float(np.log(adev[-1] / adev[-2]) / np.log(taus[-1] / taus[-2]))
 
 
 def plot_allan(result: AllanResult, out: Path) -> Path:
