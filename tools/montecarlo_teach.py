@@ -15,7 +15,10 @@ time per run) and the NEES of the robot-centric EKF (average over runs at each f
 the two-sided 95 % χ² bounds), then one JSON object. A run *diverges* when its boundary or
 landmark RMSE exceeds 1 m, it produced NaN, or it could not make a boundary.
 
-    .venv/bin/python tools/montecarlo_teach.py --seeds 100 --jobs 2
+    .venv/bin/python tools/montecarlo_teach.py --seeds 100 --jobs 2   # or --scheduler ADDRESS
+
+The runs go through :func:`mowerhw.campaign.parallel_map` (local processes or Dask), as
+``mowerhw eval`` does.
 """
 
 from __future__ import annotations
@@ -30,16 +33,15 @@ import argparse
 import json
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 
 import numpy as np
 from scipy.stats import chi2
 
 from mowerhw.baselines.inverse_depth import InverseDepthEkfMapper
+from mowerhw.campaign import parallel_map
 from mowerhw.config import TeachConfig
 from mowerhw.evaluate import DIVERGENCE_M, feed, horizontal_errors, run_teach
-from mowerhw.progress import Progress
 from mowerhw.sim import simulate_teach
 
 METHODS = ("observer+closure", "observer (filter)", "paper as printed", "inverse-depth EKF")
@@ -154,15 +156,12 @@ def main() -> int:
     ap.add_argument("--scenario", default="paper", choices=("paper", "large"))
     ap.add_argument("--seeds", type=int, default=100, help="seeds 1..N (default 100)")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes")
+    ap.add_argument("--scheduler", help="a Dask scheduler address (tcp://host:8786)")
     ap.add_argument("--json", action="store_true", help="print only the JSON object")
     args = ap.parse_args()
     tasks = [(args.scenario, s) for s in range(1, args.seeds + 1)]
     t0 = time.perf_counter()
-    rows = []
-    with ProcessPoolExecutor(args.jobs) as ex, Progress(len(tasks), "monte-carlo") as bar:
-        for row in ex.map(one_seed, tasks):
-            rows.append(row)
-            bar.advance()
+    rows = parallel_map(one_seed, tasks, args.jobs, args.scheduler, "monte-carlo")
     table = summarise(rows)
     nees = nees_summary(rows)
     summary = {
