@@ -83,7 +83,13 @@ class _VisionBase:
         self.time_shift_s = float(getattr(camera, "timeshift_cam_imu", 0.0))
 
     def imu(self, t: float, gyro_xyz: Any) -> None:
-        self.rotations.add(t, gyro_xyz)
+        """A gyro sample (body frame, as measured): its rate with the estimator's bias (and
+        scale) taken out goes into the rotation history the front end derotates with — a MEMS
+        gyro's ±20 °/s turn-on bias would turn every predicted feature 5° per frame."""
+        self.rotations.add(t, self.estimator_rate(np.asarray(gyro_xyz, dtype=np.float64)))
+
+    def estimator_rate(self, gyro: FloatArray) -> FloatArray:  # pragma: no cover - overridden
+        return gyro
 
     def frame(self, t: float, image: NDArray[np.uint8]) -> FrameTracks:
         """One image, start to end: :meth:`prepare`, :meth:`track`, :meth:`use`."""
@@ -149,6 +155,9 @@ class TeachVision(_VisionBase):
         # (t, track id, landmark id, bearing) of every re-identification
         self.reidentifications: list[tuple[float, int, int, FloatArray]] = []
         self.gate = float(chi2.ppf(self.cfg.association_gate, df=2))
+
+    def estimator_rate(self, gyro: FloatArray) -> FloatArray:
+        return self.teacher.corrected_rate(gyro)
 
     def use(self, tracks: FrameTracks) -> FrameTracks:
         """Landmark ids for the tracks (re-identification) → the Teacher."""
@@ -268,6 +277,9 @@ class MowVision(_VisionBase):
         # the last frame's associations: track ids, map ids, pixels
         self.last_associated = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
         self.last_bearings = np.zeros((0, 3))
+
+    def estimator_rate(self, gyro: FloatArray) -> FloatArray:
+        return self.loc.corrected_rate(gyro)
 
     def use(self, tracks: FrameTracks) -> FrameTracks:
         """Associations of the tracks with map landmarks → the Localizer."""

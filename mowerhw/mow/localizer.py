@@ -505,6 +505,13 @@ class Localizer:
         )
         return self.ids.copy(), h, cov
 
+    def corrected_rate(self, gyro: FloatArray) -> FloatArray:
+        """A gyro reading's body rate with the filter's bias and yaw-rate scale taken out
+        (during the start-up calibration: the mean so far)."""
+        if self.calibrating and self._gyro_n:
+            return np.asarray(gyro, dtype=np.float64) - self._gyro_sum / self._gyro_n
+        return self.ekf.corrected_rate(gyro)
+
     def pose(self) -> Pose:
         """The newest estimate: t, position, q_wb, covariance (position then rotation)."""
         p = self.ekf.P

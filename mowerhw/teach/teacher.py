@@ -377,6 +377,13 @@ class Teacher:
             out[sel, 4:8] = q_wb
         return out
 
+    def corrected_rate(self, gyro: FloatArray) -> FloatArray:
+        """A gyro reading's body rate with the current bias estimate taken out (during the
+        start-up standstill: the mean so far)."""
+        if self.phase in ("waiting", "standstill") and self._gyro_n:
+            return np.asarray(gyro, dtype=np.float64) - self._gyro_sum / self._gyro_n
+        return np.asarray(gyro, dtype=np.float64) - self.ekf.bg
+
     def world_pose(self) -> tuple[FloatArray, FloatArray]:
         """Current body pose in the world: ``x_b^w``, ``q_wb`` (eqs 19–20)."""
         x_w, q_w = compose(self.ekf.p, self.ekf.q, self.keyframes[-1])
