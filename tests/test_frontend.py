@@ -152,3 +152,24 @@ def test_ambiguous_associations_are_not_made():
     one = unit([[1, 0.0, 0]])
     assert associate(one, np.zeros((1, 32), np.uint8), np.ones(1, bool), near_both, 13.8, 50) == []
     assert isinstance(near_both, Candidates)
+
+
+def test_derotation_uses_the_estimators_bias_corrected_rate():
+    """A MEMS gyro standing still reads its turn-on bias (here ≈ 25 °/s): the rotation the
+    front end predicts between frames must be the estimator's bias-corrected one, not 6° per
+    frame of a turn that is not happening."""
+    from mowerhw.camera import paper_table1_camera
+    from mowerhw.geometry import rotmat_log
+    from mowerhw.teach import Teacher
+    from mowerhw.vision import TeachVision
+
+    teacher = Teacher()
+    vision = TeachVision(teacher, paper_table1_camera())
+    bias = np.array([0.3, -0.2, 0.35])
+    for k in range(300):
+        t = 0.01 * k
+        teacher.imu(t, bias)
+        teacher.speed(t, 0.0)
+        vision.imu(t, bias)
+    r = vision.rotations.rotation_between(2.0, 2.25)
+    assert np.linalg.norm(rotmat_log(r)) < 1e-3
