@@ -133,3 +133,21 @@ def test_a_decision_before_the_first_sample_does_not_freeze_the_counters():
     seq = [(5, -0.05)] * 4 + [(5, 0.5)] * 4
     res = [c.evaluate(float(k), x, y, 0.005) for k, (x, y) in enumerate(seq)]
     assert [r.permit for r in res] == [True, True, False, False, False, False, True, True]
+
+
+def test_inward_is_well_defined_on_the_edge_and_at_its_corners():
+    """The dock lies on the taught edge: whatever millimetre of noise puts the estimate just
+    inside or just outside, even at a corner, "inward" points into the lawn."""
+    square = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], dtype=float)
+    geom = LawnGeometry(square)
+    rng = np.random.default_rng(0)
+    for corner in square:
+        for _ in range(50):
+            p = corner + rng.normal(0.0, 0.002, 2)
+            n = geom.inward_direction(*p)
+            assert abs(np.linalg.norm(n) - 1.0) < 1e-9
+            # a step of 0.5 m along it lands well inside the lawn
+            assert geom.signed_distance(*(p + 0.5 * n)) > 0.3
+    for p in ([5.0, 0.001], [5.0, -0.001], [10.002, 5.0], [4.0, 3.0], [12.0, 5.0]):
+        n = geom.inward_direction(*p)
+        assert geom.signed_distance(*(np.array(p) + 0.3 * n)) > geom.signed_distance(*p)

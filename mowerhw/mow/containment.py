@@ -76,6 +76,9 @@ def unknown(
 class LawnGeometry:
     """The mowable area (outline minus keep-outs) as prepared shapely geometry."""
 
+    #: the band along the edges where "inward" points at the area shrunk by it (m)
+    INWARD_BAND_M = 0.5
+
     def __init__(self, outline: FloatArray, keepouts: list[tuple[str, FloatArray]] = ()) -> None:
         poly = orient(Polygon(outline), 1.0)
         if not poly.is_valid or poly.area <= 0:
@@ -89,6 +92,8 @@ class LawnGeometry:
         self.edges = area.boundary
         shapely.prepare(self.area)
         shapely.prepare(self.edges)
+        inner = area.buffer(-self.INWARD_BAND_M)
+        self._inner = inner if not inner.is_empty else None
 
     def signed_distance(self, x: float, y: float) -> float:
         """Distance to the nearest edge (outline or keep-out), positive inside the mowable area."""
@@ -107,8 +112,18 @@ class LawnGeometry:
         return None
 
     def inward_direction(self, x: float, y: float) -> FloatArray:
-        """Unit vector from the nearest edge point into the mowable area."""
+        """Unit vector into the mowable area. Within :data:`INWARD_BAND_M` of an edge (or
+        outside): towards the nearest point of the area shrunk by that band — well defined on
+        the edge itself, where the mower starts (the dock is on the taught edge) and where
+        the direction from the nearest edge point is a millimetre's noise. Further in: away
+        from the nearest edge."""
         p = shapely.Point(x, y)
+        if self._inner is not None and not shapely.contains_xy(self._inner, x, y):
+            near = shapely.ops.nearest_points(self._inner, p)[0]
+            v = np.array([near.x - x, near.y - y])
+            n = float(np.linalg.norm(v))
+            if n > 1e-9:
+                return v / n
         near = shapely.ops.nearest_points(self.edges, p)[0]
         v = np.array([x - near.x, y - near.y])
         n = np.linalg.norm(v)
