@@ -2,9 +2,10 @@
 
 ``mowerhw imu characterize RECORDING`` reads the gyro samples of a recording made with the
 mower standing still — an MCAP from ``mowerhw record`` (the VN-100's own bytes, through the
-same parser and extractor the daemon uses, at the sensor's TimeStartup when it sends it) or a
-CSV of ``t, gx, gy, gz`` (s, rad/s) — computes the overlapping Allan deviation of each axis
-(``allantools.oadev``, octave-spaced τ) and reads off the three figures the estimators need:
+same parser and extractor the daemon uses: the command's part) or a CSV of ``t, gx, gy, gz``
+(s, rad/s, :func:`load_csv`) — and :func:`characterize` computes the overlapping Allan
+deviation of each axis (``allantools.oadev``, octave-spaced τ) and reads off the three figures
+the estimators need:
 
 * **white noise** ``N`` (angle random walk, rad/s/√Hz): σ(τ)·√τ on the short-τ part where
   the curve falls as τ^-½;
@@ -84,17 +85,11 @@ class AllanResult:
         }
 
 
-def load_gyro(path: str | Path) -> tuple[FloatArray, FloatArray, str]:
-    """Times (s) and gyro samples (N, 3) rad/s of a recording: MCAP or CSV."""
+def load_csv(path: str | Path) -> tuple[FloatArray, FloatArray]:
+    """Times (s) and gyro samples (N, 3) rad/s of a CSV of ``t, gx, gy, gz``."""
     path = Path(path)
     if not path.exists():
         raise CharacterizeError(f"{path}: no such file")
-    if path.suffix.lower() == ".mcap":
-        return (*_load_mcap(path), "MCAP /vn100/raw through the VN-100 parser")
-    return (*_load_csv(path), "CSV t, gx, gy, gz")
-
-
-def _load_csv(path: Path) -> tuple[FloatArray, FloatArray]:
     rows = []
     with path.open(newline="", encoding="utf-8") as fh:
         for k, rec in enumerate(csv.reader(fh)):
@@ -108,35 +103,10 @@ def _load_csv(path: Path) -> tuple[FloatArray, FloatArray]:
                 raise CharacterizeError(
                     f"{path}: line {k + 1} is not four numbers t, gx, gy, gz: {rec[:4]}"
                 ) from None
-    data = np.asarray(rows, dtype=np.float64)
-    if data.ndim != 2 or data.shape[1] != 4:
+    if not rows or any(len(r) != 4 for r in rows):
         raise CharacterizeError(f"{path}: expected columns t, gx, gy, gz (s, rad/s)")
+    data = np.asarray(rows, dtype=np.float64)
     return data[:, 0], data[:, 1:4]
-
-
-def _load_mcap(path: Path) -> tuple[FloatArray, FloatArray]:
-    import base64
-
-    from drivers.vn100 import ImuExtractor, Vn100Parser
-    from mowerhw.recording import RecordingRead
-
-    parser, extractor = Vn100Parser(), ImuExtractor()
-    t, gyro = [], []
-    reader = RecordingRead(path)
-    for topic, _, msg in reader.messages():
-        if topic != "/vn100/raw":
-            continue
-        host_ns = int(msg["host_time_ns"])
-        for item in parser.feed(base64.b64decode(msg["data"])):
-            s = extractor.sample(item, host_ns)
-            if s is None or not s.finite:
-                continue
-            dev = s.device_time_ns
-            t.append(dev * 1e-9 if dev is not None else s.t)
-            gyro.append(s.gyro)
-    if not t:
-        raise CharacterizeError(f"{path}: no VN-100 gyro samples in /vn100/raw")
-    return np.asarray(t), np.asarray(gyro)
 
 
 def characterize(t: FloatArray, gyro: FloatArray, source: str = "") -> AllanResult:

@@ -47,11 +47,45 @@ def register(sub: argparse._SubParsersAction) -> None:
     st.set_defaults(handler=_simulate)
 
 
+def _load(path: Path) -> tuple:
+    """Gyro times and samples of a recording: an MCAP's VN-100 bytes through the driver's
+    parser and extractor (as the daemon reads them), or a CSV."""
+    from mowerhw.imu_noise import CharacterizeError, load_csv
+
+    if path.suffix.lower() != ".mcap":
+        return (*load_csv(path), "CSV t, gx, gy, gz")
+    if not path.exists():
+        raise CharacterizeError(f"{path}: no such file")
+    import base64
+
+    import numpy as np
+
+    from drivers.vn100 import ImuExtractor, Vn100Parser
+    from mowerhw.recording import RecordingRead
+
+    parser, extractor = Vn100Parser(), ImuExtractor()
+    t, gyro = [], []
+    for topic, _, msg in RecordingRead(path).messages():
+        if topic != "/vn100/raw":
+            continue
+        host_ns = int(msg["host_time_ns"])
+        for item in parser.feed(base64.b64decode(msg["data"])):
+            s = extractor.sample(item, host_ns)
+            if s is None or not s.finite:
+                continue
+            dev = s.device_time_ns
+            t.append(dev * 1e-9 if dev is not None else s.t)
+            gyro.append(s.gyro)
+    if not t:
+        raise CharacterizeError(f"{path}: no VN-100 gyro samples in /vn100/raw")
+    return np.asarray(t), np.asarray(gyro), "MCAP /vn100/raw through the VN-100 parser"
+
+
 def _characterize(args: argparse.Namespace) -> int:
-    from mowerhw.imu_noise import CharacterizeError, characterize, load_gyro, plot_allan
+    from mowerhw.imu_noise import CharacterizeError, characterize, plot_allan
 
     try:
-        t, gyro, source = load_gyro(args.recording)
+        t, gyro, source = _load(args.recording)
         result = characterize(t, gyro, source)
     except CharacterizeError as exc:
         print(f"mowerhw: {exc}", file=sys.stderr)
