@@ -89,10 +89,16 @@ class CameraModel(ABC):
         return pixels, ok
 
     def mask_image(self) -> NDArray[np.uint8]:
-        """``uint8`` image (255 = valid pixel centre) for feature detectors (``cv2`` ``mask=``)."""
-        v, u = np.mgrid[0 : self.height, 0 : self.width]
-        pix = np.stack([u, v], axis=-1).reshape(-1, 2).astype(np.float64)
-        return (self.valid(pix).reshape(self.height, self.width) * 255).astype(np.uint8)
+        """``uint8`` image (255 = valid pixel centre) for feature detectors (``cv2`` ``mask=``);
+        computed a band of rows at a time (a whole-image lift would need ~200 MB at once)."""
+        out = np.zeros((self.height, self.width), np.uint8)
+        u = np.arange(self.width, dtype=np.float64)
+        rows = 64
+        for v0 in range(0, self.height, rows):
+            v = np.arange(v0, min(v0 + rows, self.height), dtype=np.float64)
+            pix = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
+            out[v0 : v0 + v.size] = self.valid(pix).reshape(v.size, self.width) * 255
+        return out
 
 
 @dataclass(frozen=True)
