@@ -297,25 +297,9 @@ class FrontendConfig:
 
 
 @dataclass(frozen=True)
-class TeachConfig:
-    """Teach phase: landmark observers (eqs 2–8) and robot-centric EKF (eqs 14–20)."""
+class MotionNoiseConfig:
+    """Process noise both estimators share (teach and mow sections)."""
 
-    gamma1: float = opt(-2.0, "observer contraction rate for depth, γ₁ (eq. 7), 1/s", lt=0.0)
-    gamma2: float = opt(-6.0, "observer contraction rate for direction, γ₂ (eq. 7), 1/s", lt=0.0)
-    d_min_m: float = opt(0.5, "lower bound on landmark distance (Assumption 1)", gt=0.0)
-    d_init_m: float = opt(5.0, "initial depth of a new landmark", gt=0.0)
-    min_parallax_deg: float = opt(
-        3.0, "skip depth pseudo-measurements below this parallax", gt=0.0, lt=90.0
-    )
-    min_baseline_m: float = opt(0.3, "skip depth pseudo-measurements below this baseline", gt=0.0)
-    keyframe_baseline_m: float = opt(
-        50.0,
-        "also start a new keyframe after this distance (keyframes otherwise change "
-        "when their landmarks leave the view)",
-        gt=0.0,
-    )
-    standstill_s: float = opt(2.0, "initial standstill used to calibrate the gyro bias", ge=0.0)
-    bearing_sigma_rad: float = opt(0.008, "bearing noise (1σ per axis)", gt=0.0, lt=0.5)
     gyro_noise: float | None = opt(
         None, "estimator's gyro white noise, rad/s/√Hz; null: from the imu section", gt=0.0
     )
@@ -334,6 +318,28 @@ class TeachConfig:
     )  # speed.contact_point_m, copied at load
     speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
     lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
+
+
+@dataclass(frozen=True)
+class TeachConfig(MotionNoiseConfig):
+    """Teach phase: landmark observers (eqs 2–8) and robot-centric EKF (eqs 14–20)."""
+
+    gamma1: float = opt(-2.0, "observer contraction rate for depth, γ₁ (eq. 7), 1/s", lt=0.0)
+    gamma2: float = opt(-6.0, "observer contraction rate for direction, γ₂ (eq. 7), 1/s", lt=0.0)
+    d_min_m: float = opt(0.5, "lower bound on landmark distance (Assumption 1)", gt=0.0)
+    d_init_m: float = opt(5.0, "initial depth of a new landmark", gt=0.0)
+    min_parallax_deg: float = opt(
+        3.0, "skip depth pseudo-measurements below this parallax", gt=0.0, lt=90.0
+    )
+    min_baseline_m: float = opt(0.3, "skip depth pseudo-measurements below this baseline", gt=0.0)
+    keyframe_baseline_m: float = opt(
+        50.0,
+        "also start a new keyframe after this distance (keyframes otherwise change "
+        "when their landmarks leave the view)",
+        gt=0.0,
+    )
+    standstill_s: float = opt(2.0, "initial standstill used to calibrate the gyro bias", ge=0.0)
+    bearing_sigma_rad: float = opt(0.008, "bearing noise (1σ per axis)", gt=0.0, lt=0.5)
     boundary_simplify_m: float = opt(0.02, "Douglas–Peucker tolerance of the boundary", ge=0.0)
     min_area_m2: float = opt(4.0, "smallest lawn accepted as a boundary", gt=0.0)
     loop_closure: bool = opt(True, "close the loop at the start and distribute the error")
@@ -356,27 +362,9 @@ class TeachConfig:
 
 
 @dataclass(frozen=True)
-class MowConfig:
+class MowConfig(MotionNoiseConfig):
     """Mow phase: world-centric EKF localizer (eqs 21–23)."""
 
-    gyro_noise: float | None = opt(
-        None, "estimator's gyro white noise, rad/s/√Hz; null: from the imu section", gt=0.0
-    )
-    gyro_bias_walk: float | None = opt(
-        None, "estimator's gyro bias random walk, rad/s/√s; null: from the imu section", ge=0.0
-    )
-    gyro_scale_sigma: float | None = opt(
-        None,
-        "prior σ of the yaw rate's scale error the estimator estimates; null: from the imu "
-        "section (imu.gyro_scale_error)",
-        ge=0.0,
-        le=0.2,
-    )
-    speed_contact_m: tuple[float, float, float] = field(
-        default=(0.0, 0.0, -0.8), metadata={"internal": True}
-    )  # speed.contact_point_m, copied at load
-    speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
-    lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
     bearing_sigma_rad: float = opt(0.008, "bearing noise (1σ per axis)", gt=0.0, lt=0.5)
     gate_probability: float = opt(0.999, "χ² gate of each landmark bearing", gt=0.5, lt=1.0)
     history_s: float = opt(2.0, "IMU history kept to apply late frames", gt=0.0, le=30.0)

@@ -9,7 +9,12 @@ from pathlib import Path
 from typing import Any
 
 from mowerhw.camera import CameraCalibrationError, camera_names, load_camchain
-from mowerhw.cli.common import add_config_argument, load_config_or_exit, print_json
+from mowerhw.cli.common import (
+    add_config_argument,
+    add_plot_argument,
+    load_config_or_exit,
+    print_json,
+)
 from mowerhw.config import EX_CONFIG, camera_rotation
 
 
@@ -64,15 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     cal.add_argument(
         "--camera-name", default="cam0", metavar="NAME", help="its key in the camchain (cam0)"
     )
-    cal.add_argument(
-        "--plot",
-        nargs="?",
-        type=Path,
-        const=True,
-        default=None,
-        metavar="PNG",
-        help="also draw the residuals over the image (default: next to the camchain)",
-    )
+    add_plot_argument(cal, "also draw the residuals over the image (default: next to the camchain)")
     cal.add_argument("--json", action="store_true", help="print one JSON object")
     cal.set_defaults(handler=_calibrate)
 

@@ -21,6 +21,13 @@ def add_config_argument(parser: argparse.ArgumentParser, required: bool = False)
     )
 
 
+def add_plot_argument(parser: argparse.ArgumentParser, help: str) -> None:
+    """``--plot [PNG]``: a figure, at the given path or (bare flag) next to the input."""
+    parser.add_argument(
+        "--plot", nargs="?", type=Path, const=True, default=None, metavar="PNG", help=help
+    )
+
+
 def load_config_or_exit(path: Path | None) -> Config:
     """The validated config, or print every problem and exit 78 (EX_CONFIG)."""
     try:

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from mowerhw.cli.common import print_json
+from mowerhw.cli.common import add_plot_argument, print_json
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,15 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "imu keys to put in the config (the largest over the axes).",
     )
     ch.add_argument("recording", type=Path, metavar="RECORDING", help="an MCAP or a CSV")
-    ch.add_argument(
-        "--plot",
-        nargs="?",
-        type=Path,
-        const=True,
-        default=None,
-        metavar="PNG",
-        help="draw the Allan deviation (default: next to the recording)",
-    )
+    add_plot_argument(ch, "draw the Allan deviation (default: next to the recording)")
     ch.add_argument("--json", action="store_true", help="print one JSON object")
     ch.set_defaults(handler=_characterize)
 
