@@ -10,6 +10,7 @@ topic                         schema                      payload
 ``/camera/image``             ``foxglove.CompressedImage`` JPEG, capture time as timestamp
 ``/estimate/pose``            ``foxglove.PoseInFrame``    pose in the lawn (map) frame
 ``/estimate/state``           ``mowerhw.EstimatorState``  containment, permit, reason, σ, cov
+``/runtime/journal``          ``mowerhw.RuntimeJournal``  the runtime core's inputs/decisions
 ============================  ==========================  ===================================
 
 Every payload carries ``host_time_ns`` (CLOCK_MONOTONIC when it was read: what a replay feeds
@@ -30,6 +31,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -107,7 +109,14 @@ SCHEMAS: dict[str, dict[str, Any]] = {
     },
 }
 
+SCHEMAS["mowerhw.RuntimeJournal"] = {
+    "type": "object",
+    "description": "one input or decision of the runtime core (mowerhw.runtime.journal)",
+    "properties": {"seq": {"type": "integer"}, "kind": {"type": "string"}},
+}
+
 TOPICS = {
+    "/runtime/journal": "mowerhw.RuntimeJournal",
     "/vn100/raw": "mowerhw.SerialBytes",
     "/can": "mowerhw.CanFrame",
     "/camera/image": "foxglove.CompressedImage",
@@ -145,9 +154,12 @@ class Recorder:
         attachments: dict[str, bytes] | None = None,
         jpeg_quality: int = 90,
         chunk_size: int = 1 << 20,
-        queue_size: int = 4096,
+        queue_size: int = 16384,
+        journal_encoder: Callable[[str, dict[str, Any]], dict[str, Any]] | None = None,
     ) -> None:
         self.path = path
+        #: turns a runtime core record into JSON (on the writer thread, off the caller's)
+        self.journal_encoder = journal_encoder
         self.jpeg_quality = jpeg_quality
         self.chunk_size = chunk_size
         self.error = ""
@@ -178,6 +190,11 @@ class Recorder:
             self._queue.put_nowait(item)
         except queue.Full:  # the disk cannot keep up: drop, never block the caller
             self.dropped += 1
+
+    def journal(self, host_ns: int, kind: str, payload: dict[str, Any]) -> None:
+        """A runtime core record (encoded on the writer thread by ``journal_encoder``)."""
+        if self.journal_encoder is not None:
+            self._put(("/runtime/journal", host_ns, (kind, payload)))
 
     def serial(self, host_ns: int, data: bytes) -> None:
         self._put(("/vn100/raw", host_ns, {"host_time_ns": host_ns, "data": data}))
@@ -314,7 +331,10 @@ class Recorder:
                 self._fail(exc)
 
     def _encode(self, topic: str, payload: Any) -> bytes:
-        if topic == "/vn100/raw":
+        if topic == "/runtime/journal":
+            assert self.journal_encoder is not None
+            payload = self.journal_encoder(*payload)
+        elif topic == "/vn100/raw":
             payload = {**payload, "data": base64.b64encode(payload["data"]).decode()}
         elif topic == "/camera/image":
             import cv2

@@ -1,12 +1,18 @@
-"""Replay a recording through the same parsers and estimators, deterministically.
+"""Replay a recording through the runtime core the daemon runs, deterministically.
 
-The recorded raw inputs go through the code that read them live: serial bytes into
-:meth:`drivers.vn100.Vn100.feed` (its parser and clock mapping), CAN frames into
-:class:`drivers.isobus_speed.SpeedReader`, JPEG frames into the front end; then the time-ordered
-buffer and the teach or mow pipeline exactly as the daemon feeds them
-(:func:`mowerhw.runtime.pipelines.feed_ready`), and the same fail-safe gate, with the
-recording's host times as the clock. One thread, seeded front end, one OpenCV thread: the same
-file and config give the same map, byte for byte, and the same permit sequence.
+Two ways (both drive :class:`mowerhw.runtime.core.RuntimeCore`):
+
+* **raw** (:class:`Replay`): the recorded raw inputs go through the code that read them live:
+  serial bytes into :meth:`drivers.vn100.Vn100.feed` (its parser and clock mapping), CAN
+  frames into :class:`drivers.isobus_speed.SpeedReader`, JPEG frames into the front end; then
+  the core, with the recording's host times as the clock. One thread, seeded front end, one
+  OpenCV thread: the same file and config give the same map, byte for byte, and the same
+  permit sequence. A config or map other than the recorded one may be given: this is the way
+  to try a change on real data.
+* **journal** (:func:`replay_decisions`): the core's own journal of the live run (every input
+  in the order the daemon applied it, the front end's tracks, where estimator chains were
+  installed, the faults injected) into a new core: it gives the daemon's decisions, faults
+  and rebuilds included, and compares each with the one the daemon made.
 """
 
 from __future__ import annotations
@@ -15,26 +21,22 @@ import base64
 import hashlib
 import json
 import logging
-import math
 import time
 from collections import Counter
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 
-from drivers.isobus_speed import SpeedReader, invalid_detail
+from drivers.isobus_speed import SpeedReader
 from drivers.vn100 import Vn100
-from mowerhw.buffer import SensorBuffer
 from mowerhw.config import Config, config_from_dict
-from mowerhw.geometry import quat_to_rotmat
 from mowerhw.map import LawnMap
 from mowerhw.map import load as load_map
 from mowerhw.recording import RecordingRead, decode_jpeg
-from mowerhw.runtime.gate import PermitGate
-from mowerhw.runtime.pipelines import TRACKS, MowPipeline, TeachPipeline, feed_ready
-from mowerhw.samples import ImuSample, Stream
+from mowerhw.runtime.core import RuntimeCore
+from mowerhw.runtime.pipelines import BuildRequest, MowPipeline, TeachPipeline, build_pipeline
+from mowerhw.samples import ImuSample
 
 log = logging.getLogger("mowerhw.replay")
 
@@ -81,37 +83,25 @@ class Replay:
         cv2.setNumThreads(1)
         self.out.mkdir(parents=True, exist_ok=True)
         if self.config is None:
-            meta = self.reader.metadata.get("config", {}).get("yaml")
-            if not meta:
-                raise ReplayError(f"{self.path}: no config in the recording; pass --config")
-            raw = yaml.safe_load(meta)
-            cal = self.reader.attachments.get("calibration.yaml")
-            if cal is not None:
-                cal_path = self.out / "calibration.yaml"
-                cal_path.write_bytes(cal)
-                raw.setdefault("camera", {})["calibration"] = str(cal_path)
-            raw.setdefault("map", {})["path"] = str(self.out / "map.json")
-            self.config = config_from_dict(raw, self.out, f"{self.path} (config)")
+            self.config = _recorded_config(self.reader, self.path, self.out)
         cfg = self.config
         from mowerhw.camera import load_camchain
 
         self.camera = load_camchain(cfg.camera.calibration, cfg.camera.camchain_key)
-        self.r_bi = quat_to_rotmat(np.asarray(cfg.imu.q_bi, dtype=np.float64))
-        self.buffer = SensorBuffer(capacity={TRACKS: 16})
-        self.gate = PermitGate.from_config(cfg)
-        self.last: dict[str, float | None] = {"imu": None, "speed": None, "camera": None}
+        self.core = RuntimeCore(cfg, on_build=self._build_now)
         self.vn = Vn100("replay", on_sample=self._on_imu, gyro_source=cfg.imu.gyro_source)
         self.speed_reader = SpeedReader(
             cfg.speed.source, cfg.speed.sensor_address, cfg.speed.ccvs1_direction
         )
-        self.notes: dict[str, tuple[float, str]] = {}
-        if self.mode == "teach":
-            self.pipe: Any = TeachPipeline(cfg, self.camera)
-        else:
-            lawn_map = self._mow_map()
-            self.pipe = MowPipeline(cfg, self.camera, lawn_map)
+        self.core.set_mode(self.mode)
+        if self.mode == "mow":
+            self.core.map_loaded(self._mow_map())
         self.now = 0.0
         self.prev_permit = False
+
+    def _build_now(self, req: BuildRequest) -> None:
+        """A replay builds the chain the core asks for at once (the daemon: off its loop)."""
+        self.core.install(req.serial, build_pipeline(self.config, self.camera, req))
 
     def _mow_map(self) -> LawnMap:
         if self.map_path is not None:
@@ -126,19 +116,9 @@ class Replay:
     # ---------------------------------------------------------------------------- inputs
 
     def _on_imu(self, s: ImuSample) -> None:
-        gyro = self.r_bi @ s.gyro
-        self.last["imu"] = self.now
-        self.buffer.push(Stream.IMU, ImuSample(s.t, gyro, None, s.device_time_ns, s.host_time_ns))
-        self.pipe.vision.imu(s.t, gyro)
-        feed_ready(self.pipe, self.buffer, s.t - self.pipe.lag_s)
-        self._decide()
-
-    def _decide(self) -> None:
-        if not isinstance(self.pipe, MowPipeline):
+        d = self.core.imu(s, self.now)
+        if self.mode != "mow":
             return
-        c = self.pipe.containment(self.now) if self.pipe.finite() else None
-        stale = self.gate.stale(self.now, self.last, self.notes)
-        d = self.gate.decide(self.now, "mow", self.last, c, stale=stale)
         self.samples += 1
         self.permit_samples += int(d.permit)
         if self.prev_permit and not d.permit:
@@ -156,22 +136,17 @@ class Replay:
             self.now = msg["host_time_ns"] * 1e-9
             s = self.speed_reader.handle(int(msg["id"]), bytes.fromhex(msg["data"]), self.now)
             if s is not None:
-                if s.valid:
-                    self.last["speed"] = s.t
-                    self.notes.pop("speed", None)
-                else:
-                    self.notes["speed"] = (s.t, invalid_detail(s))
-                self.buffer.push(Stream.SPEED, s)
+                self.core.speed(s)
         elif topic == "/camera/image":
             ts = msg["timestamp"]
             t = ts["sec"] + ts["nsec"] * 1e-9
-            self.last["camera"] = self.now
-            image = decode_jpeg(msg["data"])
-            v = self.pipe.vision
-            tracks = v.track(t, image, v.prepare(t))
-            self.buffer.push(TRACKS, tracks)
-            if isinstance(self.pipe, MowPipeline):
-                feed_ready(self.pipe, self.buffer, math.inf)
+            self.core.camera_frame(self.now)
+            target = self.core.frame_pipeline()
+            if target is not None:
+                serial, pipe = target
+                image = decode_jpeg(msg["data"])
+                tracks = pipe.vision.track(t, image, pipe.vision.prepare(t))
+                self.core.tracks(serial, tracks)
         else:
             return
         self.counts[topic] += 1
@@ -211,11 +186,7 @@ class Replay:
                 n += 1
                 if n % 256 == 0:
                     bar.advance(self.reader.bytes_read - bar.done)
-                if (
-                    isinstance(self.pipe, TeachPipeline)
-                    and self.config.runtime.auto_finish_teach
-                    and self.pipe.loop_done()
-                ):
+                if self.config.runtime.auto_finish_teach and self.core.teach_loop_done():
                     finished_by = "loop detection"
                     break
             bar.done = total
@@ -233,10 +204,11 @@ class Replay:
         }
         if self.reader.warning:
             out["warning"] = self.reader.warning
-        if isinstance(self.pipe, TeachPipeline):
-            out.update(self._finish_teach(last_log_ns, finished_by))
-        else:
-            loc = self.pipe.localizer
+        pipe = self.core.pipeline
+        if isinstance(pipe, TeachPipeline):
+            out.update(self._finish_teach(pipe, last_log_ns, finished_by))
+        elif isinstance(pipe, MowPipeline):
+            loc = pipe.localizer
             out.update(
                 permit_fraction=round(self.permit_samples / max(1, self.samples), 4),
                 halts_by_reason=dict(self.halts),
@@ -246,10 +218,12 @@ class Replay:
         (self.out / "replay.json").write_text(json.dumps(out, indent=1))
         return out
 
-    def _finish_teach(self, last_log_ns: int, finished_by: str) -> dict[str, Any]:
+    def _finish_teach(
+        self, pipe: TeachPipeline, last_log_ns: int, finished_by: str
+    ) -> dict[str, Any]:
         import datetime as dt
 
-        result, lawn_map = self.pipe.finish()
+        result, lawn_map = pipe.finish()
         # the map's creation time is the recording's, so a replay is byte-for-byte repeatable
         lawn_map.created_utc = dt.datetime.fromtimestamp(last_log_ns * 1e-9, dt.UTC).strftime(
             "%Y-%m-%dT%H:%M:%SZ"
@@ -274,3 +248,49 @@ class Replay:
             "boundary_area_m2": round(float(poly.area), 3),
             "loop_closure": result.closure.reason,
         }
+
+
+def _recorded_config(reader: RecordingRead, path: Path, out: Path) -> Config:
+    """The run's own config, with the recorded calibration written into ``out``."""
+    meta = reader.metadata.get("config", {}).get("yaml")
+    if not meta:
+        raise ReplayError(f"{path}: no config in the recording; pass --config")
+    raw = yaml.safe_load(meta)
+    cal = reader.attachments.get("calibration.yaml")
+    if cal is not None:
+        cal_path = out / "calibration.yaml"
+        cal_path.write_bytes(cal)
+        raw.setdefault("camera", {})["calibration"] = str(cal_path)
+    raw.setdefault("map", {})["path"] = str(out / "map.json")
+    return config_from_dict(raw, out, f"{path} (config)")
+
+
+def replay_decisions(path: str | Path, config: Config | None = None) -> dict[str, Any]:
+    """The daemon's decisions again, from the runtime journal in the recording ``path`` (see
+    the module doc): counts, the sha256 of the live and the replayed decision sequences, and
+    the first decision that differs, if any."""
+    from mowerhw.camera import load_camchain
+    from mowerhw.runtime.journal import replay_journal
+
+    rec_path = Path(path)
+    reader = RecordingRead(rec_path)
+    records = [m for topic, _, m in reader.messages() if topic == "/runtime/journal"]
+    if not records:
+        raise ReplayError(
+            f"{rec_path}: no runtime journal in the recording (recorded before the journal "
+            "existed?); replay it with --mode teach|mow instead"
+        )
+    if config is None:
+        import tempfile
+
+        out = Path(tempfile.mkdtemp(prefix="mowerhw-replay-"))
+        config = _recorded_config(reader, rec_path, out)
+    camera = load_camchain(config.camera.calibration, config.camera.camchain_key)
+    t0 = time.monotonic()
+    result = replay_journal(config, camera, records).as_dict()
+    result["wall_s"] = round(time.monotonic() - t0, 2)
+    result["recording"] = str(rec_path)
+    result["same_as_live"] = result["mismatches"] == 0 and result["gaps"] == 0
+    if reader.warning:
+        result["warning"] = reader.warning
+    return result

@@ -122,8 +122,7 @@ class _VisionBase:
         """The newest descriptor of every track, and which tracks have one."""
         desc = np.zeros((tracks.ids.size, DESCRIPTOR_BYTES), np.uint8)
         has = np.zeros(tracks.ids.size, bool)
-        for k, tid in enumerate(tracks.ids.tolist()):
-            dd = self.frontend.descriptors(tid)
+        for k, dd in enumerate(tracks.descriptors):
             if dd.shape[0]:
                 desc[k], has[k] = dd[-1], True
         return desc, has
@@ -226,7 +225,7 @@ class TeachVision(_VisionBase):
     def _keep_descriptors(self, tracks: FrameTracks, lm: NDArray[np.int64]) -> None:
         due = (tracks.ages % self.cfg.descriptor_refresh_frames) == 0
         for k in np.flatnonzero(due).tolist():
-            dd = self.frontend.descriptors(int(tracks.ids[k]))
+            dd = tracks.descriptors[k]
             if dd.shape[0]:
                 i = int(lm[k])
                 self.descriptors[i] = merge_descriptors(

@@ -20,7 +20,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("recording", type=Path, metavar="FILE.mcap")
-    p.add_argument("--mode", choices=("teach", "mow"), required=True)
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument(
+        "--mode", choices=("teach", "mow"), help="raw: the sensor data through the parsers"
+    )
+    what.add_argument(
+        "--decisions",
+        action="store_true",
+        help="the runtime core's journal of the live run: the daemon's own decisions again, "
+        "faults included, each compared with the live one",
+    )
     p.add_argument("--map", type=Path, help="mow: the map (default: the one in the recording)")
     p.add_argument("--config", type=Path, help="config (default: the one in the recording)")
     pace = p.add_mutually_exclusive_group()
@@ -48,6 +57,18 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if not args.verbose:  # every halt of the replayed gate is in the summary, not the log
         logging.getLogger("mowerhw.permit").setLevel(logging.ERROR)
     cfg = load_config_or_exit(args.config) if args.config else None
+    if args.decisions:
+        from mowerhw.replay import replay_decisions
+
+        if not args.verbose:  # the live run's faults were logged live; the result says it all
+            logging.getLogger("mowerhw.daemon").setLevel(logging.CRITICAL)
+        try:
+            out = replay_decisions(args.recording, cfg)
+        except (ReplayError, MapError, ValueError, OSError) as exc:
+            print(f"mowerhw replay: {exc}", file=sys.stderr)
+            return 1
+        print(strict_json(out, indent=None if args.json else 2))
+        return 0 if out["same_as_live"] else 3
     try:
         rep = Replay(
             args.recording,

@@ -53,6 +53,10 @@ class FrameTracks:
     pixels: FloatArray  # (N, 2)
     ages: NDArray[np.int64]  # frames each track has been followed (0: born now)
     ms: float = 0.0  # processing time of this frame
+    #: every track's ORB descriptors, oldest first: (K, 32) each, K may be 0. Carried with
+    #: the frame so that association never reads the tracker's state (which the worker
+    #: thread changes on the next frame)
+    descriptors: tuple[NDArray[np.uint8], ...] = ()
 
 
 @dataclass
@@ -218,6 +222,7 @@ class FrontEnd:
             self._pts.astype(np.float64),
             self._age.copy(),
             ms,
+            tuple(self.descriptors(int(i)).copy() for i in self._ids.tolist()),
         )
 
     # --------------------------------------------------------------------------- internals

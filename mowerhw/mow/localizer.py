@@ -35,7 +35,7 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -57,15 +57,14 @@ from mowerhw.posefit import fit_pose_to_bearings
 FloatArray = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class Pose:
+class Pose(NamedTuple):
+    """The localizer's newest estimate: ``t, position, quaternion, covariance = loc.pose()``,
+    ``loc.pose()[1]``, ``loc.pose().position``."""
+
     t: float
     position: FloatArray  # (3,) x_b^w
     quaternion: FloatArray  # (4,) q_wb, w first
     covariance: FloatArray  # (6, 6): position (3), then rotation (3, world axes)
-
-    def __iter__(self):  # t, position, quaternion, covariance = loc.pose()
-        return iter((self.t, self.position, self.quaternion, self.covariance))
 
 
 @dataclass
@@ -166,6 +165,7 @@ class Localizer:
         self._gyro_sum = np.zeros(3)
         self._gyro_n = 0
         self._resets = 0
+        self._injected = 0
         self._since = "since start"
         self.calibrating = True
         self.last_rejected = np.zeros(0, np.int64)  # map ids the last frame's χ² gate refused
@@ -198,6 +198,60 @@ class Localizer:
         self._history.clear()
         self._resets += 1
         self._since = "since start" if self._resets == 1 else "since the filter restarted"
+
+    def resume(
+        self,
+        position: ArrayLike,
+        quaternion: ArrayLike,
+        sigma_position_m: float,
+        sigma_heading_rad: float,
+        *,
+        gyro_bias: ArrayLike | None = None,
+        calibrate: bool = False,
+        frames_needed: int = 1,
+    ) -> None:
+        """Restart from a pose this mower had (an estimator rebuilt in this run, or a
+        restart): the pose widened by the σ given, the gyro bias kept (``gyro_bias``) or
+        learnt again while the mower stands (``calibrate``), and not localized before
+        ``frames_needed`` good frames."""
+        self.reinitialise((position, quaternion), sigma_position_m, sigma_heading_rad)
+        if gyro_bias is not None:
+            self.ekf.bg = np.asarray(gyro_bias, dtype=np.float64).reshape(3).copy()
+        self.calibrating = calibrate
+        self.require_frames(frames_needed)
+
+    def inject_fault(self) -> None:
+        """Fault injection (``runtime.fault_injection`` only): the filter's state becomes
+        NaN, as a diverged estimator's would."""
+        self.ekf.x[:] = np.nan
+        self._injected += 1
+
+    def is_finite(self) -> bool:
+        """Every number of the state and its covariance is finite."""
+        e = self.ekf
+        return bool(
+            np.all(np.isfinite(e.x)) and np.all(np.isfinite(e.q)) and np.all(np.isfinite(e.P))
+        )
+
+    @property
+    def version(self) -> tuple[Any, ...]:
+        """Changes whenever the estimate may have changed (a new input, a restart)."""
+        c = self.counters
+        return (
+            self.t_imu,
+            self.t_speed,
+            self.t_camera,
+            self.t_fix,
+            c.frames,
+            c.faults,
+            self._resets,
+            self._injected,
+        )
+
+    @property
+    def gyro_bias(self) -> FloatArray:
+        """The filter's gyro bias estimate (rad/s, body frame)."""
+        return self.ekf.bg.copy()
 
     # ------------------------------------------------------------------------------ inputs
 

@@ -10,12 +10,16 @@ tracks), estimates out. The daemon decides when to feed them; the heavy front-en
 from __future__ import annotations
 
 import math
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mowerhw.buffer import SensorBuffer
+from mowerhw.camera import CameraModel
 from mowerhw.config import Config
+from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import LawnMap
 from mowerhw.mow import Localizer
 from mowerhw.mow.containment import ContainmentResult
@@ -31,7 +35,38 @@ FloatArray = NDArray[np.float64]
 TRACKS = "tracks"
 
 
-def feed_ready(pipe: Any, buffer: Any, until: float) -> None:
+class StartPose(NamedTuple):
+    """A pose a new localizer starts from: position, q_wb, and the gyro bias if known."""
+
+    position: FloatArray
+    quaternion: FloatArray
+    gyro_bias: FloatArray | None = None
+
+
+@dataclass(frozen=True)
+class BuildRequest:
+    """An estimator chain the runtime wants built (seconds of work: off the event loop).
+
+    ``serial`` names it: the runtime installs the chain only if no newer request came since.
+    ``resumed``: a pose a previous run saved (the gyro is calibrated again, the mower stands)."""
+
+    serial: int
+    kind: str  # "teach" or "mow"
+    lawn_map: LawnMap | None = None
+    start_pose: StartPose | None = None
+    resumed: bool = False
+
+
+def build_pipeline(config: Config, camera: CameraModel, req: BuildRequest) -> Pipeline:
+    """The chain ``req`` asks for (pure: the same inputs give the same chain)."""
+    if req.kind == "teach":
+        return TeachPipeline(config, camera)
+    if req.lawn_map is None:
+        raise ValueError("a mow chain needs a map")
+    return MowPipeline(config, camera, req.lawn_map, start_pose=req.start_pose)
+
+
+def feed_ready(pipe: Pipeline, buffer: SensorBuffer, until: float) -> None:
     """Hand the estimator every buffered sample up to ``until``, in time order (the daemon
     and a replay both feed it this way)."""
     for stream, s in buffer.pop_ready(until):
@@ -60,7 +95,7 @@ class TeachPipeline:
     AUTO_CLOSE_M = 1.5
     AUTO_MIN_DISTANCE_M = 10.0
 
-    def __init__(self, config: Config, camera: Any, seed: int = 0) -> None:
+    def __init__(self, config: Config, camera: CameraModel, seed: int = 0) -> None:
         self.config = config
         self.teacher = Teacher(config.teach, camera=camera)
         self.vision = TeachVision(
@@ -81,7 +116,7 @@ class TeachPipeline:
         else:
             self._stopped_since = None
 
-    def frame_tracks(self, tracks: Any) -> None:
+    def frame_tracks(self, tracks: FrameTracks) -> None:
         self.vision.use(tracks)
 
     def loop_done(self) -> bool:
@@ -121,14 +156,15 @@ class MowPipeline:
     def __init__(
         self,
         config: Config,
-        camera: Any,
+        camera: CameraModel,
         lawn_map: LawnMap,
-        start_pose: tuple[FloatArray, FloatArray] | None = None,
+        start_pose: StartPose | None = None,
         seed: int = 0,
     ) -> None:
         self.config = config
         self.map = lawn_map
-        self.localizer = Localizer(lawn_map, config, start_pose=start_pose)
+        start = None if start_pose is None else (start_pose.position, start_pose.quaternion)
+        self.localizer = Localizer(lawn_map, config, start_pose=start)
         self.vision = MowVision(
             self.localizer,
             camera,
@@ -139,9 +175,9 @@ class MowPipeline:
         )
         self.lag_s = self.LAG_S
         self._cont: ContainmentResult | None = None
-        self._cont_key: tuple | None = None
+        self._cont_key: tuple[Any, ...] | None = None
         self._finite = True
-        self._finite_key: tuple | None = None
+        self._finite_key: tuple[Any, ...] | None = None
 
     def imu(self, t: float, gyro: FloatArray) -> None:
         self.localizer.imu(t, gyro)
@@ -149,47 +185,38 @@ class MowPipeline:
     def speed(self, t: float, v: float) -> None:
         self.localizer.speed(t, v)
 
-    def frame_tracks(self, tracks: Any) -> None:
+    def frame_tracks(self, tracks: FrameTracks) -> None:
         self.vision.use(tracks)
-
-    def _state_key(self) -> tuple:
-        loc = self.localizer
-        c = loc.counters
-        return (loc.t_imu, loc.t_speed, loc.t_camera, loc.t_fix, c.frames, c.faults, id(loc.ekf.x))
 
     def containment(self, now: float) -> ContainmentResult:
         """The decision for the newest state. Evaluated again only when the estimator has
-        changed (a new sample); between samples the daemon's own staleness check on the
-        host clock is what can change the decision."""
-        key = self._state_key()
+        changed (a new sample); between samples the gate's staleness check on the host clock
+        is what can change the decision."""
+        key = self.localizer.version
         if key != self._cont_key or self._cont is None:
             self._cont = self.localizer.containment(now)
             self._cont_key = key
         return self._cont
 
     def finite(self) -> bool:
-        key = self._state_key()
-        if key == self._finite_key:
-            return self._finite
-        ekf = self.localizer.ekf
-        self._finite = bool(
-            np.all(np.isfinite(ekf.x)) and np.all(np.isfinite(ekf.q)) and np.all(np.isfinite(ekf.P))
-        )
-        self._finite_key = key
+        key = self.localizer.version
+        if key != self._finite_key:
+            self._finite = self.localizer.is_finite()
+            self._finite_key = key
         return self._finite
 
     def pose(self) -> tuple[float, float, float, float, float]:
         """t, x, y, heading, σ_xy."""
-        loc = self.localizer
-        t = loc.t_imu if loc.t_imu is not None else float("nan")
-        return t, float(loc.ekf.x[0]), float(loc.ekf.x[1]), yaw_of(loc.ekf.q), loc.sigma_xy()
+        p = self.localizer.pose()
+        x, y = float(p.position[0]), float(p.position[1])
+        return p.t, x, y, yaw_of(p.quaternion), self.localizer.sigma_xy()
 
-    def last_good_pose(self) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+    def last_good_pose(self) -> StartPose | None:
         """Position, q_wb and the calibrated gyro bias (for a rebuilt estimator)."""
-        loc = self.localizer
-        if self.finite():
-            return loc.ekf.x.copy(), loc.ekf.q.copy(), loc.ekf.bg.copy()
-        return None
+        if not self.finite():
+            return None
+        p = self.localizer.pose()
+        return StartPose(p.position, p.quaternion, self.localizer.gyro_bias)
 
     def status(self) -> dict[str, Any]:
         st = self.localizer.status()
@@ -202,3 +229,6 @@ class MowPipeline:
             "dropped_associations": vs.dropped_associations,
         }
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in st.items()}
+
+
+Pipeline = TeachPipeline | MowPipeline

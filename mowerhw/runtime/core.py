@@ -1,0 +1,489 @@
+"""The runtime's logic, with no I/O, no threads and no clock of its own (docs/design.md §8).
+
+:class:`RuntimeCore` takes timestamped inputs (IMU and speed samples, camera arrivals, the
+front end's tracks, the map as loaded, commands) and answers :meth:`RuntimeCore.decide`. It
+owns the time-ordered sample buffer, the teach or mow estimator chain, the permit gate, the
+fault / rebuild / resume policy and the halt-latency bookkeeping. The daemon is an asyncio
+shell around it (devices, CAN, control socket, map file, systemd); a replay drives the same
+core, so a recording gives the daemon's own decisions, faults included.
+
+Every input that can change a decision is written to a :class:`Journal` before it is applied,
+and every decision after it is made: replaying the journal through a new core (with the chains
+built at the points the journal says they were installed) gives the same decisions.
+
+Estimator chains take seconds to build, so the core does not build them: it asks for one
+(:class:`BuildRequest`, through ``on_build``) and the shell builds it off the event loop and
+hands it back with :meth:`install`; a replay builds it on the spot when the journal says the
+daemon installed it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from drivers.isobus_speed import invalid_detail
+from mowerhw.buffer import SensorBuffer
+from mowerhw.config import Config
+from mowerhw.frontend.tracker import FrameTracks
+from mowerhw.geometry import quat_to_rotmat
+from mowerhw.map import LawnMap
+from mowerhw.runtime.gate import Decision, PermitGate
+from mowerhw.runtime.pipelines import (
+    TRACKS,
+    BuildRequest,
+    MowPipeline,
+    Pipeline,
+    StartPose,
+    TeachPipeline,
+    feed_ready,
+)
+from mowerhw.samples import ImuSample, SpeedSample, Stream
+
+log = logging.getLogger("mowerhw.daemon")
+
+MODES = ("idle", "teach", "mow")
+#: good frames a rebuilt or resumed estimator needs before it may permit (4 Hz: 2.5 s)
+REBUILT_FRAMES = 10
+#: how far a resumed pose is widened: after a restart (the pose file is written at 10 Hz and
+#: the mower stops within 0.3 s; σ under a third of the 0.4 m pane spacing of window landmarks,
+#: a wider prior locked onto the neighbouring corners on the bench) and after an estimator
+#: rebuilt within this run (from a pose at most 0.1 s old)
+RESUME_SIGMA_RESTART = (0.12, math.radians(6.0))
+RESUME_SIGMA_REBUILT = (0.05, math.radians(3.0))
+#: localized poses are offered for saving (restarts resume from them) at most this often (s)
+POSE_SAVE_PERIOD_S = 0.1
+FAULT_KINDS = ("nan", "exception")
+
+
+class Journal(Protocol):
+    """Where the core writes its inputs and decisions (a recording, or nothing)."""
+
+    def write(self, kind: str, payload: dict[str, Any]) -> None: ...
+
+
+@dataclass(frozen=True)
+class HaltLatency:
+    """One permit → halt transition: what halted it and how long after it was revealed."""
+
+    reason: str
+    latency_ms: float
+    t: float
+
+
+class RuntimeCore:
+    """See the module doc. ``on_build`` receives every :class:`BuildRequest`."""
+
+    def __init__(
+        self,
+        config: Config,
+        journal: Journal | None = None,
+        on_build: Callable[[BuildRequest], None] | None = None,
+    ) -> None:
+        self.cfg = config
+        self.journal = journal
+        self.on_build = on_build
+        self.r_bi = quat_to_rotmat(np.asarray(config.imu.q_bi, dtype=np.float64))
+        self.buffer = SensorBuffer(capacity={TRACKS: 16})
+        self.gate = PermitGate.from_config(config)
+        self.decision: Decision = self.gate.current
+        self.mode = "idle"
+        self.pipeline: Pipeline | None = None
+        self.map: LawnMap | None = None
+        self.map_problem = ""
+        self.fault = ""
+        self.teach_state = ""  # "", "starting", "recording", "finishing", "saved", "failed: …"
+        self.last_teach: dict[str, Any] = {}
+        self.shutting_down = False
+        self.last_arrival: dict[str, float | None] = {"imu": None, "speed": None, "camera": None}
+        #: per stream, why its newest data could not be used (arrival, the device's words)
+        self.stream_notes: dict[str, tuple[float, str]] = {}
+        self.counts: Counter[str] = Counter()
+        self.halt_latencies: list[HaltLatency] = []
+        self._pending: BuildRequest | None = None
+        self._serial = 0
+        self._installed_serial = 0
+        self._inject = ""
+        self._last_good_pose: StartPose | None = None
+        self._good_pose_count = 0
+        self._next_pose_save = -math.inf
+        self._pose_to_save: StartPose | None = None
+        self._revealed_at: float | None = None
+
+    # ------------------------------------------------------------------------- journal
+
+    def _log(self, kind: str, **payload: Any) -> None:
+        if self.journal is not None:
+            self.journal.write(kind, payload)
+
+    # -------------------------------------------------------------------------- inputs
+
+    def imu(self, sample: ImuSample, now: float) -> Decision:
+        """An IMU sample (IMU frame, as the device gave it) that arrived at ``now``: into the
+        buffer, the estimator fed with what is ready, and the permit decided at once."""
+        self._log("imu", sample=sample, now=now)
+        self.last_arrival["imu"] = now
+        self.counts["imu"] += 1
+        gyro = self.r_bi @ sample.gyro
+        self.buffer.push(
+            Stream.IMU,
+            ImuSample(sample.t, gyro, None, sample.device_time_ns, sample.host_time_ns),
+        )
+        if self.pipeline is not None:
+            self.pipeline.vision.imu(sample.t, gyro)  # the front end's derotation history
+        self._consume(sample.t)
+        arrival = sample.host_time_ns * 1e-9 if sample.host_time_ns is not None else now
+        d = self._decide(now, arrival)
+        self._log("imu_out", out=decision_key(d))
+        return d
+
+    def speed(self, sample: SpeedSample) -> None:
+        """A ground speed sample (``t``: its arrival on the host clock)."""
+        self._log("speed", sample=sample)
+        if sample.valid:  # an invalid reading is not a fresh speed
+            self.last_arrival["speed"] = sample.t
+            self.stream_notes.pop("speed", None)
+        else:
+            self.stream_notes["speed"] = (sample.t, invalid_detail(sample))
+        self.counts["speed" if sample.valid else "speed_invalid"] += 1
+        self.buffer.push(Stream.SPEED, sample)
+
+    def camera_frame(self, now: float) -> None:
+        """A camera frame arrived (the camera is alive, whatever the front end makes of it)."""
+        self._log("camera_frame", now=now)
+        self.last_arrival["camera"] = now
+        self.counts["frames"] += 1
+
+    def frame_pipeline(self) -> tuple[int, Pipeline] | None:
+        """The chain a new frame is for (its serial, for :meth:`tracks`), if frames are
+        wanted now."""
+        if self.pipeline is None or (self.mode == "teach" and self.teach_state != "recording"):
+            return None
+        return self._installed_serial, self.pipeline
+
+    def tracks(self, serial: int, tracks: FrameTracks) -> None:
+        """The front end's tracks of a frame, made for the chain ``serial`` (dropped if that
+        chain has been replaced meanwhile)."""
+        self._log("tracks", serial=serial, tracks=tracks)
+        if self.pipeline is None or serial != self._installed_serial:
+            return
+        self.buffer.push(TRACKS, tracks)
+        if isinstance(self.pipeline, MowPipeline):
+            self._consume(math.inf)  # the localizer takes late frames itself
+
+    def frontend_error(self) -> None:
+        self.counts["frontend_errors"] += 1
+
+    # --------------------------------------------------------------------- estimator
+
+    def _consume(self, newest_t: float) -> None:
+        """Feed the estimator everything ready, in time order (teach holds back ``lag_s`` so
+        frames, which come late, are not overtaken by the IMU)."""
+        pipe = self.pipeline
+        if pipe is None:
+            self.buffer.pop_ready()
+            return
+        if self.mode == "teach" and self.teach_state != "recording":
+            return
+        try:
+            if self._inject == "exception":
+                self._inject = ""
+                raise RuntimeError("injected estimator exception (fault injection)")
+            feed_ready(pipe, self.buffer, newest_t - pipe.lag_s)
+            if self._inject == "nan" and isinstance(pipe, MowPipeline):
+                self._inject = ""
+                pipe.localizer.inject_fault()
+        except Exception as exc:
+            self._estimator_fault(f"estimator raised {type(exc).__name__}: {exc}", exc)
+
+    def _estimator_fault(self, what: str, exc: BaseException | None = None) -> None:
+        """Halt (FAULT), drop the estimator, ask for a new one from the last good pose."""
+        self.counts["estimator_faults"] += 1
+        self.fault = f"{what}; estimator restarted"
+        log.error("FAULT: %s", self.fault, exc_info=exc)
+        self.buffer.pop_ready()
+        self.pipeline = None
+        if self.mode == "mow" and self.map is not None:
+            self._request("mow", self.map, self._last_good_pose)
+        elif self.mode == "teach":
+            log.error("teach: the recording so far is lost; drive the loop again")
+            self._request("teach")
+
+    def _request(
+        self,
+        kind: str,
+        lawn_map: LawnMap | None = None,
+        start_pose: StartPose | None = None,
+        resumed: bool = False,
+    ) -> None:
+        self._serial += 1
+        req = BuildRequest(self._serial, kind, lawn_map, start_pose, resumed)
+        self._pending = req
+        if self.on_build is not None:
+            self.on_build(req)
+
+    def install(self, serial: int, pipe: Pipeline) -> bool:
+        """Use the chain built for request ``serial``, unless a newer request (a mode or map
+        change, another fault) came since. True if it was installed."""
+        self._log("install", serial=serial)
+        req = self._pending
+        if req is None or req.serial != serial or req.kind != self.mode:
+            return False
+        self._pending = None
+        if isinstance(pipe, MowPipeline) and req.start_pose is not None:
+            self._resume(pipe, req.start_pose, req.resumed)
+        self.buffer.pop_ready()
+        self.pipeline = pipe
+        self._installed_serial = serial
+        if req.kind == "teach":
+            self.teach_state = "recording"
+            log.info("teach: recording; hold still for the gyro calibration, then drive the edge")
+        return True
+
+    @staticmethod
+    def _resume(pipe: MowPipeline, pose: StartPose, restarted: bool) -> None:
+        """A new localizer resumes from a pose it had, widened; after a restart it calibrates
+        the gyro first (the mower stands), after a rebuild it keeps the bias it had."""
+        sigma = RESUME_SIGMA_RESTART if restarted else RESUME_SIGMA_REBUILT
+        pipe.localizer.resume(
+            pose.position,
+            pose.quaternion,
+            *sigma,
+            gyro_bias=None if restarted else pose.gyro_bias,
+            calibrate=restarted,
+            frames_needed=REBUILT_FRAMES,
+        )
+
+    # ---------------------------------------------------------------------- decision
+
+    def decide(self, now: float, revealed_at: float | None = None) -> Decision:
+        """The permit for ``now``. ``revealed_at``: when the input that led to this decision
+        arrived (for the halt latency), default ``now``."""
+        d = self._decide(now, revealed_at)
+        self._log("decide", now=now, revealed_at=revealed_at, out=decision_key(d))
+        return d
+
+    def _decide(self, now: float, revealed_at: float | None) -> Decision:
+        pipe = self.pipeline
+        containment = None
+        if isinstance(pipe, MowPipeline) and not self.map_problem:
+            if not pipe.finite():
+                self._estimator_fault("estimator state is not finite (NaN/inf)")
+                pipe = self.pipeline
+            if isinstance(pipe, MowPipeline):
+                containment = self._mow_state(pipe, now)
+        stale = self.gate.stale(now, self.last_arrival, self.stream_notes)
+        was = self.decision.permit
+        d = self.gate.decide(
+            now,
+            self.mode,
+            self.last_arrival,
+            containment,
+            self.map_problem,
+            self.fault,
+            self.shutting_down,
+            stale,
+        )
+        self.decision = d
+        if was and not d.permit:
+            if stale is not None:  # a silent sensor was revealed when its limit ran out
+                last = self.last_arrival[stale[0]]
+                limit = self.gate.stale_limits_s[stale[0]]
+                revealed_at = (last + limit) if last is not None else now
+            self._revealed_at = revealed_at if revealed_at is not None else now
+        return d
+
+    def _mow_state(self, pipe: MowPipeline, now: float) -> Any:
+        if self.fault and pipe.localizer.localized:
+            log.info("fault cleared: localized again after the estimator restart")
+            self.fault = ""
+        containment = pipe.containment(now)
+        self._good_pose_count += 1
+        if self._good_pose_count % 10 == 0:
+            self._last_good_pose = pipe.last_good_pose() or self._last_good_pose
+        saving = pipe.localizer.localized and not self.fault and not self.shutting_down
+        if saving and now >= self._next_pose_save:
+            self._next_pose_save = now + POSE_SAVE_PERIOD_S
+            p = pipe.localizer.pose()
+            self._pose_to_save = StartPose(p.position, p.quaternion)
+        return containment
+
+    def halt_sent(self, sent: float) -> None:
+        """The shell sent the halt of the newest decision at ``sent`` (its own clock)."""
+        if self._revealed_at is None:
+            return
+        self.halt_latencies.append(
+            HaltLatency(self.decision.reason, round((sent - self._revealed_at) * 1e3, 3), sent)
+        )
+        self._revealed_at = None
+        del self.halt_latencies[:-1000]
+
+    def take_pose_to_save(self) -> StartPose | None:
+        """A localized pose to save for a restart, when one is due (then None until the
+        next is due)."""
+        pose, self._pose_to_save = self._pose_to_save, None
+        return pose
+
+    def next_deadline(self, now: float) -> float:
+        """When the next sensor's staleness limit runs out (so a silent sensor halts within
+        a millisecond or two of its limit), or ``inf``."""
+        due = math.inf
+        for name, limit in self.gate.stale_limits_s.items():
+            last = self.last_arrival[name]
+            if last is not None and last + limit > now:
+                due = min(due, last + limit)
+        return due
+
+    # ------------------------------------------------------------------- modes, map
+
+    def set_mode(self, mode: str) -> str:
+        """Switch mode: ``""`` if done, else why not. Teach asks for a teach chain; mow waits
+        for the shell's :meth:`map_loaded` / :meth:`map_invalid`."""
+        if mode not in MODES:
+            return f"mode {mode!r} is not one of {', '.join(MODES)}"
+        if self.mode == "teach" and self.teach_state == "finishing":
+            return "teach is finishing (loop closure); try again shortly"
+        self._log("set_mode", mode=mode)
+        self.buffer.pop_ready()
+        self.fault = ""
+        self.map_problem = ""
+        self.pipeline = None
+        self._pending = None
+        self.map = None
+        self.mode = mode
+        log.info("mode %s", mode)
+        if mode == "teach":
+            self.teach_state = "starting"
+            self._request("teach")
+        return ""
+
+    def map_loaded(self, lawn_map: LawnMap, saved_pose: StartPose | None = None) -> None:
+        """Mow mode: the map to mow on, checked; ``saved_pose``: a recent pose of this map a
+        previous run saved (the localizer resumes from it instead of the dock)."""
+        self._log("map_loaded", map=lawn_map, saved_pose=saved_pose)
+        if self.mode != "mow":
+            return
+        self.map = lawn_map
+        self.map_problem = ""
+        self._request("mow", lawn_map, saved_pose, resumed=saved_pose is not None)
+
+    def map_invalid(self, problem: str) -> None:
+        """The map file is unusable: halt MAP_INVALID naming the problem (the estimator keeps
+        tracking on the map in memory, so a restored file resumes at once)."""
+        self._log("map_invalid", problem=problem)
+        self.map_problem = problem
+
+    def map_reloaded(self, lawn_map: LawnMap) -> None:
+        """The map file changed and is valid: the same map resumes, a new one is used."""
+        self._log("map_reloaded", map=lawn_map)
+        old = self.map
+        self.map_problem = ""
+        if old is not None and lawn_map.checksum == old.checksum:
+            log.info("map file valid again, same map (checksum %s)", old.checksum[:19])
+            if self.pipeline is None and self._pending is None:
+                self._request("mow", old, self._last_good_pose)
+            return
+        self.map, self.pipeline = lawn_map, None
+        log.info("new map loaded: %d landmarks", len(lawn_map.landmarks))
+        self._request("mow", lawn_map, self._last_good_pose)
+
+    def inject(self, kind: str) -> str:
+        """Fault injection (the shell checks ``runtime.fault_injection``): ``""`` or why not."""
+        if kind not in FAULT_KINDS:
+            return f"fault kind {kind!r}; allowed: {', '.join(FAULT_KINDS)}"
+        self._log("inject", fault=kind)
+        self._inject = kind
+        log.warning("fault injection: %s", kind)
+        return ""
+
+    def shutdown(self) -> None:
+        """From now on every decision halts (SHUTTING_DOWN)."""
+        self._log("shutdown")
+        self.shutting_down = True
+
+    # -------------------------------------------------------------------------- teach
+
+    def teach_loop_done(self) -> bool:
+        """Teaching, and the operator has driven the loop and stopped back at the start."""
+        pipe = self.pipeline
+        return (
+            isinstance(pipe, TeachPipeline) and self.teach_state == "recording" and pipe.loop_done()
+        )
+
+    def begin_finish_teach(self) -> TeachPipeline | str:
+        """The teach chain to finish (loop closure, boundary: off the loop), or why not."""
+        self._log("begin_finish_teach")
+        pipe = self.pipeline
+        if self.mode != "teach" or not isinstance(pipe, TeachPipeline):
+            return f"not teaching (mode {self.mode})"
+        if self.teach_state != "recording":
+            return f"teach is {self.teach_state}"
+        self.teach_state = "finishing"
+        self.buffer.pop_ready()
+        return pipe
+
+    def end_finish_teach(self, error: str = "", summary: dict[str, Any] | None = None) -> None:
+        """Teach finished: the map saved (``summary``), or failed (``error``); back to idle."""
+        self._log("end_finish_teach", error=error, summary=summary or {})
+        if error:
+            self.teach_state = f"failed: {error}"
+        else:
+            self.teach_state = "saved"
+            self.last_teach = dict(summary or {})
+        self.pipeline = None
+        self.mode = "idle"
+
+    # ------------------------------------------------------------------------- status
+
+    def pose_xyh(self) -> tuple[float, float, float]:
+        """x, y, heading of the mow estimate (NaN when there is none)."""
+        if isinstance(self.pipeline, MowPipeline):
+            _, x, y, h, _ = self.pipeline.pose()
+            return x, y, h
+        return math.nan, math.nan, math.nan
+
+    def status(self, now: float) -> dict[str, Any]:
+        d = self.decision
+        pipe = self.pipeline
+        out: dict[str, Any] = {
+            "mode": self.mode,
+            "permit": d.permit,
+            "state": str(d.state),
+            "reason": d.reason,
+            "detail": d.detail,
+            "signed_distance_m": None if math.isnan(d.signed_distance_m) else d.signed_distance_m,
+            "sensor_age_s": {
+                k: (None if v is None else round(now - v, 4)) for k, v in self.last_arrival.items()
+            },
+            "counts": dict(self.counts),
+            "map_problem": self.map_problem,
+            "fault": self.fault,
+            "teach": {"state": self.teach_state, **self.last_teach},
+            "halt_latencies": [vars(h) for h in self.halt_latencies[-200:]],
+        }
+        if isinstance(pipe, MowPipeline):
+            t, x, y, h, sig = pipe.pose()
+            out["pose"] = {"t": t, "x": x, "y": y, "heading": h, "sigma_xy_m": sig}
+            out["localizer"] = pipe.status()
+        elif isinstance(pipe, TeachPipeline):
+            out["teach"].update(pipe.status())
+        return out
+
+    def status_line(self) -> str:
+        d = self.decision
+        if self.mode == "teach":
+            return f"teach: {self.teach_state}; deck halted"
+        if d.permit:
+            return f"{self.mode}: {d.state}, mowing permitted"
+        return f"{self.mode}: {d.state}, halted ({d.reason})"
+
+
+def decision_key(d: Decision) -> list[Any]:
+    """What a decision is, for comparing a replay with the live run."""
+    return [bool(d.permit), str(d.state), d.reason]

@@ -1,0 +1,179 @@
+"""The daemon's devices, opened from the config (docs/design.md §7): the VN-100, the camera,
+the CAN bus (ground speed in, permit / halt out) and the recorder. Each hands its samples to a
+callback on the device's own thread; the daemon moves them onto its event loop."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from drivers.camera_v4l2 import CameraSource, V4l2Camera
+from drivers.isobus import open_bus
+from drivers.isobus_speed import SpeedReader
+from drivers.permit import PermitSender
+from drivers.vn100 import Vn100
+from mowerhw.config import Config
+from mowerhw.recording import Recorder
+from mowerhw.samples import FrameSample, ImuSample, SpeedSample
+
+log = logging.getLogger("mowerhw.daemon")
+
+
+def open_imu(
+    cfg: Config, on_sample: Callable[[ImuSample], None], recorder: Recorder | None
+) -> Vn100:
+    """The VN-100 as configured, started (it reconnects by itself)."""
+    c = cfg.imu
+    dev = Vn100(
+        c.port,
+        baudrate=c.baudrate,
+        initial_baudrate=c.initial_baudrate,
+        rate_hz=c.rate_hz,
+        output=c.output,
+        low_latency=c.low_latency,
+        reconnect_max_backoff_s=c.reconnect_max_backoff_s,
+        gyro_source=c.gyro_source,
+        configure_sensor=c.configure_sensor,
+        on_sample=on_sample,
+        on_raw=(lambda data, ns: recorder.serial(ns, data)) if recorder else None,
+    )
+    dev.start()
+    return dev
+
+
+def open_camera(cfg: Config, on_frame: Callable[[FrameSample], None]) -> CameraSource:
+    """The camera driver ``camera.driver`` names, started."""
+    c = cfg.camera
+    camera: CameraSource
+    if c.driver == "stream":
+        from drivers.camera_stream import StreamCamera
+
+        camera = StreamCamera(c.device)
+    elif c.driver == "mock":
+        from drivers.mock.camera import MockCamera
+
+        camera = MockCamera(fps=c.fps, width=c.width, height=c.height)
+    else:
+        camera = V4l2Camera(
+            c.device, width=c.width, height=c.height, fps=c.fps, pixel_format=c.pixel_format
+        )
+    camera.start(on_frame)
+    return camera
+
+
+def open_recorder(cfg: Config, path: Path) -> Recorder:
+    """A recording of this run: the config, the camera calibration and the map attached, and
+    the runtime core's journal (so a replay gives the daemon's decisions)."""
+    import yaml
+
+    from mowerhw.config import config_to_dict
+    from mowerhw.runtime.journal import JournalEncoder
+
+    files = {"calibration.yaml": Path(cfg.camera.calibration)}
+    if Path(cfg.map.path).exists():
+        files["map.json"] = Path(cfg.map.path)
+    attachments = {}
+    for name, p in files.items():
+        try:
+            attachments[name] = p.read_bytes()
+        except OSError as exc:
+            log.warning("recording: cannot attach %s (%s)", p, exc)
+    rec = Recorder(
+        path,
+        yaml.safe_dump(config_to_dict(cfg), sort_keys=False),
+        attachments,
+        journal_encoder=JournalEncoder().encode,
+    )
+    if rec.error:
+        log.error("recording to %s failed: %s", path, rec.error)
+    else:
+        log.info("recording to %s", path)
+    return rec
+
+
+class CanLink:
+    """The CAN bus: the permit sender, and a receive thread decoding ground speed (everything
+    else is counted and ignored). A bus that cannot be opened is retried by :meth:`retry`."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        on_speed: Callable[[SpeedSample], None],
+        recorder: Recorder | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.on_speed = on_speed
+        self.recorder = recorder
+        self.speed_reader = SpeedReader(
+            cfg.speed.source, cfg.speed.sensor_address, cfg.speed.ccvs1_direction
+        )
+        self.bus: Any = None
+        self.sender: PermitSender | None = None
+        self.open_failures = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def open(self) -> bool:
+        c = self.cfg.can
+        try:
+            extra = {"port": c.udp_port} if c.interface == "udp_multicast" else {}
+            self.bus = open_bus(c.interface, c.channel, c.bitrate, **extra)
+        except Exception as exc:  # can.CanError, OSError: retried
+            if self.open_failures == 0:
+                log.error("CAN %s %s: cannot open (%s); retrying", c.interface, c.channel, exc)
+            self.open_failures += 1
+            return False
+        p = self.cfg.permit
+        self.sender = PermitSender(
+            self.bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s
+        )
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._receive, name="can-rx", daemon=True)
+        self._thread.start()
+        log.info("CAN %s %s open, sending as 0x%02X", c.interface, c.channel, c.source_address)
+        return True
+
+    def retry(self, now: float) -> None:
+        """Try to open a bus that failed, about once a second."""
+        if self.sender is None and self.open_failures and now % 1.0 < 0.02:
+            self.open()
+
+    def _receive(self) -> None:
+        own = self.cfg.can.source_address
+        while not self._stop.is_set():
+            try:
+                msg = self.bus.recv(timeout=0.1)
+            except Exception as exc:  # the bus went away: the gate notices staleness
+                log.warning("CAN receive failed: %s", exc)
+                self._stop.wait(0.5)
+                continue
+            if msg is None:
+                continue
+            now = time.monotonic()
+            mine = msg.is_extended_id and (msg.arbitration_id & 0xFF) == own  # our echo
+            if self.recorder is not None:
+                self.recorder.can(
+                    int(now * 1e9),
+                    msg.arbitration_id,
+                    bytes(msg.data),
+                    msg.is_extended_id,
+                    not mine,
+                )
+            if not msg.is_extended_id or mine:
+                continue
+            sample = self.speed_reader.handle(msg.arbitration_id, bytes(msg.data), now)
+            if sample is not None:
+                self.on_speed(sample)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+        if self.bus is not None:
+            with contextlib.suppress(Exception):
+                self.bus.shutdown()

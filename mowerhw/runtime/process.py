@@ -1,0 +1,30 @@
+"""Process settings for the daemon: what keeps a Python process's pauses short."""
+
+from __future__ import annotations
+
+import gc
+import logging
+import sys
+import time
+
+log = logging.getLogger("mowerhw.daemon")
+
+
+def tune_process() -> None:
+    """Short GIL switches, one OpenCV thread, start-up objects out of the collector's way,
+    and a warning for every garbage collection long enough to stall the event loop."""
+    import cv2
+
+    sys.setswitchinterval(0.001)  # the front-end thread must not hold the GIL for 5 ms
+    cv2.setNumThreads(1)  # one frame at a time on one worker; OpenCV's pool would spin
+    gc.collect()
+    gc.freeze()  # the start-up objects (modules, config) are never scanned by a full collection
+    started = [0.0]
+
+    def gc_watch(phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            started[0] = time.perf_counter()
+        elif (ms := (time.perf_counter() - started[0]) * 1e3) > 20.0:
+            log.warning("garbage collection (generation %d) took %.0f ms", info["generation"], ms)
+
+    gc.callbacks.append(gc_watch)

@@ -1,0 +1,136 @@
+"""The daemon in this process, on python-can's ``virtual`` bus and the mock devices (no IP
+multicast needed): modes, a corrupt map, a silent IMU, an injected fault, shutdown, each seen
+on CAN by the mock mower controller; and the run's journal replayed gives the same decisions."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivers.isobus import open_bus
+from drivers.mock.mower import MockMowerController
+from drivers.mock.speed import MockSpeedSensor
+from drivers.mock.vn100 import MockVn100
+from drivers.permit import HB_SHUTDOWN
+from mowerhw.config import config_from_dict, config_to_dict, default_config
+from mowerhw.map import Landmark, LawnMap
+from mowerhw.replay import replay_decisions
+from mowerhw.runtime.daemon import Daemon
+
+
+def _lawn_map() -> LawnMap:
+    rng = np.random.default_rng(3)
+    ang = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    boundary = np.c_[6 * np.cos(ang), 4 * np.sin(ang)]
+    lms = [
+        Landmark(i, rng.uniform(-8, 8, 3), np.eye(3) * 1e-4, descriptor=bytes([i] * 32))
+        for i in range(8)
+    ]
+    return LawnMap(boundary=boundary, landmarks=lms, camera=None, teach={})
+
+
+def _config(tmp: Path, channel: str) -> Any:
+    raw = config_to_dict(default_config())
+    raw["imu"].update(port=str(tmp / "vn100"))
+    raw["can"].update(interface="virtual", channel=channel)
+    raw["camera"].update(driver="mock", fps=4)
+    raw["map"]["path"] = str(tmp / "lawn.json")
+    raw["runtime"].update(
+        control_socket=str(tmp / "control.sock"),
+        pose_file=str(tmp / "pose.json"),
+        fault_injection=True,
+        map_check_period_s=0.2,
+    )
+    return config_from_dict(raw, tmp, "test config")
+
+
+async def _until(pred: Any, timeout: float, what: str) -> None:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if pred():
+            return
+        await asyncio.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_daemon_in_process_on_the_virtual_bus(tmp_path: Path) -> None:
+    channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
+    cfg = _config(tmp_path, channel)
+    _lawn_map().save(tmp_path / "lawn.json")
+    imu = MockVn100(tmp_path / "vn100").start()
+    speed_bus, mower_bus = open_bus("virtual", channel), open_bus("virtual", channel)
+    speed = MockSpeedSensor(speed_bus, lambda t: 0.0).start()
+    mower = MockMowerController(mower_bus, permit_source=cfg.can.source_address).start()
+    record = tmp_path / "run.mcap"
+    daemon = Daemon(cfg, "idle", record)
+    seen: list[str] = []
+
+    def reason() -> str:
+        st = mower.state.status
+        return "" if st is None else st.reason
+
+    async def scenario() -> None:
+        task = asyncio.create_task(daemon.run())
+        await _until(lambda: daemon.core.last_arrival["imu"] is not None, 20, "IMU data")
+        await _until(lambda: reason() == "NOT_MOWING", 5, "NOT_MOWING on CAN")
+        seen.append(reason())
+        reply = await daemon.handle_command("mow", {})
+        assert reply["ok"] and reply["map_problem"] == "", reply
+        # synthetic camera frames show no landmark: never localized, so never permitted
+        await _until(lambda: reason() not in ("", "NOT_MOWING"), 5, "a mow-mode halt")
+        seen.append(reason())
+        (tmp_path / "lawn.json").write_text("{not json")  # a corrupt map file
+        await _until(lambda: reason() == "MAP_INVALID", 5, "MAP_INVALID on CAN")
+        seen.append(reason())
+        _lawn_map().save(tmp_path / "lawn.json")  # the same map again
+        await _until(lambda: reason() != "MAP_INVALID", 5, "the map valid again")
+        reply = await daemon.handle_command("fault", {"kind": "exception"})
+        assert reply["ok"], reply
+        await _until(lambda: daemon.core.counts["estimator_faults"] >= 1, 5, "the fault")
+        await _until(lambda: daemon.core.pipeline is not None, 20, "the rebuilt estimator")
+        bad = await daemon.handle_command("fault", {"kind": "bogus"})
+        assert not bad["ok"] and "allowed: nan, exception" in bad["error"]
+        imu.stop()  # the IMU goes silent
+        await _until(lambda: reason() == "SENSOR_STALE", 5, "SENSOR_STALE on CAN")
+        seen.append(reason())
+        assert "imu" in daemon.core.decision.detail
+        daemon.request_stop("test")
+        await asyncio.wait_for(task, 20)
+
+    try:
+        asyncio.run(scenario())
+        time.sleep(0.1)
+        assert not mower.deck_running
+        assert mower.state.hb_sequence == HB_SHUTDOWN  # the heartbeat says "shutting down"
+    finally:
+        imu.stop()
+        speed.stop()
+        mower.stop()
+        speed_bus.shutdown()
+        mower_bus.shutdown()
+    assert seen[0] == "NOT_MOWING" and "MAP_INVALID" in seen and seen[-1] == "SENSOR_STALE"
+    assert mower.state.frames > 0
+
+    replays = [replay_decisions(record) for _ in range(2)]
+    for r in replays:
+        assert r["same_as_live"], r
+        assert r["decisions"] > 100 and r["gaps"] == 0
+        assert r["live_sha256"] == r["replay_sha256"]
+    assert replays[0]["replay_sha256"] == replays[1]["replay_sha256"]
+
+
+def test_replay_of_a_recording_without_journal_says_so(tmp_path: Path) -> None:
+    from mowerhw.recording import Recorder
+    from mowerhw.replay import ReplayError
+
+    rec = Recorder(tmp_path / "old.mcap", "imu: {}\n")
+    rec.serial(1, b"$VNYMR")
+    rec.close()
+    with pytest.raises(ReplayError, match="no runtime journal"):
+        replay_decisions(tmp_path / "old.mcap")
