@@ -86,7 +86,7 @@ Quat = tuple[float, float, float, float]
 
 @dataclass(frozen=True)
 class ImuConfig:
-    """VectorNav VN-100 on a serial port (``drivers.vn100``)."""
+    """VectorNav VN-100 on a serial port (``drivers.imu.vn100``)."""
 
     driver: str = opt(
         "vn100",
@@ -192,7 +192,7 @@ class SpeedConfig:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """Omnidirectional camera through V4L2 (``drivers.camera_v4l2``)."""
+    """Omnidirectional camera through V4L2 (``drivers.camera.v4l2``)."""
 
     driver: str = opt(
         "v4l2",
@@ -607,7 +607,7 @@ def config_from_dict(raw: Any, base_dir: Path | None = None, source: str | None 
 def gyro_scale_sigma(imu: ImuConfig) -> float:
     """The prior σ of the gyro's yaw-rate scale error: the config's, else its grade's (never
     below 0.5 %: no unit is calibrated better in the field)."""
-    from mowerhw.imu_grades import IMU_GRADES
+    from mowerhw.imu.grades import IMU_GRADES
 
     given = imu.gyro_scale_error
     return max(IMU_GRADES[imu.grade].scale_factor if given is None else given, 0.005)
@@ -615,8 +615,8 @@ def gyro_scale_sigma(imu: ImuConfig) -> float:
 
 def imu_noise(imu: ImuConfig) -> tuple[float, float, float]:
     """The gyro's Allan figures (noise density, bias instability, random walk): the config's
-    own where given, else its grade's (:data:`mowerhw.imu_grades.IMU_GRADES`)."""
-    from mowerhw.imu_grades import IMU_GRADES
+    own where given, else its grade's (:data:`mowerhw.imu.grades.IMU_GRADES`)."""
+    from mowerhw.imu.grades import IMU_GRADES
 
     g = IMU_GRADES[imu.grade]
     return (
@@ -631,7 +631,7 @@ def with_imu_noise(section: Any, imu: ImuConfig | None = None) -> Any:
     defaults' VN-100 when not given): the one place the estimators' gyro noise is decided."""
     if None not in (section.gyro_noise, section.gyro_bias_walk, section.gyro_scale_sigma):
         return section
-    from mowerhw.imu_grades import gyro_process_noise
+    from mowerhw.imu.grades import gyro_process_noise
 
     imu = imu or ImuConfig()
     white, walk = gyro_process_noise(*imu_noise(imu))
@@ -713,7 +713,7 @@ def camera_rotation(cfg: Config, t_cam_imu: Any = None) -> Quat:
     ``imu.q_bi``, or ``camera.q_bc``. Raises ValueError naming both on a conflict."""
     import numpy as np
 
-    from mowerhw.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
+    from mowerhw.common.geometry import quat_multiply, quat_to_rotmat, rotmat_to_quat
 
     c = cfg.camera
     given = c.q_bc

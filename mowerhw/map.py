@@ -29,7 +29,7 @@ The checksum is the SHA-256 of the document without ``checksum``, serialised wit
 keys and no spaces. :func:`load` refuses, with a message that says what is wrong, a file
 that is missing, truncated, not JSON, of another format or version, tampered with, or
 geometrically unusable; it never returns a half-valid map. :meth:`LawnMap.save` writes
-atomically (:mod:`mowerhw.fileio`).
+atomically (:mod:`mowerhw.common.fileio`).
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ from shapely.geometry.polygon import orient
 from shapely.validation import explain_validity
 
 from mowerhw import __version__
-from mowerhw.fileio import write_atomic
+from mowerhw.common.fileio import write_atomic
 
 FloatArray = NDArray[np.float64]
 

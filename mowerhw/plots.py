@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from mowerhw.evaluate import TeachOutcome, horizontal_errors
+from mowerhw.evaluation.teach import TeachOutcome, horizontal_errors
 
 
 def _plt():
@@ -173,7 +173,7 @@ def mow_figures(outcome: Any, out_dir: str | Path) -> list[Path]:
     a1.set_ylabel("location error (m)")
     a1.legend(fontsize=7, ncol=3)
     a1.set_title("Mowing-phase errors (cf. paper Fig. 8)", fontsize=10)
-    from mowerhw.geometry import yaw_to_quat
+    from mowerhw.common.geometry import yaw_to_quat
 
     qt = yaw_to_quat(o.true_yaw)
     qe = o.est[:, 3:] * np.sign(np.sum(o.est[:, 3:] * qt, axis=1))[:, None]
@@ -235,7 +235,7 @@ def recording_figure(recording: str | Path, path: str | Path) -> tuple[Path, str
     import json as _json
 
     from mowerhw.map import from_document
-    from mowerhw.recording import RecordingRead
+    from mowerhw.recording.mcap import RecordingRead
 
     rd = RecordingRead(recording)
     times: dict[str, list[float]] = {}

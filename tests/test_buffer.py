@@ -5,8 +5,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from mowerhw.buffer import SensorBuffer, StreamBuffer
-from mowerhw.samples import BearingObservation, ImuSample, SpeedSample, Stream
+from mowerhw.common.buffer import SensorBuffer, StreamBuffer
+from mowerhw.common.samples import BearingObservation, ImuSample, SpeedSample, Stream
 
 
 def imu(t):

@@ -340,7 +340,7 @@ def test_config_takes_the_camera_rotation_from_t_cam_imu(tmp_path):
         "imu": {"q_bi": [1, 0, 0, 0]},
     }
     cfg = config_from_dict(base)
-    from mowerhw.geometry import quat_to_rotmat
+    from mowerhw.common.geometry import quat_to_rotmat
 
     assert np.allclose(quat_to_rotmat(cfg.camera.q_bc), t[:3, :3].T, atol=1e-12)  # R_bc = R_ci^T
     agrees = {**base, "camera": {**base["camera"], "q_bc": list(cfg.camera.q_bc)}}

@@ -8,8 +8,9 @@ import time
 import numpy as np
 import pytest
 
-from drivers.camera_v4l2 import V4l2Camera, asyncio_sink, synthetic_frame
-from drivers.mock.camera import MockCamera
+from drivers.camera.base import asyncio_sink, synthetic_frame
+from drivers.camera.mock import MockCamera
+from drivers.camera.v4l2 import V4l2Camera
 
 
 def collect(source, seconds: float) -> list:

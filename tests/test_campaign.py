@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from mowerhw.campaign import RunSpec, run_campaign, seeds_of, summarise, write_table
 from mowerhw.cli import main
+from mowerhw.evaluation.campaign import RunSpec, run_campaign, seeds_of, summarise, write_table
 
 WALL = ("teach_wall_s", "mow_wall_s")
 
@@ -63,7 +63,7 @@ def test_eval_command_writes_the_table_and_summary(tmp_path, capsys):
 
 @pytest.mark.parametrize("grade", ["vn100", "bmi088", "mpu6050"])
 def test_characterize_recovers_the_simulated_white_noise(grade, tmp_path, capsys):
-    from mowerhw.imu_grades import IMU_GRADES
+    from mowerhw.imu.grades import IMU_GRADES
 
     path = tmp_path / f"{grade}.csv"
     assert main(["imu", "simulate", "--grade", grade, "--duration", "600", "--out", str(path)]) == 0

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mowerhw.clocksync import ClockSync
+from mowerhw.common.clocksync import ClockSync
 
 MIN_LATENCY = 0.0008
 

@@ -13,7 +13,7 @@ import sys
 import pytest
 
 from mowerhw.bench import Bench, FaultSpec
-from mowerhw.evaluate_pixel import run_teach_pixel
+from mowerhw.evaluation.pixel import run_teach_pixel
 from mowerhw.map import LawnMap
 
 pytestmark = pytest.mark.slow
@@ -102,7 +102,7 @@ def test_bad_config_exits_78(tmp_path) -> None:
 
 
 def test_recorded_run_replays_deterministically(yard_map, tmp_path) -> None:
-    from mowerhw.replay import Replay
+    from mowerhw.recording.replay import Replay
 
     rec = tmp_path / "run.mcap"
     res = Bench(

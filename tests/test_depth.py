@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from mowerhw.geometry import rotmat_exp
+from mowerhw.common.geometry import rotmat_exp
 from mowerhw.teach.depth import depth_pseudo_measurement
 
 

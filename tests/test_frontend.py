@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
+from mowerhw.common.geometry import rotmat_exp
 from mowerhw.frontend import FrontEnd, RotationHistory
 from mowerhw.frontend.association import Candidates, associate, isotropic_candidates
 from mowerhw.frontend.descriptors import OrbDescriber, hamming, min_hamming, stack_sets
 from mowerhw.frontend.epipolar import epipolar_inliers
-from mowerhw.geometry import rotmat_exp
 from mowerhw.sim import make_world
 from mowerhw.sim.render import OmniRenderer
 
@@ -159,7 +159,7 @@ def test_derotation_uses_the_estimators_bias_corrected_rate():
     front end predicts between frames must be the estimator's bias-corrected one, not 6° per
     frame of a turn that is not happening."""
     from mowerhw.camera import paper_table1_camera
-    from mowerhw.geometry import rotmat_log
+    from mowerhw.common.geometry import rotmat_log
     from mowerhw.teach import Teacher
     from mowerhw.vision import TeachVision
 

@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
-from mowerhw import geometry as g
+import mowerhw.common.geometry as g
 
 finite = st.floats(-1e3, 1e3, allow_nan=False)
 vec3 = arrays(np.float64, 3, elements=st.floats(-10, 10, allow_nan=False))

@@ -13,11 +13,18 @@ from _tools import load_tool
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.isobus import PGN_GBSD, PGN_HEARTBEAT, PGN_ISB, PGN_WBSD, can_id, open_bus, parse_id
-from drivers.isobus_speed import SpeedReader, decode_speed, encode_speed, invalid_detail
-from drivers.mock.mower import MockMowerController
-from drivers.mock.speed import MockSpeedSensor
-from drivers.permit import (
+from drivers.can.isobus import (
+    PGN_GBSD,
+    PGN_HEARTBEAT,
+    PGN_ISB,
+    PGN_WBSD,
+    can_id,
+    open_bus,
+    parse_id,
+)
+from drivers.can.mock_mower import MockMowerController
+from drivers.can.mock_speed import MockSpeedSensor
+from drivers.can.permit import (
     HB_INITIAL,
     HB_SHUTDOWN,
     PermitSender,
@@ -28,6 +35,7 @@ from drivers.permit import (
     encode_isb,
     encode_status,
 )
+from drivers.can.speed import SpeedReader, decode_speed, encode_speed, invalid_detail
 
 DBC = Path(__file__).resolve().parent.parent / "configs" / "mowerhw.dbc"
 GBSD_ID = can_id(3, PGN_GBSD, 0x80)

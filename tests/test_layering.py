@@ -16,16 +16,16 @@ RUNTIME_LAYER = (
     "mowerhw.cli",
     "mowerhw.runtime",
     "mowerhw.bench",
-    "mowerhw.replay",
+    "mowerhw.recording.replay",
     "mowerhw.record",
 )
 IO_MODULES = {"asyncio", "serial", "can", "drivers", "socket", "termios", "pty", "select"}
 # What drivers may import from mowerhw.
 DRIVER_MAY_USE = (
-    "mowerhw.samples",
-    "mowerhw.clocksync",
+    "mowerhw.common.samples",
+    "mowerhw.common.clocksync",
     "mowerhw.config",
-    "mowerhw.geometry",
+    "mowerhw.common.geometry",
     "mowerhw.camera",
     "mowerhw.sim",
     "mowerhw.io",
@@ -81,5 +81,5 @@ def test_drivers_never_import_estimators():
 def test_the_check_can_fail(tmp_path):
     # The guard itself sees an offending import.
     bad = tmp_path / "x.py"
-    bad.write_text("import asyncio\nfrom drivers.vn100 import Vn100Parser\n")
-    assert {"asyncio", "drivers.vn100"} <= imports_of(bad)
+    bad.write_text("import asyncio\nfrom drivers.imu.vn100 import Vn100Parser\n")
+    assert {"asyncio", "drivers.imu.vn100"} <= imports_of(bad)

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from mowerhw.evaluate import run_teach
+from mowerhw.evaluation.teach import run_teach
 from mowerhw.map import LawnMap, MapError
 from mowerhw.mow import Localizer, Reason
 from mowerhw.sim import make_world
@@ -188,7 +188,7 @@ def test_the_localizer_learns_a_mems_gyros_yaw_scale_error(lawn_map):
     from dataclasses import replace
 
     from mowerhw.config import MowConfig
-    from mowerhw.imu_grades import IMU_GRADES
+    from mowerhw.imu.grades import IMU_GRADES
     from mowerhw.sim.sensors import Gyro, SensorSuite
 
     world = make_world("paper", 6)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mowerhw.odometry import BodyMotion
+from mowerhw.estimation.odometry import BodyMotion
 from mowerhw.teach.observer import LandmarkObservers, contraction_rate, observer_gain
 
 

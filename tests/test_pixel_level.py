@@ -13,8 +13,8 @@ import pytest
 from mowerhw.cli import main
 from mowerhw.cli.sim_cmd import _save_sim_map
 from mowerhw.config import Config
-from mowerhw.evaluate_mow import run_mow
-from mowerhw.evaluate_pixel import run_teach_pixel
+from mowerhw.evaluation.mow import run_mow
+from mowerhw.evaluation.pixel import run_teach_pixel
 from mowerhw.map import MapError, load
 
 pytestmark = pytest.mark.slow

@@ -8,7 +8,7 @@ import io
 import numpy as np
 import pytest
 
-from mowerhw.recording import Recorder, RecordingRead
+from mowerhw.recording.mcap import Recorder, RecordingRead
 
 
 def _record(path, frames: int = 3) -> Recorder:

@@ -13,14 +13,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.isobus import open_bus
-from drivers.mock.mower import MockMowerController
-from drivers.mock.speed import MockSpeedSensor
-from drivers.mock.vn100 import MockVn100
-from drivers.permit import HB_SHUTDOWN
+from drivers.can.isobus import open_bus
+from drivers.can.mock_mower import MockMowerController
+from drivers.can.mock_speed import MockSpeedSensor
+from drivers.can.permit import HB_SHUTDOWN
+from drivers.imu.mock import MockVn100
 from mowerhw.config import config_from_dict, config_to_dict, default_config
 from mowerhw.map import Landmark, LawnMap
-from mowerhw.replay import replay_decisions
+from mowerhw.recording.replay import replay_decisions
 from mowerhw.runtime.daemon import Daemon
 
 
@@ -126,8 +126,8 @@ def test_daemon_in_process_on_the_virtual_bus(tmp_path: Path) -> None:
 
 
 def test_replay_of_a_recording_without_journal_says_so(tmp_path: Path) -> None:
-    from mowerhw.recording import Recorder
-    from mowerhw.replay import ReplayError
+    from mowerhw.recording.mcap import Recorder
+    from mowerhw.recording.replay import ReplayError
 
     rec = Recorder(tmp_path / "old.mcap", "imu: {}\n")
     rec.serial(1, b"$VNYMR")

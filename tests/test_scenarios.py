@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import shapely
 
-from mowerhw.imu_grades import IMU_GRADES
+from mowerhw.imu.grades import IMU_GRADES
 from mowerhw.sim import MATRIX, SCENARIOS, simulate_teach
 from mowerhw.sim.lawn import SHAPES, shaped_lawn
 from mowerhw.sim.sensors import Gyro

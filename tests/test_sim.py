@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mowerhw.geometry import quat_to_rotmat
+from mowerhw.common.geometry import quat_to_rotmat
 from mowerhw.sim import IMU_GRADES, SCENARIOS, SensorSuite, simulate_teach
 from mowerhw.sim.lawn import HarmonicLawn
 from mowerhw.sim.sensors import CameraTiming, SpeedModel, body_points

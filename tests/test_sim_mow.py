@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from mowerhw.evaluate import run_teach
-from mowerhw.evaluate_mow import run_mow
+from mowerhw.evaluation.mow import run_mow
+from mowerhw.evaluation.teach import run_teach
 from mowerhw.map import LawnMap
 
 

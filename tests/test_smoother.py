@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mowerhw.geometry import rotmat_exp, rotmat_log
+from mowerhw.common.geometry import rotmat_exp, rotmat_log
 from mowerhw.teach.smoother import preintegrate_segments, right_jacobian, right_jacobian_inv
 
 

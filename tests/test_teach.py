@@ -7,7 +7,7 @@ import pytest
 
 from mowerhw import map as lawnmap
 from mowerhw.config import TeachConfig
-from mowerhw.evaluate import run_teach
+from mowerhw.evaluation.teach import run_teach
 from mowerhw.sim import simulate_teach
 from mowerhw.teach import Teacher, TeachError
 from mowerhw.teach.boundary import BoundaryError
@@ -118,7 +118,7 @@ def test_the_smoother_measures_a_mems_gyros_yaw_scale_error(seed):
     """An MPU-6050-class gyro reads its yaw rate a few per cent off: teaching finds by how
     much (vision sees the true turn), and the map is not bent by it."""
     from mowerhw.config import config_from_dict
-    from mowerhw.evaluate import run_teach
+    from mowerhw.evaluation.teach import run_teach
     from mowerhw.sim import simulate_teach
 
     run = simulate_teach("U-sparse", seed)

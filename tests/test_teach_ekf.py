@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from mowerhw.geometry import quat_exp, quat_multiply, quat_normalize, quat_to_rotmat, skew
-from mowerhw.odometry import BodyMotion
+from mowerhw.common.geometry import quat_exp, quat_multiply, quat_normalize, quat_to_rotmat, skew
+from mowerhw.estimation.odometry import BodyMotion
 from mowerhw.teach.ekf import EkfNoise, RobotCentricEKF
 
 

@@ -9,9 +9,9 @@ from _tools import load_tool
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers import vn100_binary as binary
-from drivers.mock.vn100 import MockVn100, still_source
-from drivers.vn100 import (
+import drivers.imu.vn100_binary as binary
+from drivers.imu.mock import MockVn100, still_source
+from drivers.imu.vn100 import (
     BinaryPacket,
     ErrorReply,
     ImuExtractor,

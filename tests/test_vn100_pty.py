@@ -6,8 +6,8 @@ import time
 import numpy as np
 import pytest
 
-from drivers.mock.vn100 import Faults, MockImuState, MockVn100
-from drivers.vn100 import Vn100, Vn100CommandError
+from drivers.imu.mock import Faults, MockImuState, MockVn100
+from drivers.imu.vn100 import Vn100, Vn100CommandError
 
 
 def moving_source(t: float) -> MockImuState:

@@ -31,7 +31,7 @@ def main() -> None:
     args = ap.parse_args()
     map_path = args.map
     if map_path is None:
-        from mowerhw.evaluate_pixel import run_teach_pixel
+        from mowerhw.evaluation.pixel import run_teach_pixel
         from mowerhw.map import LawnMap
 
         res = run_teach_pixel("paper", args.seed)

@@ -29,9 +29,9 @@ import cv2
 import numpy as np
 
 from mowerhw.camera import load_camchain
+from mowerhw.common.geometry import quat_to_rotmat
 from mowerhw.config import DEFAULT_Q_BC, FrontendConfig
 from mowerhw.frontend import FrontEnd
-from mowerhw.geometry import quat_to_rotmat
 from mowerhw.sim.rotated_views import RotatedViews, mower_rotations
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -20,7 +20,7 @@ import argparse
 import json
 import time
 
-from mowerhw.evaluate import run_teach
+from mowerhw.evaluation.teach import run_teach
 from mowerhw.map import LawnMap
 from mowerhw.mow import Localizer
 from mowerhw.sim import simulate_teach

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Benchmark: VN-100 parser throughput on the real VN-100 Rugged captures and on binary output.
 
-Feeds each stream to :class:`drivers.vn100.Vn100Parser` in chunks the size a serial read
+Feeds each stream to :class:`drivers.imu.vn100.Vn100Parser` in chunks the size a serial read
 returns (64 B and 4 KiB), best of ``--repeat`` runs, and prints one JSON object: MB/s,
 packets/s, µs per packet, and the headroom over the fastest serial link (921600 baud ≈
 92 kB/s) — how many times faster than the wire the parser is. The binary stream is what the
@@ -21,7 +21,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from drivers.vn100 import COMMON_FIELDS, Vn100Parser, crc16
+from drivers.imu.vn100 import COMMON_FIELDS, Vn100Parser, crc16
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "vn100"
 WIRE_BYTES_PER_S = 921600 / 10  # 8N1: 10 bits per byte

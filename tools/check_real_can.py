@@ -5,7 +5,7 @@
 Deere tractor's J1939 / ISO 11783 bus, standing still. Its GBSD (PGN 65097, source 0x47) is
 always "not available"; its CCVS1 (PGN 65265) wheel-based speed is 0 km/h; ETC2 (PGN 61445)
 gives the selected gear. Each log is read with python-can's candump reader and fed, at its
-own timestamps, through :class:`drivers.isobus_speed.SpeedReader` and the permit gate's
+own timestamps, through :class:`drivers.can.speed.SpeedReader` and the permit gate's
 staleness decision, as the daemon does, once per ``speed.source``.
 
 Prints one JSON object per log. Run: ``.venv/bin/python tools/check_real_can.py``.
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import can
 
-from drivers.isobus import parse_id
-from drivers.isobus_speed import SpeedReader, invalid_detail
+from drivers.can.isobus import parse_id
+from drivers.can.speed import SpeedReader, invalid_detail
 from mowerhw.runtime.gate import PermitGate
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"

@@ -4,8 +4,8 @@
 ``../shared/data/real/vn100-binary-waves-in-ice``: a VN-100 writing IMU-group (UncompMag,
 UncompAccel, UncompGyro, Temp, Pres) and Attitude-group (YawPitchRoll, DCM, MagNed,
 AccelNed) packets at 10 Hz onto an SD card, between NMEA lines and a logger's own text. The
-log is fed in random chunks through :class:`drivers.vn100.Vn100Parser` and
-:class:`drivers.vn100.ImuExtractor`; every decoded value is compared with the authors' CSV
+log is fed in random chunks through :class:`drivers.imu.vn100.Vn100Parser` and
+:class:`drivers.imu.vn100.ImuExtractor`; every decoded value is compared with the authors' CSV
 (``parsed_by_upstream/*_B``, printed with 7 significant digits, so a value agrees to half a
 unit of its last printed digit: 5e-7 relative).
 
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.vn100 import ImuExtractor, Vn100Parser
+from drivers.imu.vn100 import ImuExtractor, Vn100Parser
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 LOGS = DATA / "vn100-binary-waves-in-ice"

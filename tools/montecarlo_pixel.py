@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Pixel-level bench over many seeds: teach on rendered images, then mow with that map.
 
-A thin user of :mod:`mowerhw.campaign` (what ``mowerhw eval --level pixel`` runs): for each
+A thin user of :mod:`mowerhw.evaluation.campaign` (``mowerhw eval --level pixel``): for each
 seed the drive is rendered at 4 Hz into 1540×1540 omni images, the front end finds and tracks
 features, the Teacher maps them, the map is saved, and the mower mows on it for ``--duration``
 seconds re-identifying map landmarks in rendered images. Prints one JSON line per seed, then
@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from mowerhw.campaign import RunSpec, run_campaign, seeds_of, summarise
+from mowerhw.evaluation.campaign import RunSpec, run_campaign, seeds_of, summarise
 
 
 def main() -> None:

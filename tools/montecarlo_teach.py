@@ -17,7 +17,7 @@ landmark RMSE exceeds 1 m, it produced NaN, or it could not make a boundary.
 
     .venv/bin/python tools/montecarlo_teach.py --seeds 100 --jobs 2   # or --scheduler ADDRESS
 
-The runs go through :func:`mowerhw.campaign.parallel_map` (local processes or Dask), as
+The runs go through :func:`mowerhw.evaluation.campaign.parallel_map` (local processes or Dask), as
 ``mowerhw eval`` does.
 """
 
@@ -39,9 +39,9 @@ import numpy as np
 from scipy.stats import chi2
 
 from mowerhw.baselines.inverse_depth import InverseDepthEkfMapper
-from mowerhw.campaign import parallel_map
 from mowerhw.config import TeachConfig
-from mowerhw.evaluate import DIVERGENCE_M, feed, horizontal_errors, run_teach
+from mowerhw.evaluation.campaign import parallel_map
+from mowerhw.evaluation.teach import DIVERGENCE_M, feed, horizontal_errors, run_teach
 from mowerhw.sim import simulate_teach
 
 METHODS = ("observer+closure", "observer (filter)", "paper as printed", "inverse-depth EKF")

@@ -24,8 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
-from mowerhw.config import TeachConfig, with_imu_noise
-from mowerhw.geometry import (
+from mowerhw.common.geometry import (
     IDENTITY_QUAT,
     quat_exp,
     quat_multiply,
@@ -34,7 +33,8 @@ from mowerhw.geometry import (
     skew,
     tangent_basis,
 )
-from mowerhw.odometry import BodyMotion, SpeedTrack, camera_velocity
+from mowerhw.config import TeachConfig, with_imu_noise
+from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.teach.smoother import right_jacobian
 
 FloatArray = NDArray[np.float64]

@@ -2,13 +2,13 @@
 
 What runs (DESIGN.md §9, level 3):
 
-* the mock VN-100 (:class:`drivers.mock.vn100.MockVn100`) on a pseudo-terminal, measuring the
+* the mock VN-100 (:class:`drivers.imu.mock.MockVn100`) on a pseudo-terminal, measuring the
   simulated mower (:class:`.world.RealTimeMower`);
 * a CAN bus shared between processes (python-can ``udp_multicast`` on the loopback, a random
   group per run) carrying the mock speed sensor's GBSD frames and the daemon's ISB /
   heartbeat / status frames, which the mock mower controller reads;
 * the camera: frames rendered from the true pose (:class:`mowerhw.sim.render.OmniRenderer`)
-  and served on a Unix socket (:mod:`drivers.camera_stream`);
+  and served on a Unix socket (:mod:`drivers.camera.stream`);
 * the daemon itself, ``mowerhw run`` in its own process, configured like the real mower
   except for device paths.
 
@@ -222,10 +222,10 @@ class Bench:
     def run(self) -> dict[str, Any]:
         import can
 
-        from drivers.mock.camera_server import MockCameraServer
-        from drivers.mock.mower import MockMowerController
-        from drivers.mock.speed import MockSpeedSensor
-        from drivers.mock.vn100 import MockVn100
+        from drivers.camera.mock_server import MockCameraServer
+        from drivers.can.mock_mower import MockMowerController
+        from drivers.can.mock_speed import MockSpeedSensor
+        from drivers.imu.mock import MockVn100
         from mowerhw.bench.world import RealTimeMower
         from mowerhw.config import load_config
         from mowerhw.sim import make_world
@@ -616,7 +616,7 @@ def _proc_status_mb(proc: Any, key: str) -> float:
 
 
 def _restore(path: Path, data: bytes) -> None:
-    from mowerhw.fileio import write_atomic
+    from mowerhw.common.fileio import write_atomic
 
     write_atomic(path, data)
 

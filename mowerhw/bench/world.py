@@ -27,8 +27,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.mock.vn100 import MockImuState
-from mowerhw.geometry import quat_to_rotmat
+from drivers.imu.mock import MockImuState
+from drivers.threaded import ThreadedDevice
+from mowerhw.common.geometry import quat_to_rotmat
 from mowerhw.sim.motion import Truth, camera_xy_world, start_frame
 from mowerhw.sim.sensors import SensorSuite
 from mowerhw.sim.world import World
@@ -37,10 +38,12 @@ FloatArray = NDArray[np.float64]
 PHASES = {"still": 0, "teach": 1, "mow": 2}
 
 
-class RealTimeMower:
+class RealTimeMower(ThreadedDevice):
     STEP_HZ = 200.0
     MAX_ACCEL = 1.0  # m/s²
     MAX_YAW_ACCEL = 4.0  # rad/s²
+
+    thread_name = "bench-world"
 
     def __init__(
         self,
@@ -50,6 +53,7 @@ class RealTimeMower:
         q_bi: Any = (1.0, 0.0, 0.0, 0.0),
         sensors: SensorSuite | None = None,
     ) -> None:
+        super().__init__()
         self.world = world
         self.truth = teach_truth
         if not world.terrain.flat:
@@ -71,22 +75,14 @@ class RealTimeMower:
         self._hist: deque[tuple[float, float, float, float, float, float]] = deque(maxlen=1000)
         self.log: list[tuple[float, float, float, float, float, int, int]] = []
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._imu_prev: tuple[float, float] | None = None  # (t, yaw) at the last IMU packet
 
     # ---------------------------------------------------------------------------- control
 
     def start(self) -> RealTimeMower:
         self._record(time.monotonic())
-        self._thread = threading.Thread(target=self._run, name="bench-world", daemon=True)
-        self._thread.start()
+        self._start_thread()
         return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
 
     def start_teach(self) -> None:
         with self._lock:

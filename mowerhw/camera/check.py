@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from mowerhw.camera.model import OmniRadtanCamera
-from mowerhw.geometry import FloatArray, quat_to_rotmat
+from mowerhw.common.geometry import FloatArray, quat_to_rotmat
 
 
 def sample_valid_pixels(cam: OmniRadtanCamera, n: int, seed: int = 0) -> FloatArray:

@@ -21,7 +21,7 @@ import numpy as np
 import yaml
 
 from mowerhw.camera.model import Annulus, CameraCalibrationError, OmniRadtanCamera
-from mowerhw.fileio import write_atomic
+from mowerhw.common.fileio import write_atomic
 
 #: skew whose largest effect over the image is below this is not written (px)
 SKEW_NEGLIGIBLE_PX = 0.01

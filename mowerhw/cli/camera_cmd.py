@@ -171,7 +171,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     from mowerhw.camera import save_camchain
     from mowerhw.camera.calibrate import CalibrationError, calibrate, parse_pattern, plot_residuals
     from mowerhw.camera.check import check_against_opencv
-    from mowerhw.progress import Progress
+    from mowerhw.common.progress import Progress
 
     try:
         pattern = parse_pattern(args.pattern)

@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _camera_section(cfg: Any) -> dict[str, Any]:
     from mowerhw.camera import load_camchain
     from mowerhw.camera.check import angle_between, check_against_opencv, field_of_view
-    from mowerhw.geometry import quat_to_rotmat
+    from mowerhw.common.geometry import quat_to_rotmat
 
     cam = load_camchain(cfg.camera.calibration, cfg.camera.camchain_key)
     # Landmarks around the mower: a ring of window corners 8 m away, 1 m above the camera.
@@ -48,7 +48,7 @@ def _camera_section(cfg: Any) -> dict[str, Any]:
 
 def _clocksync_section() -> dict[str, Any]:
     """VN-100-like stream: 100 Hz device ns clock, 60 ppm fast, USB jitter and stalls."""
-    from mowerhw.clocksync import ClockSync
+    from mowerhw.common.clocksync import ClockSync
 
     rng = np.random.default_rng(3)
     n = 6000
@@ -74,8 +74,8 @@ def _clocksync_section() -> dict[str, Any]:
 
 
 def _buffer_section() -> dict[str, Any]:
-    from mowerhw.buffer import SensorBuffer
-    from mowerhw.samples import ImuSample, SpeedSample, Stream
+    from mowerhw.common.buffer import SensorBuffer
+    from mowerhw.common.samples import ImuSample, SpeedSample, Stream
 
     buf = SensorBuffer()
     for k in range(21):  # 2 s of 10 Hz speed, ramping 0 → 0.5 m/s

@@ -52,7 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _eval(args: argparse.Namespace) -> int:
     import os
 
-    from mowerhw.campaign import (
+    from mowerhw.cli.common import strict_json
+    from mowerhw.common.fileio import write_atomic
+    from mowerhw.evaluation.campaign import (
         RunSpec,
         format_summary,
         plot_distributions,
@@ -61,8 +63,6 @@ def _eval(args: argparse.Namespace) -> int:
         summarise,
         write_table,
     )
-    from mowerhw.cli.common import strict_json
-    from mowerhw.fileio import write_atomic
     from mowerhw.sim.scenarios import MATRIX, SCENARIOS
 
     names = MATRIX if args.scenarios == "matrix" else [s.strip() for s in args.scenarios.split(",")]

@@ -42,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _load(path: Path) -> tuple:
     """Gyro times and samples of a recording: an MCAP's VN-100 bytes through the driver's
     parser and extractor (as the daemon reads them), or a CSV."""
-    from mowerhw.imu_noise import CharacterizeError, load_csv
+    from mowerhw.imu.allan import CharacterizeError, load_csv
 
     if path.suffix.lower() != ".mcap":
         return (*load_csv(path), "CSV t, gx, gy, gz")
@@ -52,8 +52,8 @@ def _load(path: Path) -> tuple:
 
     import numpy as np
 
-    from drivers.vn100 import ImuExtractor, Vn100Parser
-    from mowerhw.recording import RecordingRead
+    from drivers.imu.vn100 import ImuExtractor, Vn100Parser
+    from mowerhw.recording.mcap import RecordingRead
 
     parser, extractor = Vn100Parser(), ImuExtractor()
     t, gyro = [], []
@@ -74,7 +74,7 @@ def _load(path: Path) -> tuple:
 
 
 def _characterize(args: argparse.Namespace) -> int:
-    from mowerhw.imu_noise import CharacterizeError, characterize, plot_allan
+    from mowerhw.imu.allan import CharacterizeError, characterize, plot_allan
 
     try:
         t, gyro, source = _load(args.recording)
@@ -115,7 +115,7 @@ def _characterize(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from mowerhw.imu_noise import static_recording
+    from mowerhw.imu.allan import static_recording
 
     t, gyro = static_recording(args.grade, args.duration, args.seed)
     if args.out.suffix.lower() == ".mcap":
@@ -141,8 +141,8 @@ def _write_mcap(path: Path, t, gyro) -> None:
     chunks of serial bytes, as ``mowerhw record`` writes them."""
     import struct
 
-    from drivers import vn100_binary as binary
-    from mowerhw.recording import Recorder
+    import drivers.imu.vn100_binary as binary
+    from mowerhw.recording.mcap import Recorder
 
     path.parent.mkdir(parents=True, exist_ok=True)
     rec = Recorder(path, queue_size=1 << 16)

@@ -52,13 +52,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
     import logging
 
     from mowerhw.map import MapError
-    from mowerhw.replay import Replay, ReplayError
+    from mowerhw.recording.replay import Replay, ReplayError
 
     if not args.verbose:  # every halt of the replayed gate is in the summary, not the log
         logging.getLogger("mowerhw.permit").setLevel(logging.ERROR)
     cfg = load_config_or_exit(args.config) if args.config else None
     if args.decisions:
-        from mowerhw.replay import replay_decisions
+        from mowerhw.recording.replay import replay_decisions
 
         if not args.verbose:  # the live run's faults were logged live; the result says it all
             logging.getLogger("mowerhw.daemon").setLevel(logging.CRITICAL)

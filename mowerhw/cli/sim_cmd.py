@@ -86,7 +86,7 @@ def _teach(args: argparse.Namespace) -> int:
     out = _out_dir(args, "teach")
     truth = None
     if args.level == "pixel":
-        from mowerhw.evaluate_pixel import run_teach_pixel
+        from mowerhw.evaluation.pixel import run_teach_pixel
 
         if args.landmarks is not None:
             print("mowerhw: --landmarks is for the bearing level only", file=sys.stderr)
@@ -95,7 +95,7 @@ def _teach(args: argparse.Namespace) -> int:
         outcome = run_teach_pixel(args.scenario, args.seed, cfg, keep_images_at=keep)
         truth = outcome.landmark_truth
     else:
-        from mowerhw.evaluate import run_teach
+        from mowerhw.evaluation.teach import run_teach
 
         outcome = run_teach(
             args.scenario,
@@ -137,8 +137,8 @@ def _teach(args: argparse.Namespace) -> int:
 
 
 def _save_sim_map(result, path: Path, scenario: str, seed: int, level: str = "bearing", truth=None):
-    """Save a simulated teach map (:func:`mowerhw.evaluate.sim_map`)."""
-    from mowerhw.evaluate import sim_map
+    """Save a simulated teach map (:func:`mowerhw.evaluation.teach.sim_map`)."""
+    from mowerhw.evaluation.teach import sim_map
 
     lawn_map = sim_map(result, scenario, seed, level, truth)
     lawn_map.save(path)
@@ -147,8 +147,8 @@ def _save_sim_map(result, path: Path, scenario: str, seed: int, level: str = "be
 
 def _mow(args: argparse.Namespace) -> int:
     from mowerhw.config import EX_CONFIG
-    from mowerhw.evaluate import run_teach
-    from mowerhw.evaluate_mow import run_mow
+    from mowerhw.evaluation.mow import run_mow
+    from mowerhw.evaluation.teach import run_teach
     from mowerhw.map import MapError, load
 
     cfg = load_config_or_exit(args.config)
@@ -167,7 +167,7 @@ def _mow(args: argparse.Namespace) -> int:
         dropout = (start, dur)
     if args.map is None:
         if args.level == "pixel":
-            from mowerhw.evaluate_pixel import run_teach_pixel
+            from mowerhw.evaluation.pixel import run_teach_pixel
 
             taught = run_teach_pixel(args.scenario, args.seed, cfg)
             truth = taught.landmark_truth

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mowerhw.common.geometry import tangent_basis
 from mowerhw.frontend.descriptors import min_hamming
-from mowerhw.geometry import tangent_basis
 
 FloatArray = NDArray[np.float64]
 

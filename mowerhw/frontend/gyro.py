@@ -13,7 +13,7 @@ from collections import deque
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mowerhw.geometry import quat_conjugate, quat_exp, quat_multiply, quat_to_rotmat
+from mowerhw.common.geometry import quat_conjugate, quat_exp, quat_multiply, quat_to_rotmat
 
 FloatArray = NDArray[np.float64]
 

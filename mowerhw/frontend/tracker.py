@@ -35,10 +35,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mowerhw.camera import OmniRadtanCamera
+from mowerhw.common.geometry import quat_to_rotmat
 from mowerhw.config import FrontendConfig
 from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, OrbDescriber, hamming
 from mowerhw.frontend.epipolar import epipolar_inliers
-from mowerhw.geometry import quat_to_rotmat
 
 FloatArray = NDArray[np.float64]
 

@@ -7,7 +7,7 @@ every 180° edge turn into 185°). Error state (10): ``δθ`` (world frame,
 
 Propagation (eq. 21): ``ẋ = R(q) v``, ``q̇ = ½ q ⊗ (0, ω)`` with ``ω = (ω_m − b)`` and its z
 component times ``1 − k``, ``v = (speed, 0, 0)``; the mean moves by the exact rigid motion of
-one IMU interval (:class:`mowerhw.odometry.BodyMotion`), the error by
+one IMU interval (:class:`mowerhw.estimation.odometry.BodyMotion`), the error by
 
     δθ' = δθ − R̂' Δt (δb + ω_z ẑ δk + n_g)
     δx' = δx − [R̂ Δ]× δθ + R̂ Δt n_v
@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from mowerhw.geometry import (
+from mowerhw.common.geometry import (
     IDENTITY_QUAT,
     quat_exp,
     quat_multiply,
@@ -40,7 +40,7 @@ from mowerhw.geometry import (
     skew,
     tangent_basis,
 )
-from mowerhw.odometry import BodyMotion
+from mowerhw.estimation.odometry import BodyMotion
 
 FloatArray = NDArray[np.float64]
 

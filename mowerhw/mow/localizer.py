@@ -40,8 +40,10 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from mowerhw.common.geometry import rotmat_to_quat
 from mowerhw.config import Config, ContainmentConfig, MowConfig, with_imu_noise
-from mowerhw.geometry import rotmat_to_quat
+from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
+from mowerhw.estimation.posefit import fit_pose_to_bearings
 from mowerhw.map import LawnMap
 from mowerhw.map import load as load_map
 from mowerhw.mow.containment import (
@@ -51,8 +53,6 @@ from mowerhw.mow.containment import (
     Reason,
 )
 from mowerhw.mow.ekf import EkfState, LocalizerNoise, WorldPoseEKF
-from mowerhw.odometry import BodyMotion, SpeedTrack, camera_velocity
-from mowerhw.posefit import fit_pose_to_bearings
 
 FloatArray = NDArray[np.float64]
 

@@ -28,11 +28,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from drivers.isobus_speed import invalid_detail
-from mowerhw.buffer import SensorBuffer
+from drivers.can.speed import invalid_detail
+from mowerhw.common.buffer import SensorBuffer
+from mowerhw.common.geometry import quat_to_rotmat
+from mowerhw.common.samples import ImuSample, SpeedSample, Stream
 from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
-from mowerhw.geometry import quat_to_rotmat
 from mowerhw.map import LawnMap
 from mowerhw.runtime.gate import Decision, PermitGate
 from mowerhw.runtime.pipelines import (
@@ -44,7 +45,6 @@ from mowerhw.runtime.pipelines import (
     TeachPipeline,
     feed_ready,
 )
-from mowerhw.samples import ImuSample, SpeedSample, Stream
 
 log = logging.getLogger("mowerhw.daemon")
 

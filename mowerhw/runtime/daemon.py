@@ -27,14 +27,15 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from drivers.camera_v4l2 import CameraSource, asyncio_sink
-from drivers.permit import Status
-from drivers.vn100 import Vn100
+from drivers.camera.base import CameraSource, asyncio_sink
+from drivers.can.permit import Status
+from drivers.imu.vn100 import Vn100
 from mowerhw.camera import load_camchain
+from mowerhw.common.samples import FrameSample, ImuSample, SpeedSample
 from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import MapError
-from mowerhw.recording import Recorder
+from mowerhw.recording.mcap import Recorder
 from mowerhw.runtime.control import ControlServer
 from mowerhw.runtime.core import MODES, RuntimeCore
 from mowerhw.runtime.devices import CanLink, open_camera, open_imu, open_recorder
@@ -42,7 +43,6 @@ from mowerhw.runtime.gate import Decision
 from mowerhw.runtime.mapfiles import PoseFile, file_stamp, load_checked_map, save_map
 from mowerhw.runtime.pipelines import BuildRequest, MowPipeline, build_pipeline
 from mowerhw.runtime.sdnotify import Notifier
-from mowerhw.samples import FrameSample, ImuSample, SpeedSample
 
 log = logging.getLogger("mowerhw.daemon")
 

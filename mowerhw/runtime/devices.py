@@ -6,20 +6,21 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from drivers.camera_v4l2 import CameraSource, V4l2Camera
-from drivers.isobus import open_bus
-from drivers.isobus_speed import SpeedReader
-from drivers.permit import PermitSender
-from drivers.vn100 import Vn100
+from drivers.camera.base import CameraSource
+from drivers.camera.v4l2 import V4l2Camera
+from drivers.can.isobus import open_bus
+from drivers.can.permit import PermitSender
+from drivers.can.speed import SpeedReader
+from drivers.imu.vn100 import Vn100
+from drivers.threaded import ThreadedDevice
+from mowerhw.common.samples import FrameSample, ImuSample, SpeedSample
 from mowerhw.config import Config
-from mowerhw.recording import Recorder
-from mowerhw.samples import FrameSample, ImuSample, SpeedSample
+from mowerhw.recording.mcap import Recorder
 
 log = logging.getLogger("mowerhw.daemon")
 
@@ -51,11 +52,11 @@ def open_camera(cfg: Config, on_frame: Callable[[FrameSample], None]) -> CameraS
     c = cfg.camera
     camera: CameraSource
     if c.driver == "stream":
-        from drivers.camera_stream import StreamCamera
+        from drivers.camera.stream import StreamCamera
 
         camera = StreamCamera(c.device)
     elif c.driver == "mock":
-        from drivers.mock.camera import MockCamera
+        from drivers.camera.mock import MockCamera
 
         camera = MockCamera(fps=c.fps, width=c.width, height=c.height)
     else:
@@ -96,7 +97,7 @@ def open_recorder(cfg: Config, path: Path) -> Recorder:
     return rec
 
 
-class CanLink:
+class CanLink(ThreadedDevice):
     """The CAN bus: the permit sender, and a receive thread decoding ground speed (everything
     else is counted and ignored). A bus that cannot be opened is retried by :meth:`retry`."""
 
@@ -106,6 +107,7 @@ class CanLink:
         on_speed: Callable[[SpeedSample], None],
         recorder: Recorder | None = None,
     ) -> None:
+        super().__init__()
         self.cfg = cfg
         self.on_speed = on_speed
         self.recorder = recorder
@@ -115,8 +117,6 @@ class CanLink:
         self.bus: Any = None
         self.sender: PermitSender | None = None
         self.open_failures = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
     def open(self) -> bool:
         c = self.cfg.can
@@ -132,9 +132,7 @@ class CanLink:
         self.sender = PermitSender(
             self.bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s
         )
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._receive, name="can-rx", daemon=True)
-        self._thread.start()
+        self._start_thread()
         log.info("CAN %s %s open, sending as 0x%02X", c.interface, c.channel, c.source_address)
         return True
 
@@ -143,7 +141,9 @@ class CanLink:
         if self.sender is None and self.open_failures and now % 1.0 < 0.02:
             self.open()
 
-    def _receive(self) -> None:
+    thread_name = "can-rx"
+
+    def _run(self) -> None:
         own = self.cfg.can.source_address
         while not self._stop.is_set():
             try:
@@ -171,9 +171,7 @@ class CanLink:
                 self.on_speed(sample)
 
     def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=1.0)
+        self.stop()
         if self.bus is not None:
             with contextlib.suppress(Exception):
                 self.bus.shutdown()

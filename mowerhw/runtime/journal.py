@@ -22,12 +22,12 @@ from typing import Any
 import numpy as np
 
 from mowerhw.camera import CameraModel
+from mowerhw.common.samples import ImuSample, SpeedSample
 from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import LawnMap, from_document
 from mowerhw.runtime.core import RuntimeCore, decision_key
 from mowerhw.runtime.pipelines import BuildRequest, StartPose, build_pipeline
-from mowerhw.samples import ImuSample, SpeedSample
 
 
 class JournalError(ValueError):

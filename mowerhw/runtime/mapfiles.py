@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from mowerhw.fileio import write_atomic
+from mowerhw.common.fileio import write_atomic
 from mowerhw.map import LawnMap, MapError
 from mowerhw.map import load as load_map
 from mowerhw.runtime.pipelines import StartPose

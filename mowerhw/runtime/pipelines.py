@@ -3,7 +3,7 @@
 
 Pure computation: samples in (host-clock seconds, body-frame gyro, signed speed, front-end
 tracks), estimates out. The daemon decides when to feed them; the heavy front-end tracking
-(:meth:`mowerhw.vision._VisionBase.track`) runs on its worker thread, and only
+(:meth:`mowerhw.vision.VisionBase.track`) runs on its worker thread, and only
 :meth:`frame_tracks` (association, estimator update) runs here.
 """
 
@@ -16,14 +16,14 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from mowerhw.buffer import SensorBuffer
 from mowerhw.camera import CameraModel
+from mowerhw.common.buffer import SensorBuffer
+from mowerhw.common.samples import Stream
 from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import LawnMap
 from mowerhw.mow import Localizer
 from mowerhw.mow.containment import ContainmentResult
-from mowerhw.samples import Stream
 from mowerhw.teach import Teacher
 from mowerhw.teach.teacher import TeachResult
 from mowerhw.vision import MowVision, TeachVision

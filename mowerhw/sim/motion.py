@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from mowerhw.geometry import rotmat_to_quat
+from mowerhw.common.geometry import rotmat_to_quat
 from mowerhw.sim.terrain import Terrain
 
 FloatArray = NDArray[np.float64]

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from mowerhw.samples import BearingObservation
+from mowerhw.common.samples import BearingObservation
 from mowerhw.sim.motion import MapFrame, camera_xy_world, pose_on_ground, start_frame
 from mowerhw.sim.sensors import CameraTiming, Gyro, SensorSuite, Speedometer, observe_at
 from mowerhw.sim.world import World

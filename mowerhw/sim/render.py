@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mowerhw.camera import OmniRadtanCamera
-from mowerhw.geometry import quat_to_rotmat
+from mowerhw.common.geometry import quat_to_rotmat
 from mowerhw.sim.world import World
 
 FloatArray = NDArray[np.float64]

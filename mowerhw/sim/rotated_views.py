@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mowerhw.camera.model import OmniRadtanCamera
-from mowerhw.geometry import rotmat_exp
+from mowerhw.common.geometry import rotmat_exp
 
 FloatArray = NDArray[np.float64]
 

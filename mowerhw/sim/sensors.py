@@ -2,8 +2,8 @@
 
 * **gyro** (:class:`Gyro`): true body rate × (1 + scale-factor error) + turn-on bias + bias
   instability (a first-order Gauss–Markov process) + rate random walk + white noise, per
-  :class:`~mowerhw.imu_grades.ImuGrade`; three grades from their datasheets
-  (:data:`~mowerhw.imu_grades.IMU_GRADES`);
+  :class:`~mowerhw.imu.grades.ImuGrade`; three grades from their datasheets
+  (:data:`~mowerhw.imu.grades.IMU_GRADES`);
 * **ground speed** (:class:`Speedometer`): signed along-ground speed × (1 + scale error) +
   white noise, wheel-slip events (the wheels turn faster than the mower moves), quantised as
   on CAN; a standing mower reads exactly 0;
@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from mowerhw.imu_grades import FLICKER_ALLAN, FLICKER_TIMES_S, IMU_GRADES, ImuGrade
-from mowerhw.samples import BearingObservation
+from mowerhw.common.samples import BearingObservation
+from mowerhw.imu.grades import FLICKER_ALLAN, FLICKER_TIMES_S, IMU_GRADES, ImuGrade
 from mowerhw.sim.motion import Truth
 from mowerhw.sim.world import World
 
@@ -220,7 +220,7 @@ def observe_at(
     bearing_drop: float = 0.0,
 ) -> tuple[BearingObservation, FloatArray]:
     """The landmarks the camera sees from a pose: noisy bearings + true pixels."""
-    from mowerhw.geometry import quat_to_rotmat
+    from mowerhw.common.geometry import quat_to_rotmat
 
     pb = points_in_body(position, r_wb, landmarks_w)
     rng_ok = np.linalg.norm(pb, axis=-1) <= world.scenario.max_range_m

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from mowerhw.geometry import (
+from mowerhw.common.geometry import (
     IDENTITY_QUAT,
     quat_conjugate,
     quat_exp,
@@ -39,7 +39,7 @@ from mowerhw.geometry import (
     skew,
     tangent_basis,
 )
-from mowerhw.odometry import BodyMotion
+from mowerhw.estimation.odometry import BodyMotion
 
 FloatArray = NDArray[np.float64]
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mowerhw.geometry import quat_conjugate, quat_multiply, quat_rotate, quat_to_rotmat, skew
+from mowerhw.common.geometry import quat_conjugate, quat_multiply, quat_rotate, quat_to_rotmat, skew
 
 FloatArray = NDArray[np.float64]
 

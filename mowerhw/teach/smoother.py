@@ -37,7 +37,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from mowerhw.geometry import rotmat_exp, rotmat_log, skew, tangent_basis
+from mowerhw.common.geometry import rotmat_exp, rotmat_log, skew, tangent_basis
 
 FloatArray = NDArray[np.float64]
 

@@ -31,8 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mowerhw.config import Config, TeachConfig, with_imu_noise
-from mowerhw.geometry import (
+from mowerhw.common.geometry import (
     IDENTITY_QUAT,
     quat_conjugate,
     quat_exp,
@@ -41,7 +40,8 @@ from mowerhw.geometry import (
     quat_to_rotmat,
     rotmat_log,
 )
-from mowerhw.odometry import BodyMotion, SpeedTrack, camera_velocity
+from mowerhw.config import Config, TeachConfig, with_imu_noise
+from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.teach.boundary import boundary_from_path
 from mowerhw.teach.depth import depth_pseudo_measurement
 from mowerhw.teach.ekf import EkfNoise, RobotCentricEKF

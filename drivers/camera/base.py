@@ -1,0 +1,78 @@
+"""The camera interface: :class:`CameraSource` delivers
+:class:`~mowerhw.common.samples.FrameSample` objects from its own thread to a callback; the
+V4L2 camera (:mod:`.v4l2`), a socket stream (:mod:`.stream`) and the synthetic mock
+(:mod:`.mock`) implement it. :func:`asyncio_sink` hands frames to an asyncio queue without
+blocking the reader thread (the oldest frame is dropped when full)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from drivers.threaded import ThreadedDevice
+from mowerhw.common.samples import FrameSample
+
+
+@dataclass
+class CameraStats:
+    frames: int = 0
+    read_failures: int = 0
+    reconnects: int = 0
+    open_failures: int = 0
+    last_error: str = ""
+    connected: bool = False
+
+
+class CameraSource(ThreadedDevice, ABC):
+    """A source of timestamped frames, delivered from its own thread to ``on_frame``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.thread_name = type(self).__name__
+        self.stats = CameraStats()
+        self.on_frame: Callable[[FrameSample], None] | None = None
+
+    def start(self, on_frame: Callable[[FrameSample], None]) -> None:
+        self.on_frame = on_frame
+        self._start_thread()
+
+    @abstractmethod
+    def _run(self) -> None: ...
+
+    def _emit(self, frame: FrameSample) -> None:
+        self.stats.frames += 1
+        if self.on_frame is not None:
+            self.on_frame(frame)
+
+
+def asyncio_sink(loop: asyncio.AbstractEventLoop, queue: asyncio.Queue) -> Callable[[Any], None]:
+    """A callback for a reader thread that puts items on an asyncio queue, thread-safely,
+    dropping the oldest item when the queue is full (the newest frame matters most)."""
+
+    def put(item: Any) -> None:
+        if queue.full():
+            with contextlib.suppress(asyncio.QueueEmpty):
+                queue.get_nowait()
+        queue.put_nowait(item)
+
+    def sink(item: Any) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop is closing
+            loop.call_soon_threadsafe(put, item)
+
+    return sink
+
+
+def synthetic_frame(t: float, width: int = 1540, height: int = 1540) -> np.ndarray:
+    """A synthetic 8-bit frame: a gradient with a bright square moving with time."""
+    img = np.add.outer(np.arange(height, dtype=np.uint16), np.arange(width, dtype=np.uint16))
+    img = (img * (255 / (width + height))).astype(np.uint8)
+    s = max(8, min(width, height) // 20)
+    x = int((t * 100) % max(1, width - s))
+    img[height // 2 : height // 2 + s, x : x + s] = 255
+    return img

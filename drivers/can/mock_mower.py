@@ -1,0 +1,127 @@
+"""A simulated mower controller: runs the deck only while the CAN permit says so.
+
+It listens to the ISB (PGN 64770) and heartbeat (PGN 61668) frames of ``permit_source`` and
+permits the deck only while all of these hold: the last ISB says *permit*; its transition
+counter is valid (the same as before, or one more — a jump by more than one is a lost
+transition and means stop until the next valid change); ISB and heartbeat are both fresher
+than ``timeout_s`` (300 ms); and the heartbeat does not say error (254) or shutting down
+(255). It records every change of its deck state with the time and the reason, and also reads
+the status frame (containment state) so a bench can turn the mower at NEAR_EDGE.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+from drivers.can.isobus import PGN_HEARTBEAT, PGN_ISB, parse_id
+from drivers.can.permit import HB_ERROR, HB_SHUTDOWN, ISB_PERMIT, Status, decode_isb, decode_status
+from drivers.threaded import ThreadedDevice
+
+
+@dataclass
+class DeckEvent:
+    t: float
+    running: bool
+    reason: str
+
+
+@dataclass
+class MowerState:
+    isb_time: float | None = None
+    isb_counter: int | None = None
+    isb_permit: bool = False
+    counter_fault: bool = False
+    hb_time: float | None = None
+    hb_sequence: int | None = None
+    status: Status | None = None
+    events: list[DeckEvent] = field(default_factory=list)
+    frames: int = 0
+
+
+class MockMowerController(ThreadedDevice):
+    """Reads permit frames from a bus and decides whether the deck may run."""
+
+    thread_name = "mock-mower"
+
+    def __init__(
+        self,
+        bus,
+        permit_source: int = 0x90,
+        timeout_s: float = 0.3,
+        status_pgn: int = 0xFF10,
+        poll_s: float = 0.005,
+    ) -> None:
+        super().__init__()
+        self.bus = bus
+        self.source = permit_source
+        self.timeout_s = timeout_s
+        self.status_pgn = status_pgn
+        self.poll_s = poll_s
+        self.state = MowerState()
+        self.deck_running = False
+        self._lock = threading.Lock()
+
+    def start(self) -> MockMowerController:
+        self._start_thread()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(timeout=self.poll_s)
+            now = time.monotonic()
+            if msg is not None:
+                self.handle(msg.arbitration_id, bytes(msg.data), now)
+            self.evaluate(now)
+
+    def handle(self, arbitration_id: int, data: bytes, now: float) -> None:
+        ident = parse_id(arbitration_id)
+        if ident.source != self.source or len(data) < 8:
+            return
+        s = self.state
+        with self._lock:
+            s.frames += 1
+            if ident.pgn == PGN_ISB:
+                counter, bits = decode_isb(data)
+                if s.isb_counter is not None:
+                    step = (counter - s.isb_counter) & 0xFF
+                    if step > 1:
+                        s.counter_fault = True  # a transition was lost: stop
+                    elif step == 1:
+                        s.counter_fault = False  # a proper change re-synchronises
+                s.isb_counter = counter
+                s.isb_permit = bits == ISB_PERMIT
+                s.isb_time = now
+            elif ident.pgn == PGN_HEARTBEAT:
+                s.hb_sequence = data[0]
+                s.hb_time = now
+            elif ident.pgn == self.status_pgn:
+                s.status = decode_status(data)
+
+    def why_not(self, now: float) -> str:
+        """Why the deck may not run now ("" if it may)."""
+        s = self.state
+        if s.isb_time is None or now - s.isb_time > self.timeout_s:
+            return "ISB timeout"
+        if s.hb_time is None or now - s.hb_time > self.timeout_s:
+            return "heartbeat timeout"
+        if s.hb_sequence in (HB_ERROR, HB_SHUTDOWN):
+            return f"heartbeat {s.hb_sequence}"
+        if s.counter_fault:
+            return "ISB counter jump"
+        if not s.isb_permit:
+            return "ISB stop"
+        return ""
+
+    def evaluate(self, now: float) -> bool:
+        with self._lock:
+            reason = self.why_not(now)
+            running = reason == ""
+            if running != self.deck_running:
+                self.deck_running = running
+                self.state.events.append(DeckEvent(now, running, reason or "permit"))
+            return running
+
+    def last_stop(self) -> DeckEvent | None:
+        return next((e for e in reversed(self.state.events) if not e.running), None)

@@ -1,1 +1,0 @@
-"""Simulated hardware that speaks the real wire formats (pty serial, python-can, camera API)."""

@@ -1,0 +1,296 @@
+"""Replay a recording through the runtime core the daemon runs, deterministically.
+
+Two ways (both drive :class:`mowerhw.runtime.core.RuntimeCore`):
+
+* **raw** (:class:`Replay`): the recorded raw inputs go through the code that read them live:
+  serial bytes into :meth:`drivers.imu.vn100.Vn100.feed` (its parser and clock mapping), CAN
+  frames into :class:`drivers.can.speed.SpeedReader`, JPEG frames into the front end; then
+  the core, with the recording's host times as the clock. One thread, seeded front end, one
+  OpenCV thread: the same file and config give the same map, byte for byte, and the same
+  permit sequence. A config or map other than the recorded one may be given: this is the way
+  to try a change on real data.
+* **journal** (:func:`replay_decisions`): the core's own journal of the live run (every input
+  in the order the daemon applied it, the front end's tracks, where estimator chains were
+  installed, the faults injected) into a new core: it gives the daemon's decisions, faults
+  and rebuilds included, and compares each with the one the daemon made.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import logging
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from drivers.can.speed import SpeedReader
+from drivers.imu.vn100 import Vn100
+from mowerhw.common.samples import ImuSample
+from mowerhw.config import Config, config_from_dict
+from mowerhw.map import LawnMap
+from mowerhw.map import load as load_map
+from mowerhw.recording.mcap import RecordingRead, decode_jpeg
+from mowerhw.runtime.core import RuntimeCore
+from mowerhw.runtime.pipelines import BuildRequest, MowPipeline, TeachPipeline, build_pipeline
+
+log = logging.getLogger("mowerhw.recording.replay")
+
+
+class ReplayError(RuntimeError):
+    """A recording that cannot be replayed (no config, no map for mow, …)."""
+
+
+class Replay:
+    def __init__(
+        self,
+        path: str | Path,
+        mode: str = "teach",
+        config: Config | None = None,
+        map_path: str | Path | None = None,
+        out_dir: str | Path | None = None,
+        speed: float | None = None,
+        progress: bool = True,
+    ) -> None:
+        if mode not in ("teach", "mow"):
+            raise ValueError(f"mode {mode!r}: replay takes teach or mow")
+        self.path = Path(path)
+        if not self.path.exists():
+            raise ReplayError(f"{self.path}: no such recording")
+        self.mode = mode
+        self.config = config
+        self.map_path = Path(map_path) if map_path else None
+        self.out = Path(out_dir) if out_dir else self.path.with_suffix("")
+        self.speed = speed  # None: as fast as possible
+        self.progress = progress
+        self.reader = RecordingRead(self.path)
+        self.counts: Counter[str] = Counter()
+        self.halts: Counter[str] = Counter()
+        self.permit_samples = 0
+        self.samples = 0
+        self.t_first: float | None = None
+        self.t_last = 0.0
+
+    # ----------------------------------------------------------------------------- set-up
+
+    def _setup(self) -> None:
+        import cv2
+
+        cv2.setNumThreads(1)
+        self.out.mkdir(parents=True, exist_ok=True)
+        if self.config is None:
+            self.config = _recorded_config(self.reader, self.path, self.out)
+        cfg = self.config
+        from mowerhw.camera import load_camchain
+
+        self.camera = load_camchain(cfg.camera.calibration, cfg.camera.camchain_key)
+        self.core = RuntimeCore(cfg, on_build=self._build_now)
+        self.vn = Vn100("replay", on_sample=self._on_imu, gyro_source=cfg.imu.gyro_source)
+        self.speed_reader = SpeedReader(
+            cfg.speed.source, cfg.speed.sensor_address, cfg.speed.ccvs1_direction
+        )
+        self.core.set_mode(self.mode)
+        if self.mode == "mow":
+            self.core.map_loaded(self._mow_map())
+        self.now = 0.0
+        self.prev_permit = False
+
+    def _build_now(self, req: BuildRequest) -> None:
+        """A replay builds the chain the core asks for at once (the daemon: off its loop)."""
+        self.core.install(req.serial, build_pipeline(self.config, self.camera, req))
+
+    def _mow_map(self) -> LawnMap:
+        if self.map_path is not None:
+            return load_map(self.map_path)
+        data = self.reader.attachments.get("map.json")
+        if data is None:
+            raise ReplayError(f"{self.path}: no map in the recording; pass --map")
+        path = self.out / "recorded-map.json"
+        path.write_bytes(data)
+        return load_map(path)
+
+    # ---------------------------------------------------------------------------- inputs
+
+    def _on_imu(self, s: ImuSample) -> None:
+        d = self.core.imu(s, self.now)
+        if self.mode != "mow":
+            return
+        self.samples += 1
+        self.permit_samples += int(d.permit)
+        if self.prev_permit and not d.permit:
+            self.halts[d.reason] += 1
+        self.prev_permit = d.permit
+        self._permits.update(f"{int(d.permit)}{d.reason}".encode())
+
+    def _message(self, topic: str, msg: dict[str, Any]) -> None:
+        if topic == "/vn100/raw":
+            self.now = msg["host_time_ns"] * 1e-9
+            self.vn.feed(base64.b64decode(msg["data"]), int(msg["host_time_ns"]))
+        elif topic == "/can":
+            if msg.get("direction", "rx") != "rx" or not msg.get("extended", True):
+                return
+            self.now = msg["host_time_ns"] * 1e-9
+            s = self.speed_reader.handle(int(msg["id"]), bytes.fromhex(msg["data"]), self.now)
+            if s is not None:
+                self.core.speed(s)
+        elif topic == "/camera/image":
+            ts = msg["timestamp"]
+            t = ts["sec"] + ts["nsec"] * 1e-9
+            self.core.camera_frame(self.now)
+            target = self.core.frame_pipeline()
+            if target is not None:
+                serial, pipe = target
+                image = decode_jpeg(msg["data"])
+                tracks = pipe.vision.track(t, image, pipe.vision.prepare(t))
+                self.core.tracks(serial, tracks)
+        else:
+            return
+        self.counts[topic] += 1
+        if self.t_first is None:
+            self.t_first = self.now
+        self.t_last = self.now
+
+    # ------------------------------------------------------------------------------- run
+
+    def run(self) -> dict[str, Any]:
+        from mowerhw.common.progress import Progress
+
+        self._permits = hashlib.sha256()
+        total = self.path.stat().st_size
+        wall0 = time.monotonic()
+        t_first: float | None = None
+        last_log_ns = 0
+        n = 0
+        finished_by = "end of recording"
+        ready = False
+        with Progress(total, f"replay {self.path.name}", force=False) as bar:
+            if not self.progress:
+                bar.enabled = False
+            for topic, log_ns, msg in self.reader.messages():
+                if not ready:
+                    self._setup()
+                    ready = True
+                host = msg.get("host_time_ns") if isinstance(msg, dict) else None
+                if self.speed is not None and host is not None:
+                    if t_first is None:
+                        t_first = host * 1e-9
+                    ahead = (host * 1e-9 - t_first) / self.speed - (time.monotonic() - wall0)
+                    if ahead > 0:
+                        time.sleep(ahead)
+                self._message(topic, msg)
+                last_log_ns = log_ns
+                n += 1
+                if n % 256 == 0:
+                    bar.advance(self.reader.bytes_read - bar.done)
+                if self.config.runtime.auto_finish_teach and self.core.teach_loop_done():
+                    finished_by = "loop detection"
+                    break
+            bar.done = total
+        if not ready:
+            raise ReplayError(f"{self.path}: no messages to replay ({self.reader.warning})")
+        wall = time.monotonic() - wall0
+        span = (self.t_last - self.t_first) if self.t_first is not None else 0.0
+        out: dict[str, Any] = {
+            "recording": str(self.path),
+            "mode": self.mode,
+            "messages": dict(self.counts),
+            "recording_s": round(span, 2),
+            "wall_s": round(wall, 2),
+            "speed_x_real_time": round(span / wall, 2) if wall > 0 else None,
+        }
+        if self.reader.warning:
+            out["warning"] = self.reader.warning
+        pipe = self.core.pipeline
+        if isinstance(pipe, TeachPipeline):
+            out.update(self._finish_teach(pipe, last_log_ns, finished_by))
+        elif isinstance(pipe, MowPipeline):
+            loc = pipe.localizer
+            out.update(
+                permit_fraction=round(self.permit_samples / max(1, self.samples), 4),
+                halts_by_reason=dict(self.halts),
+                permit_sequence_sha256=self._permits.hexdigest(),
+                localizer={k: v for k, v in vars(loc.counters).items()},
+            )
+        (self.out / "replay.json").write_text(json.dumps(out, indent=1))
+        return out
+
+    def _finish_teach(
+        self, pipe: TeachPipeline, last_log_ns: int, finished_by: str
+    ) -> dict[str, Any]:
+        import datetime as dt
+
+        result, lawn_map = pipe.finish()
+        # the map's creation time is the recording's, so a replay is byte-for-byte repeatable
+        lawn_map.created_utc = dt.datetime.fromtimestamp(last_log_ns * 1e-9, dt.UTC).strftime(
+            "%Y-%m-%dT%H:%M:%SZ"
+        )
+        path = self.out / "map.json"
+        lawn_map.save(path)
+        data = path.read_bytes()
+        try:
+            from mowerhw.plots import map_figure
+
+            map_figure(lawn_map, path.with_suffix(".png"), title=f"Map from {self.path.name}")
+        except Exception as exc:
+            log.warning("map picture not written: %s", exc)
+        poly = lawn_map.lawn_polygon()
+        return {
+            "finished_by": finished_by,
+            "map": str(path),
+            "map_sha256": hashlib.sha256(data).hexdigest(),
+            "map_checksum": lawn_map.checksum,
+            "landmarks_mapped": len(lawn_map.landmarks),
+            "boundary_length_m": round(float(poly.exterior.length), 3),
+            "boundary_area_m2": round(float(poly.area), 3),
+            "loop_closure": result.closure.reason,
+        }
+
+
+def _recorded_config(reader: RecordingRead, path: Path, out: Path) -> Config:
+    """The run's own config, with the recorded calibration written into ``out``."""
+    meta = reader.metadata.get("config", {}).get("yaml")
+    if not meta:
+        raise ReplayError(f"{path}: no config in the recording; pass --config")
+    raw = yaml.safe_load(meta)
+    cal = reader.attachments.get("calibration.yaml")
+    if cal is not None:
+        cal_path = out / "calibration.yaml"
+        cal_path.write_bytes(cal)
+        raw.setdefault("camera", {})["calibration"] = str(cal_path)
+    raw.setdefault("map", {})["path"] = str(out / "map.json")
+    return config_from_dict(raw, out, f"{path} (config)")
+
+
+def replay_decisions(path: str | Path, config: Config | None = None) -> dict[str, Any]:
+    """The daemon's decisions again, from the runtime journal in the recording ``path`` (see
+    the module doc): counts, the sha256 of the live and the replayed decision sequences, and
+    the first decision that differs, if any."""
+    from mowerhw.camera import load_camchain
+    from mowerhw.runtime.journal import replay_journal
+
+    rec_path = Path(path)
+    reader = RecordingRead(rec_path)
+    records = [m for topic, _, m in reader.messages() if topic == "/runtime/journal"]
+    if not records:
+        raise ReplayError(
+            f"{rec_path}: no runtime journal in the recording (recorded before the journal "
+            "existed?); replay it with --mode teach|mow instead"
+        )
+    if config is None:
+        import tempfile
+
+        out = Path(tempfile.mkdtemp(prefix="mowerhw-replay-"))
+        config = _recorded_config(reader, rec_path, out)
+    camera = load_camchain(config.camera.calibration, config.camera.camchain_key)
+    t0 = time.monotonic()
+    result = replay_journal(config, camera, records).as_dict()
+    result["wall_s"] = round(time.monotonic() - t0, 2)
+    result["recording"] = str(rec_path)
+    result["same_as_live"] = result["mismatches"] == 0 and result["gaps"] == 0
+    if reader.warning:
+        result["warning"] = reader.warning
+    return result

@@ -1,0 +1,154 @@
+"""Mow: tracks associated with map landmarks (prediction, χ² gate, ORB distance)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from mowerhw.common.geometry import tangent_basis
+from mowerhw.config import FrontendConfig
+from mowerhw.frontend import FrameTracks
+from mowerhw.frontend.association import Candidates, associate
+from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, stack_sets
+from mowerhw.vision.base import BAN_S, RAD_PER_PX, VisionBase
+
+FloatArray = NDArray[np.float64]
+
+
+class MowVision(VisionBase):
+    """Images → a :class:`~mowerhw.mow.Localizer` by re-identification against the map."""
+
+    def __init__(
+        self,
+        localizer: Any,
+        camera: Any,
+        q_bc: Any = (0.0, 1.0, 0.0, 0.0),
+        config: FrontendConfig | None = None,
+        seed: int = 0,
+        pixel_sigma: float = 1.0,
+    ) -> None:
+        super().__init__(camera, q_bc, config, seed)
+        self.loc = localizer
+        self.gate = float(chi2.ppf(self.cfg.association_gate, df=2))
+        self.sigma_px_rad = pixel_sigma * RAD_PER_PX
+        lms = localizer.map.landmarks
+        self._map_ids = np.array([lm.id for lm in lms], dtype=np.int64)
+        sets = [
+            np.frombuffer(lm.descriptor, np.uint8).reshape(-1, DESCRIPTOR_BYTES)
+            if lm.descriptor
+            else np.zeros((0, DESCRIPTOR_BYTES), np.uint8)
+            for lm in lms
+        ]
+        self._has_desc = np.array([s.shape[0] > 0 for s in sets], dtype=bool)
+        self._desc_sets = sets
+        self.landmark_of: dict[int, int] = {}  # live track id → map landmark id
+        self._refusals: dict[int, int] = {}  # track id → consecutive χ² refusals
+        self._banned: dict[tuple[int, int], float] = {}  # pair → when it was refused
+        self._t_last = -math.inf
+        # the last frame's associations: track ids, map ids, pixels
+        self.last_associated = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+        self.last_bearings = np.zeros((0, 3))
+
+    def estimator_rate(self, gyro: FloatArray) -> FloatArray:
+        return self.loc.corrected_rate(gyro)
+
+    def use(self, tracks: FrameTracks) -> FrameTracks:
+        """Associations of the tracks with map landmarks → the Localizer."""
+        t = tracks.t
+        live = set(tracks.ids.tolist())
+        for tid in [k for k in self.landmark_of if k not in live]:
+            del self.landmark_of[tid]
+            self._refusals.pop(tid, None)
+        prediction = self._predict(t)
+        self._confirm(tracks, prediction)
+        free = np.array([int(i) not in self.landmark_of for i in tracks.ids], dtype=bool)
+        if free.any():
+            self._associate(tracks, np.flatnonzero(free), prediction)
+        rows = np.array([int(i) in self.landmark_of for i in tracks.ids], dtype=bool)
+        tids = tracks.ids[rows]
+        lm = np.array([self.landmark_of[int(i)] for i in tids], dtype=np.int64)
+        self.loc.bearings(t, lm, tracks.bearings[rows])
+        self.stats.observations += int(lm.size)
+        self.last_associated = (tids, lm, tracks.pixels[rows])
+        self.last_bearings = tracks.bearings[rows]
+        self._t_last = t
+        self._review(tids, lm)
+        if len(self._banned) > 256:  # forget expired bans (bounded memory)
+            self._banned = {k: v for k, v in self._banned.items() if t - v < BAN_S}
+        return tracks
+
+    def _predict(self, t: float) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+        """Every map landmark as the localizer expects it in the frame taken at ``t``, with a
+        covariance at the front end's precision. The localizer weighs bearings with a
+        conservative σ; an association is judged at the front end's own (``pixel_sigma``),
+        or two features a few pixels apart — a board's corner and the pane next to it —
+        would both pass, and a track sliding off its corner would keep its landmark."""
+        ids, pred, cov = self.loc.predict_bearings(t)
+        cov = cov + (self.sigma_px_rad**2 - self.loc.cfg.bearing_sigma_rad**2) * np.eye(2)
+        return ids, pred, cov
+
+    def _confirm(self, tracks: FrameTracks, prediction: tuple) -> None:
+        """Every frame, each associated track must still be where its landmark is predicted
+        (χ² gate at the front end's precision); one that is not (it slid off the corner, was
+        occluded and jumped) loses the landmark, and the pair is not tried again."""
+        if not self.landmark_of:
+            return
+        ids, pred, cov = prediction
+        row_of = {int(i): k for k, i in enumerate(ids.tolist())}
+        ks = [k for k, tid in enumerate(tracks.ids.tolist()) if tid in self.landmark_of]
+        if not ks:
+            return
+        rows = np.array([row_of[self.landmark_of[int(tracks.ids[k])]] for k in ks])
+        b = tracks.bearings[ks]
+        basis = tangent_basis(pred[rows])
+        r = np.einsum("nk,nkj->nj", b - pred[rows], basis)
+        d2 = np.einsum("ni,nij,nj->n", r, np.linalg.inv(cov[rows]), r)
+        for k, dist2 in zip(ks, d2.tolist(), strict=True):
+            if not dist2 <= self.gate:
+                tid = int(tracks.ids[k])
+                self._banned[(tid, self.landmark_of.pop(tid))] = tracks.t
+                self._refusals.pop(tid, None)
+                self.stats.dropped_associations += 1
+
+    def _associate(self, tracks: FrameTracks, free: NDArray[np.int64], prediction: tuple) -> None:
+        ids, pred, cov = prediction
+        taken = set(self.landmark_of.values())
+        ok = self._has_desc & ~np.isin(ids, list(taken))
+        ok[ok] = self._in_view(pred[ok])
+        if not ok.any():
+            return
+        sel = np.flatnonzero(ok)
+        stacked, owner = stack_sets([self._desc_sets[k] for k in sel.tolist()])
+        cand = Candidates(ids[sel], pred[sel], cov[sel], stacked, owner)
+        # every track takes part (for ambiguity); only free ones may be paired
+        desc, has = self._track_descriptors(tracks)
+        assignable = np.zeros(tracks.ids.size, bool)
+        assignable[free] = True
+        pairs = associate(
+            tracks.bearings, desc, has, cand, self.gate, self.cfg.max_hamming, assignable
+        )
+        for k, c in pairs:
+            tid, lid = int(tracks.ids[k]), int(cand.ids[c])
+            if tracks.t - self._banned.get((tid, lid), -math.inf) < BAN_S:
+                continue
+            self.landmark_of[tid] = lid
+            self.stats.reidentified += 1
+
+    def _review(self, tids: NDArray[np.int64], lm: NDArray[np.int64]) -> None:
+        """Drop associations the localizer's χ² gate refuses ``drop_after_rejections`` times
+        running; a refused pair is not tried again."""
+        refused = set(np.asarray(self.loc.last_rejected).tolist())
+        for tid, i in zip(tids.tolist(), lm.tolist(), strict=True):
+            if i in refused:
+                self._refusals[tid] = self._refusals.get(tid, 0) + 1
+                if self._refusals[tid] >= self.cfg.drop_after_rejections:
+                    del self.landmark_of[tid]
+                    self._refusals.pop(tid, None)
+                    self._banned[(tid, i)] = self._t_last
+                    self.stats.dropped_associations += 1
+            else:
+                self._refusals.pop(tid, None)
