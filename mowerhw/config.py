@@ -626,6 +626,22 @@ def imu_noise(imu: ImuConfig) -> tuple[float, float, float]:
     )
 
 
+def stale_limits_s(cfg: Config | None = None) -> dict[str, float]:
+    """Per sensor stream, how long without usable data makes it stale: the sensor sections'
+    ``stale_after_s`` (defaults without a config). Only the permit gate judges staleness;
+    the localizer reads the same limits to know when to stop trusting a held speed."""
+    imu, speed, camera = (
+        (ImuConfig(), SpeedConfig(), CameraConfig())
+        if cfg is None
+        else (cfg.imu, cfg.speed, cfg.camera)
+    )
+    return {
+        "imu": imu.stale_after_s,
+        "speed": speed.stale_after_s,
+        "camera": camera.stale_after_s,
+    }
+
+
 def with_imu_noise(section: Any, imu: ImuConfig | None = None) -> Any:
     """A teach or mow section with its null gyro process noise filled in from ``imu`` (the
     defaults' VN-100 when not given): the one place the estimators' gyro noise is decided."""

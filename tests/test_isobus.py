@@ -183,7 +183,7 @@ def test_ccvs1_speed_from_the_j1939_definition():
 
 
 def test_gate_names_what_the_speed_sensor_said():
-    from mowerhw.runtime.gate import PermitGate
+    from mowerhw.mow.gate import PermitGate
 
     gate = PermitGate({"speed": 0.3})
     na = decode_speed(can_id(3, PGN_GBSD, 0x47), bytes([0xFF] * 8), t=10.0)

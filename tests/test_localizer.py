@@ -8,6 +8,7 @@ import pytest
 from mowerhw.evaluation.teach import run_teach
 from mowerhw.map import LawnMap, MapError
 from mowerhw.mow import Localizer, Reason
+from mowerhw.mow.gate import PermitGate
 from mowerhw.sim import make_world
 from mowerhw.sim.plant import MowerPlant
 
@@ -40,7 +41,8 @@ def drive(loc, plant, commands, until=None):
 def test_api_shape_and_start_at_the_dock(lawn_map):
     loc = Localizer(lawn_map)
     t, pos, quat, cov = loc.pose()
-    assert t == t or np.isnan(t)  # no IMU yet: NaN
+    assert np.isnan(t)  # no IMU yet: NaN
+    assert loc.pose()[1] is not pos and np.array_equal(loc.pose()[1], loc.pose().position)
     assert np.allclose(pos, lawn_map.dock_position) and quat.shape == (4,)
     assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) >= -1e-15)
     c = loc.containment()
@@ -149,10 +151,14 @@ def test_stale_sensors_and_faults_halt_with_a_reason(lawn_map):
     loc = Localizer(lawn_map)
     drive(loc, plant, [(0, 0, 2.0), (0, 0.8, 1.2), (0.3, 0, 2.0)])
     assert loc.containment().permit
-    c = loc.containment(now=loc.t_imu + 0.5)
-    assert c.reason == Reason.SENSOR_STALE and "silent" in c.detail
-    loc.ekf.x[:] = np.nan  # an estimator fault
-    loc._check_fault()
+    gate = PermitGate.from_config(None, log_changes=False)
+    arrivals = {"imu": loc.t_imu, "speed": loc.t_speed, "camera": loc.t_camera}
+    assert gate.decide(loc.t_imu, "mow", arrivals, loc.containment()).permit
+    d = gate.decide(loc.t_imu + 0.5, "mow", arrivals, loc.containment())
+    assert d.reason == Reason.SENSOR_STALE and "silent" in d.detail  # the gate judges it
+    loc.inject_fault()  # an estimator fault
+    assert not loc.is_finite()
+    loc.imu(loc.t_imu + 0.01, np.zeros(3))
     c = loc.containment()
     assert c.reason == Reason.FAULT and not c.permit
     assert loc.counters.faults == 1
@@ -177,9 +183,11 @@ def test_a_silent_camera_is_a_stale_sensor(lawn_map):
         loc.imu(*out.imu)
         if out.speed is not None:
             loc.speed(*out.speed)
-    c = loc.containment()
-    assert not c.permit and c.reason == Reason.SENSOR_STALE
-    assert "camera silent" in c.detail
+    gate = PermitGate.from_config(None, log_changes=False)
+    arrivals = {"imu": loc.t_imu, "speed": loc.t_speed, "camera": loc.t_camera}
+    d = gate.decide(loc.t_imu, "mow", arrivals, loc.containment())
+    assert not d.permit and d.reason == Reason.SENSOR_STALE
+    assert "camera silent" in d.detail
 
 
 def test_the_localizer_learns_a_mems_gyros_yaw_scale_error(lawn_map):

@@ -23,7 +23,7 @@ import can
 
 from drivers.can.isobus import parse_id
 from drivers.can.speed import SpeedReader, invalid_detail
-from mowerhw.runtime.gate import PermitGate
+from mowerhw.mow.gate import PermitGate
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 LOGS = DATA / "can-john-deere-tractor" / "candump"

@@ -164,7 +164,7 @@ class SpeedStats:
 class SpeedReader:
     """Which frames count as this mower's ground speed (``speed.source``,
     ``speed.sensor_address``), signed by ETC2 for CCVS1. Whether the speed is fresh is the
-    permit gate's decision (:mod:`mowerhw.runtime.gate`), not this reader's."""
+    permit gate's decision (:mod:`mowerhw.mow.gate`), not this reader's."""
 
     def __init__(
         self,
@@ -243,7 +243,5 @@ class SpeedReader:
 
 
 def invalid_detail(sample: SpeedSample) -> str:
-    """What a halt says about an invalid speed: ``speed sensor reports not available (GBSD
-    from 0x47)``."""
-    sa = "" if sample.source_address is None else f" from 0x{sample.source_address:02X}"
-    return f"speed sensor reports {sample.reason} ({sample.message}{sa})"
+    """What a halt says about an invalid speed (:meth:`SpeedSample.invalid_detail`)."""
+    return sample.invalid_detail()

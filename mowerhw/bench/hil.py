@@ -48,6 +48,7 @@ import numpy as np
 import shapely
 import yaml
 
+from mowerhw.evaluation.scoring import score_halts
 from mowerhw.runtime.control import request
 
 log = logging.getLogger("mowerhw.bench")
@@ -62,8 +63,6 @@ FAULT_KINDS = (
     "sigterm",
     "sigkill",
 )
-MISSED_HALT_M = 0.10
-SAFE_INSIDE_M = 1.0
 RECOVERY_WINDOW_S = 30.0
 
 
@@ -462,12 +461,11 @@ class Bench:
         t, x, y, deck = log_arr[sel, 0], log_arr[sel, 1], log_arr[sel, 2], log_arr[sel, 5] > 0
         true_geom = LawnGeometry(self.mower.true_outline(world.lawn.outline(1440)), [])
         s_true = true_geom.signed_distances(np.column_stack([x, y]))
-        missed = deck & (s_true < -MISSED_HALT_M)
         first_permit = t[np.argmax(deck)] if deck.any() else math.inf
         in_fault = np.zeros(t.size, bool)
         for a, b in windows:
             in_fault |= (t >= a) & (t < b)
-        safe = (t >= first_permit) & (s_true > SAFE_INSIDE_M) & ~in_fault
+        halts = score_halts(t, deck, s_true, first_permit, 1.0 / 200.0, in_fault)
         # the daemon's estimate against the truth at its own time stamps
         errs = []
         for tp, xp, yp, _, _ in self.pose_samples:
@@ -484,8 +482,8 @@ class Bench:
             "position_rmse_m": round(float(np.sqrt(np.mean(np.square(errs)))), 4) if errs else None,
             "position_max_m": round(float(np.max(errs)), 4) if errs else None,
             "pose_samples": len(errs),
-            "missed_halts": int(missed.sum()),
-            "false_halt_fraction": round(float(np.mean(~deck[safe])), 4) if safe.any() else None,
+            "missed_halts": halts["missed_halts"],
+            "false_halt_fraction": halts["false_halt_fraction"],
             "halt_latency_ms": {
                 "p50": round(float(np.percentile(lat, 50)), 3) if lat.size else None,
                 "p99": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
@@ -499,7 +497,7 @@ class Bench:
             "permit_fraction": round(float(np.mean(deck[t >= first_permit])), 4)
             if np.isfinite(first_permit)
             else 0.0,
-            "time_truly_outside_s": round(float(np.sum(s_true < 0)) / 200.0, 2),
+            "time_truly_outside_s": halts["time_outside_s"],
         }
 
     # ----------------------------------------------------------------------------- faults

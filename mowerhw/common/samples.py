@@ -77,6 +77,12 @@ class SpeedSample:
         if self.valid and not np.isfinite(self.speed_mps):
             raise ValueError("a valid speed sample needs a finite speed")
 
+    def invalid_detail(self) -> str:
+        """What a halt says about an invalid speed: ``speed sensor reports not available
+        (GBSD from 0x47)``."""
+        sa = "" if self.source_address is None else f" from 0x{self.source_address:02X}"
+        return f"speed sensor reports {self.reason} ({self.message}{sa})"
+
 
 @dataclass(frozen=True, slots=True)
 class FrameSample:

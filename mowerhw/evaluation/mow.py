@@ -31,8 +31,10 @@ from numpy.typing import NDArray
 from mowerhw.common.geometry import yaw_to_quat
 from mowerhw.config import Config, FrontendConfig
 from mowerhw.evaluation.pixel import frontend_figures, sees_point
+from mowerhw.evaluation.scoring import score_halts
 from mowerhw.map import LawnMap
 from mowerhw.mow import LawnGeometry, Localizer
+from mowerhw.mow.gate import PermitGate
 from mowerhw.sim import make_world
 from mowerhw.sim.controller import BangBangMower
 from mowerhw.sim.plant import MowerPlant
@@ -43,8 +45,6 @@ from mowerhw.vision import MowVision
 FloatArray = NDArray[np.float64]
 
 STATE_CODE = {"INSIDE": 0, "NEAR_EDGE": 1, "OUTSIDE": 2, "UNKNOWN": 3}
-MISSED_HALT_M = 0.10
-SAFE_INSIDE_M = 1.0
 
 
 @dataclass
@@ -119,20 +119,23 @@ def run_mow(
     loc.speed(*out.speed)
     prev_permit = False
     wall0 = time.perf_counter()
+    gate = PermitGate.from_config(config if isinstance(config, Config) else None, False)
     for k in range(n + 1):
-        res = loc.containment()
+        cont = loc.containment()
+        arrivals = {"imu": loc.t_imu, "speed": loc.t_speed, "camera": loc.t_camera}
+        res = gate.decide(plant.t, "mow", arrivals, cont)
         x, q = loc.ekf.x, loc.ekf.q
         yaw = float(np.arctan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2)))
         t_arr[k], true_xy[k], true_yaw[k] = plant.t, plant.xy, plant.yaw
         est[k, :3], est[k, 3:] = x, q
-        permit[k], state[k], sigma[k] = res.permit, STATE_CODE[res.state], res.sigma_m
+        permit[k], state[k], sigma[k] = res.permit, STATE_CODE[res.state], cont.sigma_m
         reason[k] = res.reason
         if prev_permit and not res.permit:
             reasons[res.reason] += 1
         prev_permit = res.permit
         if k == n:
             break
-        v, w = controller.command(plant.t, float(x[0]), float(x[1]), yaw, res.state)
+        v, w = controller.command(plant.t, float(x[0]), float(x[1]), yaw, str(res.state))
         out = plant.step(v, w)
         loc.imu(*out.imu)
         if vision is not None:
@@ -153,19 +156,17 @@ def run_mow(
     q_est = est[:, 3:] * np.sign(np.sum(est[:, 3:] * q_true, axis=1))[:, None]
     q_err = np.abs(q_est - q_true).max(axis=1)
     after_start = t_arr >= controller.start_after_s
-    missed = permit & (s_true < -MISSED_HALT_M)
-    safe = after_start & (s_true > SAFE_INSIDE_M)
+    excluded = None
     if vision_dropout is not None:  # halting without vision is intended, not a false halt
         d0, d1 = vision_dropout
-        safe &= ~((t_arr >= d0) & (t_arr < d0 + d1 + 2.0))
+        excluded = (t_arr >= d0) & (t_arr < d0 + d1 + 2.0)
     dt = 1.0 / plant.rates.imu_hz
+    halts = score_halts(t_arr, permit, s_true, controller.start_after_s, dt, excluded)
     metrics = {
         "position_rmse_m": round(float(np.sqrt(np.mean(err[after_start] ** 2))), 5),
         "position_max_m": round(float(err[after_start].max()), 5),
         "quaternion_err_max": round(float(q_err[after_start].max()), 5),
-        "missed_halts": int(missed.sum()),
-        "false_halt_fraction": round(float(np.mean(~permit[safe])) if safe.any() else 0.0, 5),
-        "time_outside_s": round(float(np.sum(s_true < 0) * dt), 3),
+        **halts,
         "permit_fraction": round(float(np.mean(permit[after_start])), 4),
         "halts_by_reason": dict(reasons),
         "edge_turns": controller.turns,

@@ -41,7 +41,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mowerhw.common.geometry import rotmat_to_quat
-from mowerhw.config import Config, ContainmentConfig, MowConfig, with_imu_noise
+from mowerhw.config import Config, ContainmentConfig, MowConfig, stale_limits_s, with_imu_noise
 from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.estimation.posefit import fit_pose_to_bearings
 from mowerhw.map import LawnMap
@@ -101,18 +101,13 @@ class _Step:
 
 
 def _configs(config: Any) -> tuple[MowConfig, ContainmentConfig, dict[str, float]]:
-    stale = {"imu": 0.1, "speed": 0.3, "camera": 1.0}
     if config is None:
-        return with_imu_noise(MowConfig()), ContainmentConfig(), stale
+        return with_imu_noise(MowConfig()), ContainmentConfig(), stale_limits_s()
     if isinstance(config, Config):
-        stale = {
-            "imu": config.imu.stale_after_s,
-            "speed": config.speed.stale_after_s,
-            "camera": config.camera.stale_after_s,
-        }
-        return with_imu_noise(config.mow, config.imu), config.containment, stale
+        mow = with_imu_noise(config.mow, config.imu)
+        return mow, config.containment, stale_limits_s(config)
     if isinstance(config, MowConfig):
-        return with_imu_noise(config), ContainmentConfig(), stale
+        return with_imu_noise(config), ContainmentConfig(), stale_limits_s()
     raise TypeError(f"config must be a Config or MowConfig, not {type(config).__name__}")
 
 
@@ -594,26 +589,17 @@ class Localizer:
         w = np.linalg.eigvalsh(self.ekf.P[3:5, 3:5])
         return float(math.sqrt(max(w[-1], 0.0)))
 
-    def containment(self, now: float | None = None) -> ContainmentResult:
-        """The containment decision for the newest estimate (``now``: the caller's clock, for
-        staleness; default the newest input time)."""
+    def containment(self) -> ContainmentResult:
+        """The containment decision for the newest estimate. Whether the sensors are fresh is
+        the permit gate's to judge (:class:`mowerhw.mow.gate.PermitGate`), not the filter's."""
         t = self.t_imu if self.t_imu is not None else float("nan")
-        halt = self._halt_reason(now)
+        halt = self._halt_reason()
         x, y = float(self.ekf.x[0]), float(self.ekf.x[1])
         return self._containment.evaluate(t, x, y, self.sigma_xy(), halt)
 
-    def _halt_reason(self, now: float | None) -> tuple[Reason, str] | None:
+    def _halt_reason(self) -> tuple[Reason, str] | None:
         if self.t_imu is None:
             return Reason.NOT_LOCALIZED, "no IMU sample yet"
-        latest = [x for x in (self.t_imu, self.t_speed, self.t_camera) if x is not None]
-        now = max(latest) if now is None else now
-        for name, last in (("imu", self.t_imu), ("speed", self.t_speed), ("camera", self.t_camera)):
-            if last is None:
-                return Reason.SENSOR_STALE, f"no {name} data yet"
-            if now - last > self.stale_s[name]:
-                return Reason.SENSOR_STALE, (
-                    f"{name} silent for {now - last:.2f} s (limit {self.stale_s[name]} s)"
-                )
         if self._fault:
             return Reason.FAULT, self._fault
         if not self.localized:

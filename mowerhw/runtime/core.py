@@ -28,14 +28,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from drivers.can.speed import invalid_detail
 from mowerhw.common.buffer import SensorBuffer
 from mowerhw.common.geometry import quat_to_rotmat
 from mowerhw.common.samples import ImuSample, SpeedSample, Stream
 from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import LawnMap
-from mowerhw.runtime.gate import Decision, PermitGate
+from mowerhw.mow.gate import Decision, PermitGate
 from mowerhw.runtime.pipelines import (
     TRACKS,
     BuildRequest,
@@ -150,7 +149,7 @@ class RuntimeCore:
             self.last_arrival["speed"] = sample.t
             self.stream_notes.pop("speed", None)
         else:
-            self.stream_notes["speed"] = (sample.t, invalid_detail(sample))
+            self.stream_notes["speed"] = (sample.t, sample.invalid_detail())
         self.counts["speed" if sample.valid else "speed_invalid"] += 1
         self.buffer.push(Stream.SPEED, sample)
 
@@ -303,7 +302,7 @@ class RuntimeCore:
         if self.fault and pipe.localizer.localized:
             log.info("fault cleared: localized again after the estimator restart")
             self.fault = ""
-        containment = pipe.containment(now)
+        containment = pipe.containment()
         self._good_pose_count += 1
         if self._good_pose_count % 10 == 0:
             self._last_good_pose = pipe.last_good_pose() or self._last_good_pose

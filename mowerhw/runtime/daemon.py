@@ -35,11 +35,11 @@ from mowerhw.common.samples import FrameSample, ImuSample, SpeedSample
 from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import MapError
+from mowerhw.mow.gate import Decision
 from mowerhw.recording.mcap import Recorder
 from mowerhw.runtime.control import ControlServer
 from mowerhw.runtime.core import MODES, RuntimeCore
 from mowerhw.runtime.devices import CanLink, open_camera, open_imu, open_recorder
-from mowerhw.runtime.gate import Decision
 from mowerhw.runtime.mapfiles import PoseFile, file_stamp, load_checked_map, save_map
 from mowerhw.runtime.pipelines import BuildRequest, MowPipeline, build_pipeline
 from mowerhw.runtime.sdnotify import Notifier

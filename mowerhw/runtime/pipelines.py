@@ -188,13 +188,13 @@ class MowPipeline:
     def frame_tracks(self, tracks: FrameTracks) -> None:
         self.vision.use(tracks)
 
-    def containment(self, now: float) -> ContainmentResult:
+    def containment(self) -> ContainmentResult:
         """The decision for the newest state. Evaluated again only when the estimator has
         changed (a new sample); between samples the gate's staleness check on the host clock
         is what can change the decision."""
         key = self.localizer.version
         if key != self._cont_key or self._cont is None:
-            self._cont = self.localizer.containment(now)
+            self._cont = self.localizer.containment()
             self._cont_key = key
         return self._cont
 

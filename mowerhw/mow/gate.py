@@ -13,8 +13,8 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any
 
+from mowerhw.config import Config, stale_limits_s
 from mowerhw.mow.containment import ContainmentResult, Reason, State
 
 log = logging.getLogger("mowerhw.permit")
@@ -33,18 +33,13 @@ class PermitGate:
     """Every condition for mowing, checked in order; logs each change of decision once."""
 
     @classmethod
-    def from_config(cls, cfg: Any) -> PermitGate:
-        """Staleness limits from the config's sensor sections."""
-        return cls(
-            {
-                "imu": cfg.imu.stale_after_s,
-                "speed": cfg.speed.stale_after_s,
-                "camera": cfg.camera.stale_after_s,
-            }
-        )
+    def from_config(cls, cfg: Config | None, log_changes: bool = True) -> PermitGate:
+        """Staleness limits from the config's sensor sections (defaults without one)."""
+        return cls(stale_limits_s(cfg), log_changes)
 
-    def __init__(self, stale_limits_s: dict[str, float]) -> None:
-        self.stale_limits_s = dict(stale_limits_s)
+    def __init__(self, limits_s: dict[str, float], log_changes: bool = True) -> None:
+        self.stale_limits_s = dict(limits_s)
+        self.log_changes = log_changes
         self.current = Decision(False, State.UNKNOWN, Reason.NOT_MOWING, "starting")
         self.changes = 0
 
@@ -120,6 +115,9 @@ class PermitGate:
     def _log_change(self, d: Decision) -> None:
         prev = self.current
         if d.permit == prev.permit and d.reason == prev.reason:
+            return
+        if not self.log_changes:
+            self.changes += 1
             return
         self.changes += 1
         if d.permit:
