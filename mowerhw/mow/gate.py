@@ -69,6 +69,30 @@ class PermitGate:
             return name, f"{name} silent for {now - last:.3f} s (limit {limit} s){said}"
         return None
 
+    def next_stale_deadline(self, now: float, last_arrival: dict[str, float | None]) -> float:
+        """When the next stream's limit runs out (a shell wakes then, so a silent sensor
+        halts within a millisecond or two of its limit), or ``inf``."""
+        due = math.inf
+        for name, limit in self.stale_limits_s.items():
+            last = last_arrival.get(name)
+            if last is not None and last + limit > now:
+                due = min(due, last + limit)
+        return due
+
+    def revealed_at(
+        self,
+        now: float,
+        stale: tuple[str, str] | None,
+        last_arrival: dict[str, float | None],
+        revealed_at: float | None,
+    ) -> float:
+        """When a halt's cause became known: a silent sensor when its limit ran out, else
+        ``revealed_at`` (the arrival of the input that showed it), else ``now``."""
+        if stale is not None:
+            last = last_arrival.get(stale[0])
+            return last + self.stale_limits_s[stale[0]] if last is not None else now
+        return revealed_at if revealed_at is not None else now
+
     def decide(
         self,
         now: float,

@@ -11,10 +11,8 @@ Every input that can change a decision is written to a :class:`Journal` before i
 and every decision after it is made: replaying the journal through a new core (with the chains
 built at the points the journal says they were installed) gives the same decisions.
 
-Estimator chains take seconds to build, so the core does not build them: it asks for one
-(:class:`BuildRequest`, through ``on_build``) and the shell builds it off the event loop and
-hands it back with :meth:`install`; a replay builds it on the spot when the journal says the
-daemon installed it.
+Chains take seconds to build: the core asks for one (``on_build``), the shell builds it off
+its loop and hands it back (:meth:`install`); a replay builds it where the journal says.
 """
 
 from __future__ import annotations
@@ -24,7 +22,7 @@ import math
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -35,6 +33,8 @@ from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import LawnMap
 from mowerhw.mow.gate import Decision, PermitGate
+from mowerhw.runtime.chains import ChainRequests, resume_localizer
+from mowerhw.runtime.journal import Journal, decision_key
 from mowerhw.runtime.pipelines import (
     TRACKS,
     BuildRequest,
@@ -48,23 +48,9 @@ from mowerhw.runtime.pipelines import (
 log = logging.getLogger("mowerhw.daemon")
 
 MODES = ("idle", "teach", "mow")
-#: good frames a rebuilt or resumed estimator needs before it may permit (4 Hz: 2.5 s)
-REBUILT_FRAMES = 10
-#: how far a resumed pose is widened: after a restart (the pose file is written at 10 Hz and
-#: the mower stops within 0.3 s; σ under a third of the 0.4 m pane spacing of window landmarks,
-#: a wider prior locked onto the neighbouring corners on the bench) and after an estimator
-#: rebuilt within this run (from a pose at most 0.1 s old)
-RESUME_SIGMA_RESTART = (0.12, math.radians(6.0))
-RESUME_SIGMA_REBUILT = (0.05, math.radians(3.0))
 #: localized poses are offered for saving (restarts resume from them) at most this often (s)
 POSE_SAVE_PERIOD_S = 0.1
 FAULT_KINDS = ("nan", "exception")
-
-
-class Journal(Protocol):
-    """Where the core writes its inputs and decisions (a recording, or nothing)."""
-
-    def write(self, kind: str, payload: dict[str, Any]) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -87,7 +73,6 @@ class RuntimeCore:
     ) -> None:
         self.cfg = config
         self.journal = journal
-        self.on_build = on_build
         self.r_bi = quat_to_rotmat(np.asarray(config.imu.q_bi, dtype=np.float64))
         self.buffer = SensorBuffer(capacity={TRACKS: 16})
         self.gate = PermitGate.from_config(config)
@@ -105,9 +90,7 @@ class RuntimeCore:
         self.stream_notes: dict[str, tuple[float, str]] = {}
         self.counts: Counter[str] = Counter()
         self.halt_latencies: list[HaltLatency] = []
-        self._pending: BuildRequest | None = None
-        self._serial = 0
-        self._installed_serial = 0
+        self.chains = ChainRequests(on_build)
         self._inject = ""
         self._last_good_pose: StartPose | None = None
         self._good_pose_count = 0
@@ -164,13 +147,13 @@ class RuntimeCore:
         wanted now."""
         if self.pipeline is None or (self.mode == "teach" and self.teach_state != "recording"):
             return None
-        return self._installed_serial, self.pipeline
+        return self.chains.installed_serial, self.pipeline
 
     def tracks(self, serial: int, tracks: FrameTracks) -> None:
         """The front end's tracks of a frame, made for the chain ``serial`` (dropped if that
         chain has been replaced meanwhile)."""
         self._log("tracks", serial=serial, tracks=tracks)
-        if self.pipeline is None or serial != self._installed_serial:
+        if self.pipeline is None or serial != self.chains.installed_serial:
             return
         self.buffer.push(TRACKS, tracks)
         if isinstance(self.pipeline, MowPipeline):
@@ -209,55 +192,26 @@ class RuntimeCore:
         self.buffer.pop_ready()
         self.pipeline = None
         if self.mode == "mow" and self.map is not None:
-            self._request("mow", self.map, self._last_good_pose)
+            self.chains.request("mow", self.map, self._last_good_pose)
         elif self.mode == "teach":
             log.error("teach: the recording so far is lost; drive the loop again")
-            self._request("teach")
-
-    def _request(
-        self,
-        kind: str,
-        lawn_map: LawnMap | None = None,
-        start_pose: StartPose | None = None,
-        resumed: bool = False,
-    ) -> None:
-        self._serial += 1
-        req = BuildRequest(self._serial, kind, lawn_map, start_pose, resumed)
-        self._pending = req
-        if self.on_build is not None:
-            self.on_build(req)
+            self.chains.request("teach")
 
     def install(self, serial: int, pipe: Pipeline) -> bool:
         """Use the chain built for request ``serial``, unless a newer request (a mode or map
         change, another fault) came since. True if it was installed."""
         self._log("install", serial=serial)
-        req = self._pending
-        if req is None or req.serial != serial or req.kind != self.mode:
+        req = self.chains.accept(serial, self.mode)
+        if req is None:
             return False
-        self._pending = None
         if isinstance(pipe, MowPipeline) and req.start_pose is not None:
-            self._resume(pipe, req.start_pose, req.resumed)
+            resume_localizer(pipe, req.start_pose, req.resumed)
         self.buffer.pop_ready()
         self.pipeline = pipe
-        self._installed_serial = serial
         if req.kind == "teach":
             self.teach_state = "recording"
             log.info("teach: recording; hold still for the gyro calibration, then drive the edge")
         return True
-
-    @staticmethod
-    def _resume(pipe: MowPipeline, pose: StartPose, restarted: bool) -> None:
-        """A new localizer resumes from a pose it had, widened; after a restart it calibrates
-        the gyro first (the mower stands), after a rebuild it keeps the bias it had."""
-        sigma = RESUME_SIGMA_RESTART if restarted else RESUME_SIGMA_REBUILT
-        pipe.localizer.resume(
-            pose.position,
-            pose.quaternion,
-            *sigma,
-            gyro_bias=None if restarted else pose.gyro_bias,
-            calibrate=restarted,
-            frames_needed=REBUILT_FRAMES,
-        )
 
     # ---------------------------------------------------------------------- decision
 
@@ -291,11 +245,7 @@ class RuntimeCore:
         )
         self.decision = d
         if was and not d.permit:
-            if stale is not None:  # a silent sensor was revealed when its limit ran out
-                last = self.last_arrival[stale[0]]
-                limit = self.gate.stale_limits_s[stale[0]]
-                revealed_at = (last + limit) if last is not None else now
-            self._revealed_at = revealed_at if revealed_at is not None else now
+            self._revealed_at = self.gate.revealed_at(now, stale, self.last_arrival, revealed_at)
         return d
 
     def _mow_state(self, pipe: MowPipeline, now: float) -> Any:
@@ -330,14 +280,8 @@ class RuntimeCore:
         return pose
 
     def next_deadline(self, now: float) -> float:
-        """When the next sensor's staleness limit runs out (so a silent sensor halts within
-        a millisecond or two of its limit), or ``inf``."""
-        due = math.inf
-        for name, limit in self.gate.stale_limits_s.items():
-            last = self.last_arrival[name]
-            if last is not None and last + limit > now:
-                due = min(due, last + limit)
-        return due
+        """When the next sensor's staleness limit runs out, or ``inf``."""
+        return self.gate.next_stale_deadline(now, self.last_arrival)
 
     # ------------------------------------------------------------------- modes, map
 
@@ -353,13 +297,13 @@ class RuntimeCore:
         self.fault = ""
         self.map_problem = ""
         self.pipeline = None
-        self._pending = None
+        self.chains.cancel()
         self.map = None
         self.mode = mode
         log.info("mode %s", mode)
         if mode == "teach":
             self.teach_state = "starting"
-            self._request("teach")
+            self.chains.request("teach")
         return ""
 
     def map_loaded(self, lawn_map: LawnMap, saved_pose: StartPose | None = None) -> None:
@@ -370,7 +314,7 @@ class RuntimeCore:
             return
         self.map = lawn_map
         self.map_problem = ""
-        self._request("mow", lawn_map, saved_pose, resumed=saved_pose is not None)
+        self.chains.request("mow", lawn_map, saved_pose, resumed=saved_pose is not None)
 
     def map_invalid(self, problem: str) -> None:
         """The map file is unusable: halt MAP_INVALID naming the problem (the estimator keeps
@@ -385,12 +329,12 @@ class RuntimeCore:
         self.map_problem = ""
         if old is not None and lawn_map.checksum == old.checksum:
             log.info("map file valid again, same map (checksum %s)", old.checksum[:19])
-            if self.pipeline is None and self._pending is None:
-                self._request("mow", old, self._last_good_pose)
+            if self.pipeline is None and self.chains.pending is None:
+                self.chains.request("mow", old, self._last_good_pose)
             return
         self.map, self.pipeline = lawn_map, None
         log.info("new map loaded: %d landmarks", len(lawn_map.landmarks))
-        self._request("mow", lawn_map, self._last_good_pose)
+        self.chains.request("mow", lawn_map, self._last_good_pose)
 
     def inject(self, kind: str) -> str:
         """Fault injection (the shell checks ``runtime.fault_injection``): ``""`` or why not."""
@@ -447,33 +391,6 @@ class RuntimeCore:
             return x, y, h
         return math.nan, math.nan, math.nan
 
-    def status(self, now: float) -> dict[str, Any]:
-        d = self.decision
-        pipe = self.pipeline
-        out: dict[str, Any] = {
-            "mode": self.mode,
-            "permit": d.permit,
-            "state": str(d.state),
-            "reason": d.reason,
-            "detail": d.detail,
-            "signed_distance_m": None if math.isnan(d.signed_distance_m) else d.signed_distance_m,
-            "sensor_age_s": {
-                k: (None if v is None else round(now - v, 4)) for k, v in self.last_arrival.items()
-            },
-            "counts": dict(self.counts),
-            "map_problem": self.map_problem,
-            "fault": self.fault,
-            "teach": {"state": self.teach_state, **self.last_teach},
-            "halt_latencies": [vars(h) for h in self.halt_latencies[-200:]],
-        }
-        if isinstance(pipe, MowPipeline):
-            t, x, y, h, sig = pipe.pose()
-            out["pose"] = {"t": t, "x": x, "y": y, "heading": h, "sigma_xy_m": sig}
-            out["localizer"] = pipe.status()
-        elif isinstance(pipe, TeachPipeline):
-            out["teach"].update(pipe.status())
-        return out
-
     def status_line(self) -> str:
         d = self.decision
         if self.mode == "teach":
@@ -481,8 +398,3 @@ class RuntimeCore:
         if d.permit:
             return f"{self.mode}: {d.state}, mowing permitted"
         return f"{self.mode}: {d.state}, halted ({d.reason})"
-
-
-def decision_key(d: Decision) -> list[Any]:
-    """What a decision is, for comparing a replay with the live run."""
-    return [bool(d.permit), str(d.state), d.reason]

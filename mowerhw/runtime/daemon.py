@@ -7,8 +7,7 @@ Everything that decides lives in the core; this module moves data between it and
   decision goes out on CAN — a halt leaves within the IMU period of the sample revealing it;
 * camera frames wait in a one-slot queue (the oldest is dropped); the front end tracks one
   frame at a time on a worker thread and its tracks go back into the core;
-* estimator chains are built off the loop when the core asks for one (mode change, estimator
-  fault, new map) and handed back to it;
+* estimator chains are built off the loop when the core asks for one;
 * a ticker (at the next staleness deadline or CAN frame due, at least every 20 ms) decides,
   sends the periodic ISB / heartbeat / status frames, watches the map file, finishes a taught
   loop, pings systemd's watchdog — from the loop, so a hung loop stops the pings.
@@ -28,20 +27,32 @@ from pathlib import Path
 from typing import Any
 
 from drivers.camera.base import CameraSource, asyncio_sink
-from drivers.can.permit import Status
 from drivers.imu.vn100 import Vn100
 from mowerhw.camera import load_camchain
 from mowerhw.common.samples import FrameSample, ImuSample, SpeedSample
 from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
-from mowerhw.map import MapError
 from mowerhw.mow.gate import Decision
 from mowerhw.recording.mcap import Recorder
+from mowerhw.runtime.commands import core_status, handle_command
 from mowerhw.runtime.control import ControlServer
 from mowerhw.runtime.core import MODES, RuntimeCore
-from mowerhw.runtime.devices import CanLink, open_camera, open_imu, open_recorder
-from mowerhw.runtime.mapfiles import PoseFile, file_stamp, load_checked_map, save_map
-from mowerhw.runtime.pipelines import BuildRequest, MowPipeline, build_pipeline
+from mowerhw.runtime.devices import (
+    CanLink,
+    device_status,
+    open_camera,
+    open_imu,
+    open_recorder,
+    record_estimate,
+)
+from mowerhw.runtime.mapfiles import (
+    MapFile,
+    PoseFile,
+    save_map,
+    teach_to_map_file,
+)
+from mowerhw.runtime.pipelines import BuildRequest, build_pipeline
+from mowerhw.runtime.process import LoopLag
 from mowerhw.runtime.sdnotify import Notifier
 
 log = logging.getLogger("mowerhw.daemon")
@@ -76,11 +87,12 @@ class Daemon:
         self.core = RuntimeCore(config, on_build=self._on_build)
         self.notifier = Notifier()
         self.pose_file = PoseFile(Path(config.runtime.pose_file))
+        self.map_file = MapFile(Path(config.map.path))
         self.loop: asyncio.AbstractEventLoop | None = None
         self.can: CanLink | None = None
         self.imu_dev: Vn100 | None = None
         self.camera: CameraSource | None = None
-        self.loop_lag_ms: list[float] = []  # how late the ticker woke (the loop was busy)
+        self.loop_lag = LoopLag()
         self._frames: asyncio.Queue[FrameSample] | None = None
         self._stop_event: asyncio.Event | None = None
         self._frontend_pool = ThreadPoolExecutor(1, thread_name_prefix="frontend")
@@ -89,12 +101,8 @@ class Daemon:
         self._pose_future: Future[None] | None = None
         self._builds: dict[int, asyncio.Future[Any]] = {}
         self._tasks: set[asyncio.Future[Any]] = set()
-        self._map_stat: tuple[int, int, int] | None = None
-        self._map_reloading = False
         self._next_map_check = 0.0
-        self._next_watchdog = 0.0
         self._next_record = 0.0
-        self._sd_status = ""
         self._started = time.monotonic()
 
     # ------------------------------------------------------------------------- lifecycle
@@ -242,14 +250,8 @@ class Daemon:
         return d
 
     def _send(self, d: Decision, now: float) -> None:
-        sender = self.can.sender if self.can is not None else None
-        if sender is not None:
-            x, y, h = self.core.pose_xyh()
-            status = Status(d.state, d.permit, d.reason or "NONE", d.signed_distance_m, x, y, h)
-            was = sender.permit
-            sender.set(d.permit, now, status)
-            if was and not d.permit:
-                self.core.halt_sent(time.monotonic())
+        if self.can is not None and self.can.send_decision(d, self.core.pose_xyh(), now):
+            self.core.halt_sent(time.monotonic())
         pose = self.core.take_pose_to_save()
         lawn_map = self.core.map
         idle = self._pose_future is None or self._pose_future.done()  # else skip this one
@@ -269,50 +271,32 @@ class Daemon:
 
     async def _load_map(self) -> None:
         """Load and check the map (halt MAP_INVALID naming the problem)."""
-        path = Path(self.cfg.map.path)
-        loop = asyncio.get_running_loop()
-        self._map_stat = file_stamp(path)
-        try:
-            lawn_map = await loop.run_in_executor(self._work_pool, load_checked_map, path)
-        except MapError as exc:
-            log.error("MAP_INVALID: %s", exc)
-            self.core.map_invalid(str(exc))
+        got = await self.map_file.load(self._work_pool)
+        if isinstance(got, str):
+            self.core.map_invalid(got)
             return
         if self.core.mode != "mow":
             return
+        area = got.lawn_polygon().area
         log.info(
-            "map %s: %d landmarks, %.1f m² to mow",
-            path,
-            len(lawn_map.landmarks),
-            lawn_map.lawn_polygon().area,
+            "map %s: %d landmarks, %.1f m² to mow", self.map_file.path, len(got.landmarks), area
         )
         if self.recorder is not None:
-            self.recorder.attach("map.json", lawn_map.to_bytes())
-        self.core.map_loaded(lawn_map, self.pose_file.load(lawn_map))
+            self.recorder.attach("map.json", got.to_bytes())
+        self.core.map_loaded(got, self.pose_file.load(got))
 
     def _check_map_file(self) -> None:
-        """Mow mode: a map file that changed is reloaded (an edited keep-out zone takes
-        effect; a corrupt file halts with MAP_INVALID until it is fixed)."""
-        path = Path(self.cfg.map.path)
-        st = file_stamp(path)
-        if st == self._map_stat or self._map_reloading:
+        """Mow mode: a map file that changed is reloaded."""
+        if not self.map_file.changed():
             return
-        log.warning("map file %s changed: reloading", path)
-        self._map_stat = st
-        self._map_reloading = True
+        log.warning("map file %s changed: reloading", self.map_file.path)
 
         async def reload() -> None:
-            try:
-                loop = asyncio.get_running_loop()
-                lawn_map = await loop.run_in_executor(self._work_pool, load_checked_map, path)
-            except MapError as exc:
-                log.error("MAP_INVALID: %s", exc)
-                self.core.map_invalid(str(exc))
-                return
-            finally:
-                self._map_reloading = False
-            if self.core.mode == "mow":
-                self.core.map_reloaded(lawn_map)
+            got = await self.map_file.load(self._work_pool)
+            if isinstance(got, str):
+                self.core.map_invalid(got)
+            elif self.core.mode == "mow":
+                self.core.map_reloaded(got)
 
         self._spawn(reload())
 
@@ -322,25 +306,13 @@ class Daemon:
             return {"ok": False, "error": pipe}
         loop = asyncio.get_running_loop()
         path = Path(self.cfg.map.path)
-        t0 = time.monotonic()
         log.info("teach: finishing (loop closure, boundary)")
         try:
-            result, lawn_map = await loop.run_in_executor(self._work_pool, pipe.finish)
-            await loop.run_in_executor(self._work_pool, save_map, lawn_map, path)
+            summary = await loop.run_in_executor(self._work_pool, teach_to_map_file, pipe, path)
         except Exception as exc:
             log.error("teach failed: %s (any previous map is untouched)", exc)
             self.core.end_finish_teach(error=str(exc))
             return {"ok": False, "error": f"teach failed: {exc}"}
-        summary = {
-            "map": str(path),
-            "png": str(path.with_suffix(".png")),
-            "landmarks": len(lawn_map.landmarks),
-            "boundary_points": int(lawn_map.boundary.shape[0]),
-            "area_m2": round(float(lawn_map.lawn_polygon().area), 2),
-            "loop_closure": result.closure.reason,
-            "finish_s": round(time.monotonic() - t0, 3),
-            "checksum": lawn_map.checksum,
-        }
         if self.recorder is not None:
             self.recorder.attach("map.json", path.read_bytes())
         self.core.end_finish_teach(summary=summary)
@@ -355,12 +327,7 @@ class Daemon:
             due = time.monotonic() + wait
             await asyncio.sleep(wait)
             now = time.monotonic()
-            lag = (now - due) * 1e3
-            if lag > 5.0:  # the loop was blocked: keep the evidence (status: loop_lag_ms)
-                self.loop_lag_ms.append(round(lag, 1))
-                del self.loop_lag_ms[:-200]
-                if lag > 50.0:
-                    log.warning("event loop was blocked for %.0f ms", lag)
+            self.loop_lag.woke(due, now)
             assert self.can is not None
             self.can.retry(now)
             self._decide(now)
@@ -368,21 +335,14 @@ class Daemon:
                 self.can.sender.tick(now)
             if self.recorder is not None and now >= self._next_record:
                 self._next_record = now + 0.1
-                self._record_estimate(now)
+                record_estimate(self.recorder, self.core, now)
             if self.core.mode == "mow" and now >= self._next_map_check:
                 self._next_map_check = now + self.cfg.runtime.map_check_period_s
                 self._check_map_file()
             if self.cfg.runtime.auto_finish_teach and self.core.teach_loop_done():
                 log.info("teach: loop detected (stopped back at the start); finishing")
                 self._spawn(self.finish_teach())
-            period = self.notifier.watchdog_period_s
-            if period is not None and now >= self._next_watchdog:
-                self._next_watchdog = now + period
-                self.notifier.watchdog()
-            line = self.core.status_line()
-            if line != self._sd_status:
-                self._sd_status = line
-                self.notifier.status(line)
+            self.notifier.tick(now, self.core.status_line())
 
     def _next_tick_wait(self, now: float) -> float:
         due = min(now + TICK_MAX_S, self.core.next_deadline(now) + 1e-4)
@@ -390,76 +350,28 @@ class Daemon:
             due = min(due, self.can.sender.next_due())
         return max(TICK_MIN_S, due - now)
 
-    def _record_estimate(self, now: float) -> None:
-        rec, pipe, d = self.recorder, self.core.pipeline, self.core.decision
-        if rec is None or not rec.ok or not isinstance(pipe, MowPipeline):
-            return
-        p = pipe.localizer.pose()
-        rec.estimate(
-            int(now * 1e9),
-            self.core.mode,
-            p.position,
-            p.quaternion,
-            p.covariance,
-            str(d.state),
-            d.permit,
-            d.reason,
-            pipe.localizer.sigma_xy(),
-            d.signed_distance_m,
-        )
-
     # --------------------------------------------------------------------------- control
 
     async def handle_command(self, cmd: str, args: dict[str, Any]) -> dict[str, Any]:
-        if cmd == "status":
-            return {"ok": True, **self.status()}
-        if cmd in MODES:
-            return await self.set_mode(cmd)
-        if cmd == "finish-teach":
-            return await self.finish_teach()
-        if cmd == "save-map":
-            return await self._save_map_command(args)
-        if cmd == "fault":
-            if not self.cfg.runtime.fault_injection:
-                return {"ok": False, "error": "fault injection is off (runtime.fault_injection)"}
-            kind = str(args.get("kind") or (args.get("args") or [""])[0])
-            problem = self.core.inject(kind)
-            return {"ok": False, "error": problem} if problem else {"ok": True, "injected": kind}
-        return {"ok": False, "error": f"unknown command {cmd!r}"}
+        return await handle_command(self, cmd, args)
 
-    async def _save_map_command(self, args: dict[str, Any]) -> dict[str, Any]:
-        if self.core.mode == "teach" and self.core.teach_state == "recording":
-            return await self.finish_teach()
-        target = args.get("path") or (args.get("args") or [None])[0]
-        if self.core.map is None:
-            return {"ok": False, "error": "no map loaded (mow mode loads one; teach makes one)"}
-        path = Path(target) if target else Path(self.cfg.map.path)
+    async def save_map(self, path: Path) -> None:
+        assert self.core.map is not None
         loop = asyncio.get_running_loop()
-        try:
-            await loop.run_in_executor(self._work_pool, save_map, self.core.map, path)
-        except (MapError, OSError) as exc:
-            return {"ok": False, "error": str(exc)}
-        return {"ok": True, "map": str(path)}
+        await loop.run_in_executor(self._work_pool, save_map, self.core.map, path)
 
     def status(self) -> dict[str, Any]:
         now = time.monotonic()
-        can = self.can
-        imu = self.imu_dev
         out = {
             "pid": os.getpid(),
             "uptime_s": round(now - self._started, 3),
             "now": now,
-            **self.core.status(now),
+            **core_status(self.core, now),
             "map": str(self.cfg.map.path),
-            "loop_lag_ms_over_5": self.loop_lag_ms[-50:],
-            "imu_driver": vars(imu.stats) if imu else {},
-            "imu_parser": imu.parser.stats.as_dict() if imu else {},
-            "imu_messages": vars(imu.extractor.stats) if imu else {},
-            "speed_reader": vars(can.speed_reader.stats) if can else {},
-            "permit_sender": vars(can.sender.stats) if can and can.sender else {},
-            "recording": self.recorder.status() if self.recorder is not None else None,
+            "loop_lag_ms_over_5": self.loop_lag.lags_ms[-50:],
+            **device_status(self.imu_dev, self.can, self.recorder),
         }
-        out["counts"]["can_open_failures"] = can.open_failures if can else 0
+        out["counts"]["can_open_failures"] = self.can.open_failures if self.can else 0
         out["counts"]["pose_save_errors"] = self.pose_file.errors
         return out
 

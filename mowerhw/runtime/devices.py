@@ -14,13 +14,16 @@ from typing import Any
 from drivers.camera.base import CameraSource
 from drivers.camera.v4l2 import V4l2Camera
 from drivers.can.isobus import open_bus
-from drivers.can.permit import PermitSender
+from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
 from drivers.imu.vn100 import Vn100
 from drivers.threaded import ThreadedDevice
 from mowerhw.common.samples import FrameSample, ImuSample, SpeedSample
 from mowerhw.config import Config
+from mowerhw.mow.gate import Decision
 from mowerhw.recording.mcap import Recorder
+from mowerhw.runtime.core import RuntimeCore
+from mowerhw.runtime.pipelines import MowPipeline
 
 log = logging.getLogger("mowerhw.daemon")
 
@@ -136,6 +139,16 @@ class CanLink(ThreadedDevice):
         log.info("CAN %s %s open, sending as 0x%02X", c.interface, c.channel, c.source_address)
         return True
 
+    def send_decision(self, d: Decision, pose_xyh: tuple[float, float, float], now: float) -> bool:
+        """The permit or halt of a decision, with the status frame; True if it stopped a
+        permit (a halt just went out)."""
+        if self.sender is None:
+            return False
+        status = Status(d.state, d.permit, d.reason or "NONE", d.signed_distance_m, *pose_xyh)
+        was = self.sender.permit
+        self.sender.set(d.permit, now, status)
+        return was and not d.permit
+
     def retry(self, now: float) -> None:
         """Try to open a bus that failed, about once a second."""
         if self.sender is None and self.open_failures and now % 1.0 < 0.02:
@@ -175,3 +188,35 @@ class CanLink(ThreadedDevice):
         if self.bus is not None:
             with contextlib.suppress(Exception):
                 self.bus.shutdown()
+
+
+def record_estimate(rec: Recorder | None, core: RuntimeCore, now: float) -> None:
+    """The mow estimate and the decision into the recording (Foxglove pose + state)."""
+    pipe, d = core.pipeline, core.decision
+    if rec is None or not rec.ok or not isinstance(pipe, MowPipeline):
+        return
+    p = pipe.localizer.pose()
+    rec.estimate(
+        int(now * 1e9),
+        core.mode,
+        p.position,
+        p.quaternion,
+        p.covariance,
+        str(d.state),
+        d.permit,
+        d.reason,
+        pipe.localizer.sigma_xy(),
+        d.signed_distance_m,
+    )
+
+
+def device_status(imu: Vn100 | None, can: CanLink | None, rec: Recorder | None) -> dict[str, Any]:
+    """The devices' counters, for the status command."""
+    return {
+        "imu_driver": vars(imu.stats) if imu else {},
+        "imu_parser": imu.parser.stats.as_dict() if imu else {},
+        "imu_messages": vars(imu.extractor.stats) if imu else {},
+        "speed_reader": vars(can.speed_reader.stats) if can else {},
+        "permit_sender": vars(can.sender.stats) if can and can.sender else {},
+        "recording": rec.status() if rec is not None else None,
+    }

@@ -5,29 +5,33 @@ A record is ``{"seq", "kind", ...payload}``; numbers are written with Python's s
 as its document the first time its checksum appears and by checksum after that. The kinds are
 the :class:`~mowerhw.runtime.core.RuntimeCore` methods that wrote them.
 
-:func:`replay_journal` drives a new core through a journal: every input applied in order, a
-chain built (synchronously) where the journal says the daemon installed one, and every
-decision compared with the one the daemon made.
+:func:`mowerhw.recording.replay.replay_journal` drives a new core through a journal.
 """
 
 from __future__ import annotations
 
 import base64
 import dataclasses
-import hashlib
-from collections.abc import Iterable
-from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from mowerhw.camera import CameraModel
 from mowerhw.common.samples import ImuSample, SpeedSample
-from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import LawnMap, from_document
-from mowerhw.runtime.core import RuntimeCore, decision_key
-from mowerhw.runtime.pipelines import BuildRequest, StartPose, build_pipeline
+from mowerhw.mow.gate import Decision
+from mowerhw.runtime.pipelines import StartPose
+
+
+class Journal(Protocol):
+    """Where the core writes its inputs and decisions (a recording, or nothing)."""
+
+    def write(self, kind: str, payload: dict[str, Any]) -> None: ...
+
+
+def decision_key(d: Decision) -> list[Any]:
+    """What a decision is, for comparing a replay with the live run."""
+    return [bool(d.permit), str(d.state), d.reason]
 
 
 class JournalError(ValueError):
@@ -154,97 +158,3 @@ class JournalDecoder:
             np.asarray(d["quaternion"], dtype=np.float64),
             None if bias is None else np.asarray(bias, dtype=np.float64),
         )
-
-
-@dataclass
-class JournalReplay:
-    """What :func:`replay_journal` found."""
-
-    records: int = 0
-    decisions: int = 0
-    mismatches: int = 0
-    first_mismatch: str = ""
-    permit_decisions: int = 0
-    halts_by_reason: dict[str, int] = field(default_factory=dict)
-    live_sha256: str = ""
-    replay_sha256: str = ""
-    gaps: int = 0  # records missing from the journal (the recorder dropped them)
-
-    def as_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-
-def replay_journal(
-    config: Config, camera: CameraModel, records: Iterable[dict[str, Any]]
-) -> JournalReplay:
-    """Drive a new :class:`RuntimeCore` through ``records`` (see the module doc)."""
-    requests: dict[int, BuildRequest] = {}
-    core = RuntimeCore(config, on_build=lambda r: requests.__setitem__(r.serial, r))
-    dec = JournalDecoder()
-    out = JournalReplay()
-    live, mine = hashlib.sha256(), hashlib.sha256()
-    last_seq = 0
-    prev_permit = False
-    pending: Any = None  # the decision of the newest "imu" record, compared at "imu_out"
-
-    def compare(d: Any, want: list[Any], seq: int) -> None:
-        nonlocal prev_permit
-        got = decision_key(d)
-        live.update(repr(want).encode())
-        mine.update(repr(got).encode())
-        out.decisions += 1
-        out.permit_decisions += int(d.permit)
-        if prev_permit and not d.permit:
-            out.halts_by_reason[d.reason] = out.halts_by_reason.get(d.reason, 0) + 1
-        prev_permit = d.permit
-        if got != want:
-            out.mismatches += 1
-            if not out.first_mismatch:
-                out.first_mismatch = f"record {seq}: live {want}, replay {got}"
-
-    for rec in records:
-        out.records += 1
-        seq = int(rec.get("seq", 0))
-        if seq != last_seq + 1:
-            out.gaps += 1
-        last_seq = seq
-        kind = rec.get("kind")
-        if kind == "imu":
-            pending = core.imu(dec.imu(rec["sample"]), rec["now"])
-        elif kind == "imu_out":
-            if pending is not None:
-                compare(pending, rec["out"], seq)
-            pending = None
-        elif kind == "speed":
-            core.speed(dec.speed(rec["sample"]))
-        elif kind == "camera_frame":
-            core.camera_frame(rec["now"])
-        elif kind == "tracks":
-            core.tracks(int(rec["serial"]), dec.tracks(rec["tracks"]))
-        elif kind == "install":
-            req = requests.get(int(rec["serial"]))
-            if req is not None:
-                core.install(req.serial, build_pipeline(config, camera, req))
-        elif kind == "decide":
-            compare(core.decide(rec["now"], rec["revealed_at"]), rec["out"], seq)
-        elif kind == "set_mode":
-            core.set_mode(rec["mode"])
-        elif kind == "map_loaded":
-            core.map_loaded(dec.lawn_map(rec["map"]), dec.start_pose(rec["saved_pose"]))
-        elif kind == "map_invalid":
-            core.map_invalid(rec["problem"])
-        elif kind == "map_reloaded":
-            core.map_reloaded(dec.lawn_map(rec["map"]))
-        elif kind == "inject":
-            core.inject(rec["fault"])
-        elif kind == "shutdown":
-            core.shutdown()
-        elif kind == "begin_finish_teach":
-            core.begin_finish_teach()
-        elif kind == "end_finish_teach":
-            core.end_finish_teach(rec["error"], rec["summary"])
-        else:
-            raise JournalError(f"journal record {seq}: unknown kind {kind!r}")
-    out.live_sha256 = live.hexdigest()
-    out.replay_sha256 = mine.hexdigest()
-    return out

@@ -3,6 +3,7 @@ saved for a restart to resume from (docs/design.md §8)."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import logging
@@ -10,6 +11,7 @@ import os
 import shutil
 import tempfile
 import time
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +20,7 @@ import numpy as np
 from mowerhw.common.fileio import write_atomic
 from mowerhw.map import LawnMap, MapError
 from mowerhw.map import load as load_map
-from mowerhw.runtime.pipelines import StartPose
+from mowerhw.runtime.pipelines import StartPose, TeachPipeline
 
 log = logging.getLogger("mowerhw.daemon")
 
@@ -35,6 +37,33 @@ def file_stamp(path: Path) -> FileStamp | None:
     except OSError:
         return None
     return (st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+class MapFile:
+    """The map file the daemon mows on: loaded and checked off the event loop, and watched
+    for changes (an edited keep-out takes effect; a corrupt file halts until it is fixed)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self._stamp: FileStamp | None = None
+        self._loading = False
+
+    def changed(self) -> bool:
+        """The file is not the one last loaded (and no load is under way)."""
+        return not self._loading and file_stamp(self.path) != self._stamp
+
+    async def load(self, pool: Executor) -> LawnMap | str:
+        """The checked map, or the problem that makes it unusable (logged as MAP_INVALID)."""
+        self._stamp = file_stamp(self.path)
+        self._loading = True
+        try:
+            loop = asyncio.get_running_loop()
+            return await loop.run_in_executor(pool, load_checked_map, self.path)
+        except MapError as exc:
+            log.error("MAP_INVALID: %s", exc)
+            return str(exc)
+        finally:
+            self._loading = False
 
 
 def load_checked_map(path: Path) -> LawnMap:
@@ -61,6 +90,24 @@ def save_map(lawn_map: LawnMap, path: Path) -> None:
             write_atomic(path.with_suffix(".png"), png.read_bytes())
     except Exception as exc:
         log.warning("map picture not written: %s", exc)
+
+
+def teach_to_map_file(pipe: TeachPipeline, path: Path) -> dict[str, Any]:
+    """Finish a teach drive (loop closure, boundary: seconds of work), save the map, and say
+    what it holds."""
+    t0 = time.monotonic()
+    result, lawn_map = pipe.finish()
+    save_map(lawn_map, path)
+    return {
+        "map": str(path),
+        "png": str(path.with_suffix(".png")),
+        "landmarks": len(lawn_map.landmarks),
+        "boundary_points": int(lawn_map.boundary.shape[0]),
+        "area_m2": round(float(lawn_map.lawn_polygon().area), 2),
+        "loop_closure": result.closure.reason,
+        "finish_s": round(time.monotonic() - t0, 3),
+        "checksum": lawn_map.checksum,
+    }
 
 
 class PoseFile:

@@ -28,3 +28,20 @@ def tune_process() -> None:
             log.warning("garbage collection (generation %d) took %.0f ms", info["generation"], ms)
 
     gc.callbacks.append(gc_watch)
+
+
+class LoopLag:
+    """How late the event loop's ticker woke (the loop was busy): kept for the status,
+    logged when it is long enough to matter."""
+
+    def __init__(self, keep: int = 200) -> None:
+        self.keep = keep
+        self.lags_ms: list[float] = []
+
+    def woke(self, due: float, now: float) -> None:
+        lag = (now - due) * 1e3
+        if lag > 5.0:
+            self.lags_ms.append(round(lag, 1))
+            del self.lags_ms[: -self.keep]
+            if lag > 50.0:
+                log.warning("event loop was blocked for %.0f ms", lag)

@@ -18,6 +18,8 @@ class Notifier:
             addr = "\0" + addr[1:]
         self.address = addr
         self._sock: socket.socket | None = None
+        self._next_watchdog = 0.0
+        self._last_status = ""
         if addr:
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
         usec = os.environ.get("WATCHDOG_USEC", "")
@@ -50,3 +52,14 @@ class Notifier:
 
     def stopping(self) -> bool:
         return self.notify("STOPPING=1")
+
+    def tick(self, now: float, status: str) -> None:
+        """From the event loop's ticker: the watchdog ping when due, STATUS when it changed
+        (a hung loop stops the pings and systemd restarts the service)."""
+        period = self.watchdog_period_s
+        if period is not None and now >= self._next_watchdog:
+            self._next_watchdog = now + period
+            self.watchdog()
+        if status != self._last_status:
+            self._last_status = status
+            self.status(status)

@@ -1,0 +1,87 @@
+"""The control socket's commands (``mowerhw ctl``): what each does to a running daemon, and
+the errors that name what is allowed."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Protocol
+
+from mowerhw.config import Config
+from mowerhw.map import MapError
+from mowerhw.runtime.core import MODES, RuntimeCore
+from mowerhw.runtime.pipelines import MowPipeline, TeachPipeline
+
+
+class Controllable(Protocol):
+    """What the commands need of the daemon."""
+
+    cfg: Config
+    core: RuntimeCore
+
+    async def set_mode(self, mode: str) -> dict[str, Any]: ...
+    async def finish_teach(self) -> dict[str, Any]: ...
+    async def save_map(self, path: Path) -> None: ...
+    def status(self) -> dict[str, Any]: ...
+
+
+async def handle_command(d: Controllable, cmd: str, args: dict[str, Any]) -> dict[str, Any]:
+    """The reply to one command: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``."""
+    if cmd == "status":
+        return {"ok": True, **d.status()}
+    if cmd in MODES:
+        return await d.set_mode(cmd)
+    if cmd == "finish-teach":
+        return await d.finish_teach()
+    if cmd == "save-map":
+        return await _save_map(d, args)
+    if cmd == "fault":
+        if not d.cfg.runtime.fault_injection:
+            return {"ok": False, "error": "fault injection is off (runtime.fault_injection)"}
+        kind = str(args.get("kind") or (args.get("args") or [""])[0])
+        problem = d.core.inject(kind)
+        return {"ok": False, "error": problem} if problem else {"ok": True, "injected": kind}
+    return {"ok": False, "error": f"unknown command {cmd!r}"}
+
+
+async def _save_map(d: Controllable, args: dict[str, Any]) -> dict[str, Any]:
+    if d.core.mode == "teach" and d.core.teach_state == "recording":
+        return await d.finish_teach()
+    target = args.get("path") or (args.get("args") or [None])[0]
+    if d.core.map is None:
+        return {"ok": False, "error": "no map loaded (mow mode loads one; teach makes one)"}
+    path = Path(target) if target else Path(d.cfg.map.path)
+    try:
+        await d.save_map(path)
+    except (MapError, OSError) as exc:
+        return {"ok": False, "error": str(exc)}
+    return {"ok": True, "map": str(path)}
+
+
+def core_status(core: RuntimeCore, now: float) -> dict[str, Any]:
+    """The core's part of the status command."""
+    d = core.decision
+    pipe = core.pipeline
+    out: dict[str, Any] = {
+        "mode": core.mode,
+        "permit": d.permit,
+        "state": str(d.state),
+        "reason": d.reason,
+        "detail": d.detail,
+        "signed_distance_m": None if math.isnan(d.signed_distance_m) else d.signed_distance_m,
+        "sensor_age_s": {
+            k: (None if v is None else round(now - v, 4)) for k, v in core.last_arrival.items()
+        },
+        "counts": dict(core.counts),
+        "map_problem": core.map_problem,
+        "fault": core.fault,
+        "teach": {"state": core.teach_state, **core.last_teach},
+        "halt_latencies": [vars(h) for h in core.halt_latencies[-200:]],
+    }
+    if isinstance(pipe, MowPipeline):
+        t, x, y, h, sig = pipe.pose()
+        out["pose"] = {"t": t, "x": x, "y": y, "heading": h, "sigma_xy_m": sig}
+        out["localizer"] = pipe.status()
+    elif isinstance(pipe, TeachPipeline):
+        out["teach"].update(pipe.status())
+    return out
