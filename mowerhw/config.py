@@ -228,6 +228,11 @@ class CameraConfig:
     stale_after_s: float = opt(1.0, "halt when no frame for this long", gt=0.0, le=30.0)
     pixel_sigma: float = opt(1.0, "feature position noise (px, 1σ)", gt=0.0, le=20.0)
 
+    def body_rotation(self) -> Quat:
+        """``q_bc`` as the config loader resolved it (from the calibration or the config;
+        the default when neither gives one)."""
+        return self.q_bc if self.q_bc is not None else DEFAULT_Q_BC
+
 
 @dataclass(frozen=True)
 class PermitConfig:
@@ -318,6 +323,14 @@ class MotionNoiseConfig:
     )  # speed.contact_point_m, copied at load
     speed_noise: float = opt(2e-3, "ground speed noise density, m/s/√Hz", gt=0.0)
     lateral_noise: float = opt(3e-3, "sideways/vertical slip density, m/s/√Hz", gt=0.0)
+
+    def gyro(self) -> tuple[float, float, float]:
+        """(white noise, bias random walk, yaw-rate scale σ) as the estimators use them: the
+        section must have been through :func:`with_imu_noise`, which fills the nulls."""
+        n, w, k = self.gyro_noise, self.gyro_bias_walk, self.gyro_scale_sigma
+        if n is None or w is None or k is None:
+            raise ValueError("gyro noise not resolved: pass the section through with_imu_noise")
+        return n, w, k
 
 
 @dataclass(frozen=True)

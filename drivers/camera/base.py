@@ -51,7 +51,9 @@ class CameraSource(ThreadedDevice, ABC):
             self.on_frame(frame)
 
 
-def asyncio_sink(loop: asyncio.AbstractEventLoop, queue: asyncio.Queue) -> Callable[[Any], None]:
+def asyncio_sink(
+    loop: asyncio.AbstractEventLoop, queue: asyncio.Queue[Any]
+) -> Callable[[Any], None]:
     """A callback for a reader thread that puts items on an asyncio queue, thread-safely,
     dropping the oldest item when the queue is full (the newest frame matters most)."""
 

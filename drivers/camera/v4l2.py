@@ -61,7 +61,8 @@ class V4l2Camera(CameraSource):
             with contextlib.suppress(Exception):
                 cap.release()
             raise OSError(f"cannot open camera {self.device}")
-        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*_FOURCC[self.pixel_format]))
+        fourcc = cv2.VideoWriter_fourcc(*_FOURCC[self.pixel_format])  # type: ignore[attr-defined]
+        cap.set(cv2.CAP_PROP_FOURCC, fourcc)
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
         cap.set(cv2.CAP_PROP_FPS, self.fps)

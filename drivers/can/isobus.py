@@ -8,6 +8,10 @@ A 29-bit identifier is ``priority<<26 | EDP<<25 | DP<<24 | PF<<16 | PS<<8 | SA``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import can
 
 PGN_GBSD = 65097  # 0xFE49 Ground-based speed and distance
 PGN_CCVS1 = 65265  # 0xFEF1 Cruise control / vehicle speed 1 (wheel-based vehicle speed)
@@ -52,7 +56,7 @@ def parse_id(arbitration_id: int) -> J1939Id:
     return J1939Id(priority, (edp << 17) | (dp << 16) | (pf << 8), sa, ps)
 
 
-def open_bus(interface: str, channel: str, bitrate: int = 250000, **kwargs):
+def open_bus(interface: str, channel: str, bitrate: int = 250000, **kwargs: Any) -> can.BusABC:
     """A python-can bus from config values (``can.interface``, ``can.channel``)."""
     import can
 

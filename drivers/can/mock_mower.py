@@ -15,6 +15,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+import can
+
 from drivers.can.isobus import PGN_HEARTBEAT, PGN_ISB, parse_id
 from drivers.can.permit import HB_ERROR, HB_SHUTDOWN, ISB_PERMIT, Status, decode_isb, decode_status
 from drivers.threaded import ThreadedDevice
@@ -47,7 +49,7 @@ class MockMowerController(ThreadedDevice):
 
     def __init__(
         self,
-        bus,
+        bus: can.BusABC,
         permit_source: int = 0x90,
         timeout_s: float = 0.3,
         status_pgn: int = 0xFF10,

@@ -6,6 +6,8 @@ import threading
 import time
 from collections.abc import Callable
 
+import can
+
 from drivers.can.isobus import PGN_GBSD
 from drivers.can.speed import encode_speed
 from drivers.threaded import ThreadedDevice
@@ -18,7 +20,7 @@ class MockSpeedSensor(ThreadedDevice):
 
     def __init__(
         self,
-        bus,
+        bus: can.BusABC,
         speed_at: Callable[[float], float],
         period_s: float = 0.1,
         source_address: int = 0x80,

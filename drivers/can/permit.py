@@ -22,6 +22,8 @@ import math
 import struct
 from dataclasses import dataclass
 
+import can
+
 from drivers.can.isobus import PGN_HEARTBEAT, PGN_ISB, can_id, parse_id
 
 log = logging.getLogger(__name__)
@@ -136,7 +138,7 @@ class PermitSender:
 
     def __init__(
         self,
-        bus,
+        bus: can.BusABC,
         source_address: int = 0x90,
         status_pgn: int = 0xFF10,
         period_s: float = 0.1,

@@ -158,7 +158,7 @@ class DeltaMessage:
         """The mean angular rate over the interval (rad/s); NaN for an empty interval."""
         if not self.dt > 0:
             return np.full(3, np.nan)
-        return np.radians(self.dtheta_deg) / self.dt
+        return np.asarray(np.radians(self.dtheta_deg) / self.dt, dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -641,15 +641,17 @@ class ImuExtractor:
         )
 
     def _rate(self, name: str, value: Any) -> np.ndarray | None:
+        v = np.asarray(value, dtype=np.float64)
         if name == "Common.Imu":
-            return value[3:6]
+            return v[3:6]
         if name in ("Imu.DeltaTheta", "Common.Deltas"):
-            dt = value[0]
+            dt = v[0]
             if not dt > 0:
                 self.stats.empty_interval += 1
                 return np.full(3, np.nan)
-            return value[1:4] / dt
-        return value
+            rate: np.ndarray = v[1:4] / dt
+            return rate
+        return v
 
 
 def _ascii_header(item: Any) -> str:
@@ -897,9 +899,9 @@ class Vn100(ThreadedDevice):
         try:
             fd = ser.fileno()
         except (AttributeError, OSError, ValueError):  # a port object without a descriptor
-            data = ser.read(1)
+            data = bytes(ser.read(1))
             waiting = ser.in_waiting if data else 0
-            return data + ser.read(min(waiting, 65536)) if waiting else data
+            return data + bytes(ser.read(min(waiting, 65536))) if waiting else data
         ready, _, _ = select.select([fd], [], [], ser.timeout or 0.02)
         if not ready:
             return b""

@@ -330,7 +330,9 @@ def layout(
     return total, spans
 
 
-def parse_packet(buf: bytes | bytearray, start: int, total: int, spans: dict) -> BinaryPacket:
+def parse_packet(
+    buf: bytes | bytearray, start: int, total: int, spans: dict[Any, Any]
+) -> BinaryPacket:
     """A :class:`BinaryPacket` from a packet whose layout and CRC were checked."""
     groups = buf[start + 1]
     n = bin(groups).count("1")

@@ -43,7 +43,9 @@ class BodyMotion:
         return cls(dq, quat_to_rotmat(dq), left_jacobian_times(w * dt, v * dt), w, dt)
 
 
-def camera_velocity(speed: float, w: FloatArray, contact_b: FloatArray) -> FloatArray:
+def camera_velocity(
+    speed: float, w: FloatArray, contact_b: FloatArray | tuple[float, float, float]
+) -> FloatArray:
     """Velocity of the body origin (the camera centre) from the ground speed measured at
     ``contact_b`` (the wheels' contact point, body frame) and the body rate: ``v = s x̂ −
     ω × p``. On bumps a camera on a 0.8 m mast swings sideways by ``0.8 m × ω`` — the wheels

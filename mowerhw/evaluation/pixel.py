@@ -228,6 +228,7 @@ def run_teach_pixel(
         landmarks_in_map=len(result.landmarks),
         landmarks_not_fixed_points=len(result.landmarks) - metrics["landmarks_mapped"],
         reidentifications=len(vision.reidentifications),
+        reidentifications_judged=len(known),
         association_precision=round(float(np.mean(known)), 4) if known else None,
         render_wall_s=round(wall_render, 3),
         **frontend_figures(vision),

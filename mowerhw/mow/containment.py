@@ -20,6 +20,7 @@ violation (``m < −hard_margin``) halts at once. Every halt carries a reason.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -79,7 +80,9 @@ class LawnGeometry:
     #: the band along the edges where "inward" points at the area shrunk by it (m)
     INWARD_BAND_M = 0.5
 
-    def __init__(self, outline: FloatArray, keepouts: list[tuple[str, FloatArray]] = ()) -> None:
+    def __init__(
+        self, outline: FloatArray, keepouts: Sequence[tuple[str, FloatArray]] = ()
+    ) -> None:
         poly = orient(Polygon(outline), 1.0)
         if not poly.is_valid or poly.area <= 0:
             raise ValueError("the lawn outline is not a simple polygon with an area")
@@ -103,7 +106,8 @@ class LawnGeometry:
     def signed_distances(self, xy: FloatArray) -> FloatArray:
         pts = shapely.points(xy)
         d = shapely.distance(self.edges, pts)
-        return np.where(shapely.contains_xy(self.area, xy[:, 0], xy[:, 1]), d, -d)
+        signed: FloatArray = np.where(shapely.contains_xy(self.area, xy[:, 0], xy[:, 1]), d, -d)
+        return signed
 
     def keepout_at(self, x: float, y: float) -> str | None:
         for name, zone in self.keepouts:
@@ -126,11 +130,11 @@ class LawnGeometry:
                 return v / n
         near = shapely.ops.nearest_points(self.edges, p)[0]
         v = np.array([x - near.x, y - near.y])
-        n = np.linalg.norm(v)
+        n = float(np.linalg.norm(v))
         if n < 1e-9:  # on the edge: towards the area's representative point
             c = self.area.representative_point()
-            v, n = np.array([c.x - x, c.y - y]), 1.0
-            n = np.linalg.norm(v)
+            v = np.array([c.x - x, c.y - y])
+            n = float(np.linalg.norm(v))
         inside = shapely.contains_xy(self.area, x, y)
         return v / n if inside else -v / n
 
@@ -198,7 +202,9 @@ class Containment:
         self.last = ContainmentResult(state, True, s, sigma, "", "", t)
         return self.last
 
-    def _outside(self, t: float, x: float, y: float, s: float, sigma: float, why: str):
+    def _outside(
+        self, t: float, x: float, y: float, s: float, sigma: float, why: str
+    ) -> ContainmentResult:
         zone = self.geometry.keepout_at(x, y) if self.geometry.keepouts else None
         where = f"inside keep-out {zone!r}" if zone else "outside the boundary"
         detail = f"{where} by {max(-s, 0.0):.2f} m (σ {sigma:.2f} m); {why}"

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 from mowerhw.config import Config, stale_limits_s
 from mowerhw.mow.containment import ContainmentResult, Reason, State
@@ -102,7 +103,7 @@ class PermitGate:
         map_problem: str = "",
         fault: str = "",
         shutting_down: bool = False,
-        stale: tuple[str, str] | bool | None = False,
+        stale: tuple[str, str] | Literal[False] | None = False,
     ) -> Decision:
         """``stale``: the caller's own :meth:`stale` result for this ``now``, if it has one
         (False: work it out here)."""

@@ -135,9 +135,8 @@ class Localizer:
             self.map.boundary, [(z.name, z.polygon) for z in self.map.keepouts]
         )
         self._containment = Containment(self.geometry, ccfg)
-        noise = LocalizerNoise(
-            c.gyro_noise, c.gyro_bias_walk, c.speed_noise, c.lateral_noise, c.gyro_scale_sigma
-        )
+        g_noise, g_walk, g_scale = c.gyro()
+        noise = LocalizerNoise(g_noise, g_walk, c.speed_noise, c.lateral_noise, g_scale)
         self.ekf = WorldPoseEKF(noise, self.map.landmark_covariances(), c.gate_probability)
         # the gyro's yaw-rate scale error as teaching found it (the same unit, most likely)
         taught_k = self.map.teach.get("gyro_yaw_scale_error") if self.map.teach else None
@@ -335,10 +334,11 @@ class Localizer:
         if self._gyro_n < 20:
             return
         bias = self._gyro_sum / self._gyro_n
-        var = self.cfg.gyro_noise**2 * 100 / self._gyro_n
+        var = self.cfg.gyro()[0] ** 2 * 100 / self._gyro_n
         # The bias is set out of band: every stored state gets it too, or a late frame from
         # before this moment would restore the uncalibrated bias.
-        for state in [self.ekf, *(st.state for st in self._history)]:
+        states: list[Any] = [self.ekf, *(st.state for st in self._history)]
+        for state in states:
             state.bg = bias.copy()
             state.P[6:9, :] = 0.0
             state.P[:, 6:9] = 0.0

@@ -141,4 +141,5 @@ def request(path: str | Path, cmd: str, timeout: float = 5.0, **args: Any) -> di
             buf += chunk
     if not buf:
         raise ConnectionError(f"{path}: the daemon closed the connection without a reply")
-    return json.loads(buf)
+    reply: dict[str, Any] = json.loads(buf)
+    return reply

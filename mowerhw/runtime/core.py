@@ -32,6 +32,7 @@ from mowerhw.common.samples import ImuSample, SpeedSample, Stream
 from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import LawnMap
+from mowerhw.mow.containment import ContainmentResult
 from mowerhw.mow.gate import Decision, PermitGate
 from mowerhw.runtime.chains import ChainRequests, resume_localizer
 from mowerhw.runtime.journal import Journal, decision_key
@@ -248,7 +249,7 @@ class RuntimeCore:
             self._revealed_at = self.gate.revealed_at(now, stale, self.last_arrival, revealed_at)
         return d
 
-    def _mow_state(self, pipe: MowPipeline, now: float) -> Any:
+    def _mow_state(self, pipe: MowPipeline, now: float) -> ContainmentResult:
         if self.fault and pipe.localizer.localized:
             log.info("fault cleared: localized again after the estimator restart")
             self.fault = ""

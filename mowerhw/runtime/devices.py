@@ -11,6 +11,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import can
+
 from drivers.camera.base import CameraSource
 from drivers.camera.v4l2 import V4l2Camera
 from drivers.can.isobus import open_bus
@@ -117,7 +119,7 @@ class CanLink(ThreadedDevice):
         self.speed_reader = SpeedReader(
             cfg.speed.source, cfg.speed.sensor_address, cfg.speed.ccvs1_direction
         )
-        self.bus: Any = None
+        self.bus: can.BusABC | None = None
         self.sender: PermitSender | None = None
         self.open_failures = 0
 
@@ -158,9 +160,11 @@ class CanLink(ThreadedDevice):
 
     def _run(self) -> None:
         own = self.cfg.can.source_address
+        bus = self.bus
+        assert bus is not None  # the thread starts once the bus is open
         while not self._stop.is_set():
             try:
-                msg = self.bus.recv(timeout=0.1)
+                msg = bus.recv(timeout=0.1)
             except Exception as exc:  # the bus went away: the gate notices staleness
                 log.warning("CAN receive failed: %s", exc)
                 self._stop.wait(0.5)

@@ -99,7 +99,7 @@ class TeachPipeline:
         self.config = config
         self.teacher = Teacher(config.teach, camera=camera)
         self.vision = TeachVision(
-            self.teacher, camera, config.camera.q_bc, config.frontend, seed=seed
+            self.teacher, camera, config.camera.body_rotation(), config.frontend, seed=seed
         )
         self.lag_s = self.LAG_S
         self._stopped_since: float | None = None
@@ -168,7 +168,7 @@ class MowPipeline:
         self.vision = MowVision(
             self.localizer,
             camera,
-            config.camera.q_bc,
+            config.camera.body_rotation(),
             config.frontend,
             seed=seed,
             pixel_sigma=config.camera.pixel_sigma,

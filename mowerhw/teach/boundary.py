@@ -92,7 +92,7 @@ def close_loop(pts: FloatArray, reach_m: float) -> tuple[FloatArray, float]:
         i, j, point = crossing  # head segment i → i+1 and tail segment j → j+1 cross at point
         return np.vstack([point, pts[i + 1 : j + 1]]), 0.0
     d = np.linalg.norm(pts[head][:, None, :] - pts[tail][None, :, :], axis=-1)
-    i, j = np.unravel_index(int(np.argmin(d)), d.shape)
+    i, j = (int(k) for k in np.unravel_index(int(np.argmin(d)), d.shape))
     start, end = int(head[i]), int(tail[j])
     return pts[start : end + 1], float(d[i, j])
 
@@ -128,4 +128,5 @@ def polygon_of(outline: FloatArray) -> Polygon:
 def outline_distance(a: FloatArray, b: FloatArray) -> FloatArray:
     """Distance from each vertex of outline ``a`` to the outline ``b`` (m)."""
     ring = shapely.LinearRing(b)
-    return shapely.distance(ring, shapely.points(a))
+    dist: FloatArray = shapely.distance(ring, shapely.points(a))
+    return dist

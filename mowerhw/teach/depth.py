@@ -38,7 +38,10 @@ class DepthPseudoMeasurement:
 
 def _angle(a: FloatArray, b: FloatArray) -> FloatArray:
     """Angle between unit vectors (N, 3), accurate near 0 and π."""
-    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("ni,ni->n", a, b))
+    angle: FloatArray = np.arctan2(
+        np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("ni,ni->n", a, b)
+    )
+    return angle
 
 
 def depth_pseudo_measurement(

@@ -180,7 +180,7 @@ class RobotCentricEKF:
             R = R + self._anchor_noise(x_b, r_ja, t_ja, basis, anchor_cov, anchor_p)
         S = np.einsum("nij,jk,nlk->nil", H, self.P, H) + R
         nis = np.einsum("ni,nij,nj->n", res, np.linalg.inv(S), res)
-        ok = nis <= self.gate
+        ok: NDArray[np.bool_] = nis <= self.gate
         self.stats.last_nis = nis
         self.stats.gated += int((~ok).sum())
         self.stats.used += int(ok.sum())
@@ -200,7 +200,15 @@ class RobotCentricEKF:
         self.bg = self.bg + dx[BG]
         return ok
 
-    def _anchor_noise(self, x_b, r_ja, t_ja, basis, anchor_cov, anchor_p) -> FloatArray:
+    def _anchor_noise(
+        self,
+        x_b: FloatArray,
+        r_ja: FloatArray,
+        t_ja: FloatArray,
+        basis: FloatArray,
+        anchor_cov: FloatArray,
+        anchor_p: FloatArray,
+    ) -> FloatArray:
         """Noise from the anchor pose's own uncertainty (anchors taken between keyframes).
 
         With the anchor's EKF error (δp_a, δθ_a): ``ℓ ≈ ℓ̂ + δp_a − [ℓ̂ − p̂_a]× δθ_a``.
@@ -214,7 +222,8 @@ class RobotCentricEKF:
         ja[:, :, :3] = np.eye(3)
         ja[:, :, 3:] = -skew(ell - anchor_p)
         m = np.einsum("nji,njk,nkl->nil", basis, dh, ja)  # (N, 2, 6)
-        return np.einsum("nij,njk,nlk->nil", m, anchor_cov, m)
+        cov: FloatArray = np.einsum("nij,njk,nlk->nil", m, anchor_cov, m)
+        return cov
 
     def update_epipolar(
         self,

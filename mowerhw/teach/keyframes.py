@@ -85,4 +85,5 @@ def landmark_world_covariance(
     j[:, :, :3] = -skew(xw_rel)
     j[:, :, 3:] = np.eye(3)
     pose = np.einsum("nij,jk,nlk->nil", j, cov_pose, j)
-    return pose + np.einsum("ij,njk,lk->nil", r_wb, cov_b, r_wb)
+    cov: FloatArray = pose + np.einsum("ij,njk,lk->nil", r_wb, cov_b, r_wb)
+    return cov

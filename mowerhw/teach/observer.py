@@ -50,7 +50,7 @@ def contraction_rate(d: FloatArray, y: FloatArray, v: FloatArray, w: FloatArray)
     s[:, 0, 1:] = top
     s[:, 1:, 0] = top
     s[:, 1:, 1:] = block + np.swapaxes(block, 1, 2)
-    return np.linalg.eigvalsh(s)[:, -1]
+    return np.asarray(np.linalg.eigvalsh(s)[:, -1], dtype=np.float64)
 
 
 def observer_gain(gamma: float, lam: FloatArray, dt_k: float) -> FloatArray:
@@ -125,7 +125,9 @@ class LandmarkObservers:
         """Approximate covariance of ``x = d y`` (N, 3, 3): σ_d² yyᵀ + d² σ_y² (I − yyᵀ)."""
         yy = np.einsum("ni,nj->nij", self.y, self.y)
         perp = np.eye(3)[None] - yy
-        return self.var_d[:, None, None] * yy + (self.d**2 * self.var_y)[:, None, None] * perp
+        cov: FloatArray = self.var_d[:, None, None] * yy
+        cov += (self.d**2 * self.var_y)[:, None, None] * perp
+        return cov
 
     # -- eq. (2)/(4): propagation ---------------------------------------------------------------
 

@@ -217,7 +217,14 @@ class _Layout:
         return self.lm0 + 3 * i
 
 
-def _scatter(rows_list, cols_list, vals_list, row0, col0, block) -> None:
+def _scatter(
+    rows_list: list[NDArray[np.int64]],
+    cols_list: list[NDArray[np.int64]],
+    vals_list: list[FloatArray],
+    row0: NDArray[np.int64],
+    col0: NDArray[np.int64],
+    block: FloatArray,
+) -> None:
     """Queue a dense (B, r, c) block per item at rows row0[b] + i, cols col0[b] + j."""
     _, r, c = block.shape
     keep = col0 >= 0
@@ -262,13 +269,16 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
         j_rs = np.stack([f.j_rs for f in odo])
         j_ps = np.stack([f.j_ps for f in odo])
     b_w = _whiten(problem.bias_prior_cov[None])[0]
-    walk_w = _whiten(problem.bias_walk_cov) if nseg > 1 else np.zeros((0, 3, 3))
+    walk_cov = problem.bias_walk_cov
+    walk_w = _whiten(walk_cov) if nseg > 1 and walk_cov is not None else np.zeros((0, 3, 3))
     basis = np.swapaxes(tangent_basis(problem.obs_bearing), 1, 2)  # (M, 2, 3)
     fi, li = problem.obs_frame, problem.obs_landmark
     i0 = np.arange(m_odo)
 
-    def residuals(r_wb, t_wb, lms, bias, scale):
-        out = {}
+    def residuals(
+        r_wb: FloatArray, t_wb: FloatArray, lms: FloatArray, bias: FloatArray, scale: float
+    ) -> dict[str, FloatArray]:
+        out: dict[str, FloatArray] = {}
         if m_odo:
             db = bias[seg] - problem.bias0  # (K−1, 3)
             pred_r = dR @ rotmat_exp(np.einsum("nij,nj->ni", j_rb, db) + j_rs * scale)
@@ -297,7 +307,7 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
     def huber(norm: FloatArray, k: float) -> FloatArray:
         return np.where(norm <= k, 0.5 * norm**2, k * norm - 0.5 * k**2)
 
-    def cost_of(parts) -> float:
+    def cost_of(parts: dict[str, FloatArray]) -> float:
         nb = np.linalg.norm(parts["b"], axis=1)
         no = np.linalg.norm(parts["odo"], axis=1)
         quad = np.sum(parts["prior"] ** 2) + np.sum(parts["walk"] ** 2) + parts["scale"][0] ** 2
@@ -311,7 +321,10 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
     it = 0
     a = None
     for it in range(1, iterations + 1):  # noqa: B007
-        rows, cols, vals, res_all = [], [], [], []
+        rows: list[NDArray[np.int64]] = []
+        cols: list[NDArray[np.int64]] = []
+        vals: list[FloatArray] = []
+        res_all: list[FloatArray] = []
         row = 0
         if m_odo:  # odometry blocks, 6 rows each
             r_th = parts["th"]
@@ -411,7 +424,15 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
     )
 
 
-def _apply(step, r_wb, t_wb, lms, bias, scale, lay: _Layout):
+def _apply(
+    step: FloatArray,
+    r_wb: FloatArray,
+    t_wb: FloatArray,
+    lms: FloatArray,
+    bias: FloatArray,
+    scale: float,
+    lay: _Layout,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, float]:
     r_new = r_wb.copy()
     t_new = t_wb.copy()
     if lay.k > 1:

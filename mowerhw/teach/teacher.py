@@ -25,12 +25,14 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from mowerhw.camera import CameraModel
 from mowerhw.common.geometry import (
     IDENTITY_QUAT,
     quat_conjugate,
@@ -65,7 +67,8 @@ def _anchor_pose_variance(anchor_cov: FloatArray, depth: FloatArray) -> FloatArr
     the landmark's distance."""
     rot = np.trace(anchor_cov[:, 3:, 3:], axis1=1, axis2=2) / 3.0
     pos = np.trace(anchor_cov[:, :3, :3], axis1=1, axis2=2) / 3.0
-    return rot + pos / np.maximum(depth, 0.1) ** 2
+    var: FloatArray = rot + pos / np.maximum(depth, 0.1) ** 2
+    return var
 
 
 def _landmark_rms(problem: Any, r_wb: FloatArray, t_wb: FloatArray, lms: FloatArray) -> FloatArray:
@@ -176,11 +179,14 @@ class _Growable:
 
 
 def _teach_config(config: Config | TeachConfig | None) -> TeachConfig:
+    section: TeachConfig
     if config is None:
-        return with_imu_noise(TeachConfig())
-    if isinstance(config, Config):
-        return with_imu_noise(config.teach, config.imu)
-    return with_imu_noise(config)
+        section = with_imu_noise(TeachConfig())
+    elif isinstance(config, Config):
+        section = with_imu_noise(config.teach, config.imu)
+    else:
+        section = with_imu_noise(config)
+    return section
 
 
 class Teacher:
@@ -201,8 +207,8 @@ class Teacher:
     def __init__(
         self,
         config: Config | TeachConfig | None = None,
-        camera: Any = None,
-        on_frame: Any = None,
+        camera: CameraModel | None = None,
+        on_frame: Callable[[Teacher, float, Any], None] | None = None,
     ) -> None:
         """``camera`` (optional) is stored in the map; ``on_frame(teacher, t, depth)`` is called
         after every camera frame while driving (plots and diagnostics use it)."""
@@ -216,8 +222,8 @@ class Teacher:
         )
         self.ekf = RobotCentricEKF(
             EkfNoise(
-                gyro=c.gyro_noise,
-                gyro_bias_walk=c.gyro_bias_walk,
+                gyro=c.gyro()[0],
+                gyro_bias_walk=c.gyro()[1],
                 speed=c.speed_noise,
                 lateral=c.lateral_noise,
             )
@@ -243,7 +249,9 @@ class Teacher:
         # (Δt, gyro xyz, speed), and every frame with the filter's pose at it.
         self._imu_log: list[tuple[float, ...]] = []  # Δt, gyro xyz, speed, interval end
         self._speeds = SpeedTrack()
-        self._frames: list[tuple] = []  # (t, ids, bearings, t_wb, q_wb, imu_log_index)
+        # (t, ids, bearings, t_wb, q_wb, imu_log_index)
+        self._frames: list[tuple[float, NDArray[np.int64], FloatArray, FloatArray, FloatArray, int]]
+        self._frames = []
         self._still_obs: dict[int, tuple[FloatArray, float]] = {}  # averaged standstill bearings
         self._still_t = 0.0
         self._bias_at_start = np.zeros(3)
@@ -300,9 +308,9 @@ class Teacher:
                 self._record()
             self._start_driving()
 
-    def bearings(self, t: float, ids: ArrayLike, unit_xyz: ArrayLike) -> None:
+    def bearings(self, t: float, landmark_ids: ArrayLike, unit_xyz: ArrayLike) -> None:
         """Unit bearings (body frame) of the landmarks seen in one frame."""
-        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        ids: NDArray[np.int64] = np.asarray(landmark_ids, dtype=np.int64).reshape(-1)
         u = np.asarray(unit_xyz, dtype=np.float64).reshape(-1, 3)
         if ids.size != u.shape[0]:
             raise ValueError(f"{ids.size} ids but {u.shape[0]} bearings")
@@ -402,6 +410,8 @@ class Teacher:
 
     def _start_driving(self) -> None:
         """End of the standstill: gyro bias, keyframe 0, observers from averaged bearings."""
+        assert self.t_imu is not None  # driving starts on an IMU sample
+        t_start = float(self.t_imu)
         c = self.cfg
         if self._gyro_n >= 10:
             mean = self._gyro_sum / self._gyro_n
@@ -413,9 +423,9 @@ class Teacher:
             self.ekf.set_bias(np.zeros(3), self._bias_var)
         self.standstill_samples = self._gyro_n
         self._bias_at_start = self.ekf.bg.copy()
-        self._still_t = float(self.t_imu)
+        self._still_t = t_start
         self.keyframes.append(
-            Keyframe(0, float(self.t_imu), np.zeros(3), IDENTITY_QUAT.copy(), np.zeros((6, 6)), 0.0)
+            Keyframe(0, t_start, np.zeros(3), IDENTITY_QUAT.copy(), np.zeros((6, 6)), 0.0)
         )
         self.phase = "driving"
         if self._still_bearings:
@@ -423,7 +433,7 @@ class Teacher:
             means = np.array([np.mean(self._still_bearings[i], axis=0) for i in ids.tolist()])
             counts = np.array([len(self._still_bearings[i]) for i in ids.tolist()], float)
             means /= np.linalg.norm(means, axis=1, keepdims=True)
-            self._add_landmarks(ids, means, self.sigma**2 / counts, float(self.t_imu))
+            self._add_landmarks(ids, means, self.sigma**2 / counts, t_start)
             self._set_consider_anchors(self.obs.rows(ids))
             self._still_obs = {
                 int(i): (m, self.sigma**2 / n) for i, m, n in zip(ids, means, counts, strict=True)
@@ -565,7 +575,7 @@ class Teacher:
         if lost.any():
             self._retire(~lost)
 
-    def _depths(self, rows: NDArray[np.int64], u: FloatArray):
+    def _depths(self, rows: NDArray[np.int64], u: FloatArray) -> tuple[Any, FloatArray]:
         """Eq. (3) for ``rows``, with the variance of each pseudo-measurement.
 
         Besides both rays' noise, the relative pose between anchor and now is uncertain:
@@ -683,8 +693,8 @@ class Teacher:
             rms = _landmark_rms(problem, out.r_wb, out.t_wb, out.landmarks)
             bad = _outliers(rms, self.cfg.landmark_residual_factor)
             if bad.any():
-                for j in np.flatnonzero(bad):
-                    landmarks[lm_ids[j]]["rms"] = float("inf")
+                for b in np.flatnonzero(bad).tolist():
+                    landmarks[lm_ids[b]]["rms"] = float("inf")
                 keep = {lid: landmarks[lid] for j, lid in enumerate(lm_ids) if not bad[j]}
                 problem2, lm_ids2, reobserved2 = self._smoother_problem(keep)
                 if problem2 is not None:
@@ -726,18 +736,20 @@ class Teacher:
             residual_rms_rad=out.bearing_rms_rad,
         )
 
-    def _bias_segments(self, frames: list[tuple]) -> dict[str, Any]:
+    def _bias_segments(self, frames: list[tuple[Any, ...]]) -> dict[str, Any]:
         """One gyro bias per ``BIAS_SEGMENT_S`` of driving, tied by the bias random walk."""
         t = np.array([self._still_t] + [f[0] for f in frames])
         seg = np.floor((t[:-1] - t[0]) / self.BIAS_SEGMENT_S).astype(np.int64)
         nseg = int(seg.max(initial=0)) + 1
-        walk_var = max(self.cfg.gyro_bias_walk, 1e-9) ** 2 * self.BIAS_SEGMENT_S
+        walk_var = max(self.cfg.gyro()[1], 1e-9) ** 2 * self.BIAS_SEGMENT_S
         return {
             "bias_segment": seg,
             "bias_walk_cov": np.tile(np.eye(3) * walk_var, (nseg - 1, 1, 1)),
         }
 
-    def _smoother_problem(self, landmarks: dict[int, dict[str, Any]]):
+    def _smoother_problem(
+        self, landmarks: dict[int, dict[str, Any]]
+    ) -> tuple[SmootherProblem | None, list[int], int]:
         """Poses at frames (the filter's), odometry between them, bearings, initial map."""
         c = self.cfg
         frames = self._frames
@@ -768,7 +780,7 @@ class Teacher:
             log_arr,
             bounds,
             bias0,
-            c.gyro_noise,
+            c.gyro()[0],
             c.speed_noise,
             c.lateral_noise,
             contact=np.asarray(c.speed_contact_m, dtype=np.float64),

@@ -8,8 +8,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
+from mowerhw.camera import CameraModel
 from mowerhw.common.geometry import quat_to_rotmat
 from mowerhw.config import FrontendConfig
 from mowerhw.frontend import FrameTracks, FrontEnd, RotationHistory
@@ -52,7 +53,9 @@ def merge_descriptors(
 
 
 class VisionBase:
-    def __init__(self, camera: Any, q_bc: Any, config: FrontendConfig | None, seed: int) -> None:
+    def __init__(
+        self, camera: CameraModel, q_bc: ArrayLike, config: FrontendConfig | None, seed: int
+    ) -> None:
         self.cfg = config or FrontendConfig()
         self.frontend = FrontEnd(camera, q_bc, self.cfg, seed)
         self.camera = camera

@@ -3,17 +3,18 @@
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
+from mowerhw.camera import CameraModel
 from mowerhw.common.geometry import tangent_basis
 from mowerhw.config import FrontendConfig
 from mowerhw.frontend import FrameTracks
 from mowerhw.frontend.association import Candidates, associate
 from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, stack_sets
+from mowerhw.mow.localizer import Localizer
 from mowerhw.vision.base import BAN_S, RAD_PER_PX, VisionBase
 
 FloatArray = NDArray[np.float64]
@@ -24,9 +25,9 @@ class MowVision(VisionBase):
 
     def __init__(
         self,
-        localizer: Any,
-        camera: Any,
-        q_bc: Any = (0.0, 1.0, 0.0, 0.0),
+        localizer: Localizer,
+        camera: CameraModel,
+        q_bc: ArrayLike = (0.0, 1.0, 0.0, 0.0),
         config: FrontendConfig | None = None,
         seed: int = 0,
         pixel_sigma: float = 1.0,

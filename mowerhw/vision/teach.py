@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
+from mowerhw.camera import CameraModel
 from mowerhw.common.geometry import quat_to_rotmat
 from mowerhw.config import FrontendConfig
 from mowerhw.frontend import FrameTracks
 from mowerhw.frontend.association import Candidates, associate, isotropic_candidates
 from mowerhw.frontend.descriptors import stack_sets
+from mowerhw.teach.teacher import Teacher, TeachResult
 from mowerhw.vision.base import VisionBase, merge_descriptors
 
 FloatArray = NDArray[np.float64]
@@ -23,9 +23,9 @@ class TeachVision(VisionBase):
 
     def __init__(
         self,
-        teacher: Any,
-        camera: Any,
-        q_bc: Any = (0.0, 1.0, 0.0, 0.0),
+        teacher: Teacher,
+        camera: CameraModel,
+        q_bc: ArrayLike = (0.0, 1.0, 0.0, 0.0),
         config: FrontendConfig | None = None,
         seed: int = 0,
     ) -> None:
@@ -115,7 +115,7 @@ class TeachVision(VisionBase):
                     self.descriptors.get(i), dd, self.cfg.max_descriptors
                 )
 
-    def annotate(self, result: Any) -> Any:
+    def annotate(self, result: TeachResult) -> TeachResult:
         """Put the descriptors and first keyframes of the mapped landmarks in a TeachResult."""
         result.descriptors = {
             i: self.descriptors[i].tobytes() for i in result.landmarks if i in self.descriptors
