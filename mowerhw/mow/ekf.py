@@ -2,8 +2,9 @@
 
 State: the body's world position ``x = x_b^w``, orientation ``q = q_wb``, the gyro bias and
 the yaw rate's scale error ``k`` (beyond the paper: a MEMS gyro that reads 3 % high turns
-every 180° edge turn into 185°). Error state (10): ``δθ`` (world frame,
-``R_wb = exp([δθ]×) R̂_wb``), ``δx``, ``δb``, ``δk``.
+every 180° edge turn into 185°). Error state (10), in the teach filter's order (position,
+rotation, bias, then the scale): ``δx``, ``δθ`` (world frame, ``R_wb = exp([δθ]×) R̂_wb``),
+``δb``, ``δk``. Only this module indexes it (:data:`X`, :data:`TH`, :data:`BG`, :data:`SC`).
 
 Propagation (eq. 21): ``ẋ = R(q) v``, ``q̇ = ½ q ⊗ (0, ω)`` with ``ω = (ω_m − b)`` and its z
 component times ``1 − k``, ``v = (speed, 0, 0)``; the mean moves by the exact rigid motion of
@@ -44,7 +45,9 @@ from mowerhw.estimation.odometry import BodyMotion
 
 FloatArray = NDArray[np.float64]
 
-TH, X, BG, SC = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 10)
+X, TH, BG, SC = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 10)
+K_ = 9  # the scale error's index
+YAW = 5  # the world-z component of δθ
 N_ERR = 10  # error-state size
 #: the yaw-rate scale error drifts this much per √s (temperature): a little, so it can follow
 SCALE_WALK = 2e-5
@@ -78,10 +81,23 @@ class EkfState:
     pxl: FloatArray = field(repr=False)
     k: float = 0.0  # yaw-rate scale error
 
+    def set_bias(self, bias: FloatArray, var: float) -> None:
+        """The gyro bias known out of band (a standstill calibration), with variance ``var``
+        and no correlation with the rest."""
+        _set_bias(self, bias, var)
+
     def copy(self) -> EkfState:
         return EkfState(
             self.x.copy(), self.q.copy(), self.bg.copy(), self.P.copy(), self.pxl.copy(), self.k
         )
+
+
+def _set_bias(s: EkfState | WorldPoseEKF, bias: FloatArray, var: float) -> None:
+    s.bg = np.asarray(bias, dtype=np.float64).copy()
+    s.P[BG, :] = 0.0
+    s.P[:, BG] = 0.0
+    s.P[BG, BG] = np.eye(3) * var
+    s.pxl[BG, :] = 0.0
 
 
 class WorldPoseEKF:
@@ -167,10 +183,29 @@ class WorldPoseEKF:
         self.P = p
         self.pxl[:] = 0.0
 
+    def set_bias(self, bias: FloatArray, var: float) -> None:
+        """As :meth:`EkfState.set_bias`."""
+        _set_bias(self, bias, var)
+
     def inflate(self, sigma_pos: float, sigma_yaw: float) -> None:
         """Widen the pose uncertainty (recovery from a lock-out)."""
-        self.P[X, X] += np.diag([sigma_pos**2, sigma_pos**2, 0.0])
-        self.P[2, 2] += sigma_yaw**2  # yaw: the world-z component of δθ
+        self.widen(sigma_pos**2, sigma_yaw**2)
+
+    def widen(self, xy_var: float, yaw_var: float) -> None:
+        """Add horizontal position and yaw variance the motion model does not know about."""
+        if xy_var > 0.0:
+            self.P[0:2, 0:2] += np.eye(2) * xy_var
+        if yaw_var > 0.0:
+            self.P[YAW, YAW] += yaw_var
+
+    def pose_covariance(self) -> FloatArray:
+        """(6, 6): position, then rotation (world axes)."""
+        return self.P[:6, :6].copy()
+
+    def sigma_xy(self) -> float:
+        """Largest standard deviation of the horizontal position (m)."""
+        w = np.linalg.eigvalsh(self.P[0:2, 0:2])
+        return float(np.sqrt(max(float(w[-1]), 0.0)))
 
     @property
     def R(self) -> FloatArray:
@@ -196,13 +231,13 @@ class WorldPoseEKF:
         dt = m.dt
         phi = np.eye(N_ERR)
         phi[TH, BG] = -r_new * dt
-        phi[TH, 9] = -r_new[:, 2] * (m.w[2] * dt)  # the yaw rate's scale error
+        phi[TH, K_] = -r_new[:, 2] * (m.w[2] * dt)  # the yaw rate's scale error
         phi[X, TH] = -skew(disp_w)
         q = np.zeros((N_ERR, N_ERR))
         q[TH, TH] = np.eye(3) * (self.noise.gyro**2 * dt)
         q[X, X] = (r * self._qv) @ r.T * dt
         q[BG, BG] = np.eye(3) * (self.noise.gyro_bias_walk**2 * dt)
-        q[9, 9] = SCALE_WALK**2 * dt
+        q[K_, K_] = SCALE_WALK**2 * dt
         self.P = phi @ self.P @ phi.T + q
         if self.pxl.shape[1]:
             self.pxl = phi @ self.pxl
@@ -251,7 +286,7 @@ class WorldPoseEKF:
         self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
         self.x = self.x + dx[X]
         self.bg = self.bg + dx[BG]
-        self.k = self.k + float(dx[9])
+        self.k = self.k + float(dx[K_])
         return out
 
 

@@ -337,13 +337,9 @@ class Localizer:
         var = self.cfg.gyro()[0] ** 2 * 100 / self._gyro_n
         # The bias is set out of band: every stored state gets it too, or a late frame from
         # before this moment would restore the uncalibrated bias.
-        states: list[Any] = [self.ekf, *(st.state for st in self._history)]
-        for state in states:
-            state.bg = bias.copy()
-            state.P[6:9, :] = 0.0
-            state.P[:, 6:9] = 0.0
-            state.P[6:9, 6:9] = np.eye(3) * var
-            state.pxl[6:9, :] = 0.0
+        self.ekf.set_bias(bias, var)
+        for st in self._history:
+            st.state.set_bias(bias, var)
 
     def _remember(
         self,
@@ -417,11 +413,7 @@ class Localizer:
     def _widen(self, widen: tuple[float, float]) -> None:
         """Add uncertainty the motion model does not know about (kept in the history, so a
         late frame's re-propagation applies it again)."""
-        pos_var, yaw_var = widen
-        if pos_var > 0.0:
-            self.ekf.P[3:5, 3:5] += np.eye(2) * pos_var
-        if yaw_var > 0.0:
-            self.ekf.P[2, 2] += yaw_var
+        self.ekf.widen(*widen)
 
     def _late_frame(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
         """Apply a frame at its own time and re-propagate the IMU samples since (exact)."""
@@ -563,14 +555,8 @@ class Localizer:
 
     def pose(self) -> Pose:
         """The newest estimate: t, position, q_wb, covariance (position then rotation)."""
-        p = self.ekf.P
-        cov = np.zeros((6, 6))
-        cov[:3, :3] = p[3:6, 3:6]
-        cov[3:, 3:] = p[0:3, 0:3]
-        cov[:3, 3:] = p[3:6, 0:3]
-        cov[3:, :3] = p[0:3, 3:6]
         t = self.t_imu if self.t_imu is not None else float("nan")
-        return Pose(t, self.ekf.x.copy(), self.ekf.q.copy(), cov)
+        return Pose(t, self.ekf.x.copy(), self.ekf.q.copy(), self.ekf.pose_covariance())
 
     def require_frames(self, n: int, why: str = "since a restart") -> None:
         """Not localized again until ``n`` good frames from now (after a discontinuity: an
@@ -586,8 +572,7 @@ class Localizer:
 
     def sigma_xy(self) -> float:
         """Largest standard deviation of the horizontal position (m)."""
-        w = np.linalg.eigvalsh(self.ekf.P[3:5, 3:5])
-        return float(math.sqrt(max(w[-1], 0.0)))
+        return self.ekf.sigma_xy()
 
     def containment(self) -> ContainmentResult:
         """The containment decision for the newest estimate. Whether the sensors are fresh is
