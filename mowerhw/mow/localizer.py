@@ -44,6 +44,7 @@ from mowerhw.common.geometry import rotmat_to_quat
 from mowerhw.config import Config, ContainmentConfig, MowConfig, stale_limits_s, with_imu_noise
 from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.estimation.posefit import fit_pose_to_bearings
+from mowerhw.estimation.standstill import StandstillCalibrator
 from mowerhw.map import LawnMap
 from mowerhw.map import load as load_map
 from mowerhw.mow.containment import (
@@ -114,8 +115,6 @@ def _configs(config: Any) -> tuple[MowConfig, ContainmentConfig, dict[str, float
 class Localizer:
     """World-centric localization against a lawn map, and the containment decision."""
 
-    #: a still gyro beyond this (rad/s) from its running mean ends the start calibration
-    CALIBRATION_ROTATION = 0.05
     #: below this position σ (m) the filter trusts many agreeing landmarks over a majority
     CONFIDENT_SIGMA_M = 0.1
 
@@ -156,8 +155,7 @@ class Localizer:
         self._lost_inflated = False
         self._frames_needed = 0  # more than localized_after_frames after an IMU gap
         self._w_last = np.zeros(3)
-        self._gyro_sum = np.zeros(3)
-        self._gyro_n = 0
+        self._standstill = StandstillCalibrator()
         self._resets = 0
         self._injected = 0
         self._since = "since start"
@@ -212,6 +210,8 @@ class Localizer:
         if gyro_bias is not None:
             self.ekf.bg = np.asarray(gyro_bias, dtype=np.float64).reshape(3).copy()
         self.calibrating = calibrate
+        if calibrate:
+            self._standstill = StandstillCalibrator()
         self.require_frames(frames_needed)
 
     def inject_fault(self) -> None:
@@ -263,8 +263,8 @@ class Localizer:
             return
         if t <= self.t_imu:
             return
-        if self.calibrating:
-            self._calibrate(gyro)
+        if self.calibrating and not self._standstill.add(gyro):
+            self._end_calibration()  # it is turning: not a standstill any more
         if self.calibrating:  # standing still at the start: hold the pose, learn the bias
             self._remember(self.t_imu, float(t), gyro, 0.0, held=True)
             self.t_imu = float(t)
@@ -318,23 +318,15 @@ class Localizer:
 
     # ------------------------------------------------------------------------- internals
 
-    def _calibrate(self, gyro: FloatArray) -> None:
-        if self._gyro_n >= 20:
-            mean = self._gyro_sum / self._gyro_n
-            if np.linalg.norm(gyro - mean) > self.CALIBRATION_ROTATION:
-                self._end_calibration()  # it is turning: not a standstill any more
-                return
-        self._gyro_sum += gyro
-        self._gyro_n += 1
-
     def _end_calibration(self) -> None:
         if not self.calibrating:
             return
         self.calibrating = False
-        if self._gyro_n < 20:
+        self._standstill.stop()
+        if not self._standstill.calibrated:
             return
-        bias = self._gyro_sum / self._gyro_n
-        var = self.cfg.gyro()[0] ** 2 * 100 / self._gyro_n
+        bias = self._standstill.bias()
+        var = self.cfg.gyro()[0] ** 2 * 100 / self._standstill.n
         # The bias is set out of band: every stored state gets it too, or a late frame from
         # before this moment would restore the uncalibrated bias.
         self.ekf.set_bias(bias, var)
@@ -549,8 +541,8 @@ class Localizer:
     def corrected_rate(self, gyro: FloatArray) -> FloatArray:
         """A gyro reading's body rate with the filter's bias and yaw-rate scale taken out
         (during the start-up calibration: the mean so far)."""
-        if self.calibrating and self._gyro_n:
-            return np.asarray(gyro, dtype=np.float64) - self._gyro_sum / self._gyro_n
+        if self.calibrating:
+            return self._standstill.corrected(gyro)
         return self.ekf.corrected_rate(gyro)
 
     def pose(self) -> Pose:

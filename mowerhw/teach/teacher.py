@@ -44,6 +44,7 @@ from mowerhw.common.geometry import (
 )
 from mowerhw.config import Config, TeachConfig, with_imu_noise
 from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
+from mowerhw.estimation.standstill import StandstillCalibrator
 from mowerhw.teach.boundary import boundary_from_path
 from mowerhw.teach.depth import depth_pseudo_measurement
 from mowerhw.teach.ekf import EkfNoise, RobotCentricEKF
@@ -236,9 +237,7 @@ class Teacher:
         self.w_last = np.zeros(3)
         self.distance_m = 0.0
         self.keyframes: list[Keyframe] = []
-        self._gyro_sum = np.zeros(3)
-        self._gyro_sq = np.zeros(3)
-        self._gyro_n = 0
+        self._standstill = StandstillCalibrator()
         self._still_bearings: dict[int, list[FloatArray]] = {}
         self._traj = _Growable(10)  # t, x^{bj} (3), q^{bj} (4), distance, keyframe index
         self._row = np.zeros(10)
@@ -282,11 +281,10 @@ class Teacher:
             self._record()
             return
         if self.phase == "standstill":
-            self._gyro_sum += gyro
-            self._gyro_sq += gyro * gyro
-            self._gyro_n += 1
             self.t_imu = float(t)
             self._record()
+            if not self._standstill.add(gyro):  # it turned: the standstill is over
+                self._start_driving()
             return
         if self.phase != "driving" or t <= self.t_imu:  # type: ignore[operator]
             return
@@ -388,8 +386,8 @@ class Teacher:
     def corrected_rate(self, gyro: FloatArray) -> FloatArray:
         """A gyro reading's body rate with the current bias estimate taken out (during the
         start-up standstill: the mean so far)."""
-        if self.phase in ("waiting", "standstill") and self._gyro_n:
-            return np.asarray(gyro, dtype=np.float64) - self._gyro_sum / self._gyro_n
+        if self.phase in ("waiting", "standstill"):
+            return self._standstill.corrected(gyro)
         return np.asarray(gyro, dtype=np.float64) - self.ekf.bg
 
     def world_pose(self) -> tuple[FloatArray, FloatArray]:
@@ -413,15 +411,16 @@ class Teacher:
         assert self.t_imu is not None  # driving starts on an IMU sample
         t_start = float(self.t_imu)
         c = self.cfg
-        if self._gyro_n >= 10:
-            mean = self._gyro_sum / self._gyro_n
-            var = np.maximum(self._gyro_sq / self._gyro_n - mean**2, 1e-12)
-            self._bias_var = float(np.max(var)) / self._gyro_n + 1e-10
+        still = self._standstill
+        still.stop()
+        if still.calibrated:
+            mean = still.bias()
+            self._bias_var = still.bias_variance() + 1e-10
             self.ekf.set_bias(mean, self._bias_var)
         else:
             log.warning("teach: no standstill before driving; gyro bias not calibrated")
             self.ekf.set_bias(np.zeros(3), self._bias_var)
-        self.standstill_samples = self._gyro_n
+        self.standstill_samples = still.n
         self._bias_at_start = self.ekf.bg.copy()
         self._still_t = t_start
         self.keyframes.append(
