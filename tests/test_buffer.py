@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 
 from mowerhw.common.buffer import SensorBuffer, StreamBuffer
 from mowerhw.common.samples import BearingObservation, ImuSample, SpeedSample, Stream
+from mowerhw.estimation.odometry import SpeedTrack
 
 
 def imu(t):
@@ -79,35 +80,18 @@ def test_non_finite_timestamps_are_rejected_and_counted():
     assert buf.pending() == 0
 
 
-def test_speed_interpolated_to_imu_times():
-    buf = SensorBuffer()
+def test_the_speed_model_interpolates_holds_and_never_extrapolates_through_a_stop():
+    track = SpeedTrack()
     for k in range(11):
-        buf.push(Stream.SPEED, speed(0.1 * k, v=0.05 * k))  # 0 → 0.5 m/s over 1 s
+        track.add(0.1 * k, 0.05 * k)  # 0 → 0.5 m/s over 1 s
     t = np.arange(0.0, 1.0, 0.01)
-    v, ok = buf.interpolate_speed(t)
-    assert ok.all()
-    assert np.allclose(v, 0.5 * t, atol=1e-12)
-
-
-def test_speed_is_held_briefly_after_the_newest_sample_then_invalid():
-    buf = SensorBuffer()
-    buf.push(Stream.SPEED, speed(1.0, 0.4))
-    v, ok = buf.interpolate_speed([0.9, 1.0, 1.2, 1.29, 1.31])
-    assert ok.tolist() == [False, True, True, True, False]
-    assert np.allclose(v[1:4], 0.4)
-
-
-def test_invalid_speed_and_long_gaps_are_not_interpolated():
-    buf = SensorBuffer()
-    buf.push(Stream.SPEED, speed(0.0, 0.3))
-    buf.push(Stream.SPEED, speed(0.1, valid=False))  # error / not available
-    buf.push(Stream.SPEED, speed(0.2, 0.3))
-    buf.push(Stream.SPEED, speed(1.0, 0.3))  # 0.8 s gap
-    v, ok = buf.interpolate_speed([0.05, 0.15, 0.2, 0.45, 0.6])
-    # next to the invalid sample: nothing; before the long gap: held for 0.3 s, then nothing
-    assert ok.tolist() == [False, False, True, True, False]
-    assert np.isnan(v[[0, 1, 4]]).all()
-    assert np.allclose(v[[2, 3]], 0.3)
+    assert np.allclose(track.interpolate(t), 0.5 * t, atol=1e-12)
+    assert track.at(1.05) == pytest.approx(0.525)  # first-order hold, a little ahead
+    assert track.at(1.5) == 0.5  # too far ahead: the newest value
+    stop = SpeedTrack()
+    stop.add(0.0, 0.2)
+    stop.add(0.1, 0.05)
+    assert stop.at(0.2) == 0.0  # the trend points through zero: stopped, not reversing
 
 
 @given(

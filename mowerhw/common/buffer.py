@@ -2,7 +2,8 @@
 
 Device tasks ``push`` timestamped samples as they arrive; the estimator loop takes them out
 in time order across all streams (``pop_ready``). Each stream also keeps a bounded history
-for range queries and for interpolating the 10 Hz ground speed to the 100 Hz IMU times.
+for range queries. (The ground speed's model — hold, extrapolation, interpolation — is
+:class:`mowerhw.estimation.odometry.SpeedTrack`'s alone.)
 
 Nothing here blocks or does I/O; it is used from one thread (the event loop) at a time.
 """
@@ -12,14 +13,13 @@ from __future__ import annotations
 import bisect
 import heapq
 import itertools
-from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mowerhw.common.samples import SpeedSample, Stream
+from mowerhw.common.samples import Stream
 
 FloatArray = NDArray[np.float64]
 
@@ -160,45 +160,6 @@ class SensorBuffer:
 
     def range(self, stream: str, t0: float, t1: float) -> list[Any]:
         return self.stream(stream).range(t0, t1)
-
-    def interpolate_speed(
-        self,
-        times: Iterable[float] | FloatArray,
-        max_gap_s: float = 0.3,
-        hold_s: float = 0.3,
-        stream: str = Stream.SPEED,
-    ) -> tuple[FloatArray, NDArray[np.bool_]]:
-        """Ground speed at ``times`` and whether each value is trustworthy.
-
-        Linear interpolation between two valid samples at most ``max_gap_s`` apart; after the
-        newest sample (or before a longer gap) a sample's value is held for ``hold_s`` (the
-        future is not known yet). An invalid sample (error / not available) is a gap.
-        Elsewhere: NaN and ``False``.
-        """
-        q = np.asarray(list(times) if not isinstance(times, np.ndarray) else times, dtype=float)
-        samples: list[SpeedSample] = self.stream(stream).items()
-        ts = np.array([s.t for s in samples], dtype=np.float64)
-        vs = np.array([s.speed_mps if s.valid else np.nan for s in samples], dtype=np.float64)
-        out = np.full(q.shape, np.nan)
-        if ts.size == 0:
-            return out, np.zeros(q.shape, dtype=bool)
-        right = np.searchsorted(ts, q, side="right")  # first sample strictly after q
-        left = right - 1
-        has_left = left >= 0
-        has_right = right < ts.size
-        li = np.clip(left, 0, ts.size - 1)
-        ri = np.clip(right, 0, ts.size - 1)
-        # Between two samples: interpolate when both are valid and close enough.
-        both = has_left & has_right & ((ts[ri] - ts[li]) <= max_gap_s)
-        w = np.where(both, (q - ts[li]) / np.where(both, ts[ri] - ts[li], 1.0), 0.0)
-        interp = vs[li] + w * (vs[ri] - vs[li])
-        out = np.where(both, interp, out)
-        # No interpolation possible (newest sample, or a long gap to the next one): hold the
-        # last sample for a short while.
-        hold = has_left & ~both & ((q - ts[li]) <= hold_s)
-        out = np.where(hold, vs[li], out)
-        valid = np.isfinite(out)
-        return out, valid
 
     def stats(self) -> dict[str, dict[str, int]]:
         """Counters per stream, for status output and logs."""
