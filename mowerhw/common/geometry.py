@@ -235,6 +235,13 @@ def quat_distance(p: ArrayLike, q: ArrayLike) -> FloatArray:
     return quat_angle(quat_multiply(quat_conjugate(p), q))
 
 
+def yaw_rotation(yaw: float) -> FloatArray:
+    """``R_z(ψ)``: the rotation by heading ψ about the vertical (a planar pose's ``R_wb``;
+    its transpose takes world vectors into such a body)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def yaw_to_quat(yaw: ArrayLike) -> FloatArray:
     """Rotation about +z by ``yaw`` rad (the planar mower's heading)."""
     yaw = np.asarray(yaw, dtype=np.float64)[..., None]

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mowerhw.common.geometry import yaw_rotation
 from mowerhw.config import Config, FrontendConfig, TeachConfig
 from mowerhw.evaluation.teach import teach_metrics
 from mowerhw.sim import TeachRun, simulate_teach
@@ -96,10 +97,7 @@ def sees_point(
     of that landmark, or of something next to it?"""
     if not np.all(np.isfinite(point)):
         return None
-    c, s = np.cos(yaw), np.sin(yaw)
-    ray = np.array(
-        [c * bearing_b[0] - s * bearing_b[1], s * bearing_b[0] + c * bearing_b[1], bearing_b[2]]
-    )
+    ray = yaw_rotation(yaw) @ np.asarray(bearing_b, dtype=np.float64)
     d = point - np.array([position[0], position[1], 0.0])
     along = float(d @ ray)
     if along <= 0:

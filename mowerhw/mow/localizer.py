@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mowerhw.common.geometry import rotmat_to_quat
+from mowerhw.common.geometry import rotmat_to_quat, yaw_rotation
 from mowerhw.config import Config, ContainmentConfig, MowConfig, stale_limits_s, with_imu_noise
 from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.estimation.posefit import fit_pose_to_bearings
@@ -492,10 +492,13 @@ class Localizer:
         best = None
         r0 = self.ekf.R
         for yaw in np.radians([0, 45, -45, 90, -90, 135, -135, 180]):
-            c, s = math.cos(yaw), math.sin(yaw)
-            rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
             fit = fit_pose_to_bearings(
-                self.landmarks[rows], u, rz @ r0, self.ekf.x, sigma, iterations=25
+                self.landmarks[rows],
+                u,
+                yaw_rotation(float(yaw)) @ r0,
+                self.ekf.x,
+                sigma,
+                iterations=25,
             )
             if np.all(np.isfinite(fit.t_wb)) and (best is None or fit.rms_rad < best.rms_rad):
                 best = fit

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mowerhw.camera import OmniRadtanCamera
-from mowerhw.common.geometry import quat_to_rotmat
+from mowerhw.common.geometry import quat_to_rotmat, yaw_rotation
 from mowerhw.sim.world import World
 
 FloatArray = NDArray[np.float64]
@@ -295,8 +295,7 @@ class OmniRenderer:
 
     def _to_body(self, yaw: float) -> FloatArray:
         """R_bm: map-frame vectors into the body frame (planar pose)."""
-        c, s = math.cos(yaw), math.sin(yaw)
-        return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        return yaw_rotation(yaw).T
 
     def _project_body(self, pb: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
         r_bc = quat_to_rotmat(np.asarray(self.world.q_bc))

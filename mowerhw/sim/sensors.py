@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from mowerhw.common.geometry import yaw_rotation
 from mowerhw.common.samples import BearingObservation
 from mowerhw.imu.grades import FLICKER_ALLAN, FLICKER_TIMES_S, IMU_GRADES, ImuGrade
 from mowerhw.sim.motion import Truth
@@ -205,8 +206,7 @@ def body_points(truth: Truth, idx: int, points_world: FloatArray) -> FloatArray:
 
 def planar_pose(xy: FloatArray, yaw: float) -> tuple[FloatArray, FloatArray]:
     """Position (camera at z = 0) and ``R_wb`` of a planar pose."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([xy[0], xy[1], 0.0]), np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return np.array([xy[0], xy[1], 0.0]), yaw_rotation(yaw)
 
 
 def observe_at(
