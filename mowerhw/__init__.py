@@ -1,7 +1,7 @@
 """mowerhw: wire-free, GPS-free containment for a robotic mower (after Yang et al., IROS 2013).
 
 Packages: ``mowerhw`` holds computation and the runtime, ``drivers`` the device I/O
-(DESIGN.md §2). Importing this package is cheap: nothing heavy is imported here.
+(docs/design.md §2). Importing this package is cheap: nothing heavy is imported here.
 """
 
 import os as _os

@@ -1,4 +1,4 @@
-"""One configuration schema for the whole runtime (DESIGN.md §2), validated at load.
+"""One configuration schema for the whole runtime (docs/design.md §2), validated at load.
 
 The schema *is* the frozen dataclasses below: each section is one hardware part or one
 estimator (Klipper-style: one section per module), each field carries its default, its rules
@@ -236,7 +236,7 @@ class CameraConfig:
 
 @dataclass(frozen=True)
 class PermitConfig:
-    """Mowing permit / halt on CAN (ISO 11783 ISB + heartbeat + status; DESIGN.md §7)."""
+    """Mowing permit / halt on CAN (ISO 11783 ISB + heartbeat + status; docs/design.md §7)."""
 
     period_s: float = opt(0.1, "ISB and status repeat period", ge=0.01, le=0.1)
     heartbeat_period_s: float = opt(0.1, "ISO 11783 heartbeat period", ge=0.01, le=0.1)
@@ -411,7 +411,7 @@ class MowConfig(MotionNoiseConfig):
 
 @dataclass(frozen=True)
 class ContainmentConfig:
-    """Containment decision (DESIGN.md §5 table)."""
+    """Containment decision (docs/design.md §5 table)."""
 
     margin_m: float = opt(0.4, "NEAR_EDGE band width (the paper's 0.4 m turn threshold)", ge=0.0)
     k_sigma: float = opt(3.0, "how many σ of position uncertainty to keep from the edge", ge=0.0)
@@ -713,7 +713,7 @@ def _cross_checks(cfg: Config) -> list[str]:
     ):
         problems.append(
             f"imu.baudrate: {cfg.imu.baudrate} is too slow for {cfg.imu.rate_hz} Hz ASCII output "
-            "(DESIGN.md §7); use 230400 or more, or imu.output: binary"
+            "(docs/design.md §7); use 230400 or more, or imu.output: binary"
         )
     cal = cfg.camera.calibration
     if cal.exists():

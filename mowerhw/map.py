@@ -1,4 +1,4 @@
-"""The lawn map file: what teach writes and mow trusts (DESIGN.md §1, §4).
+"""The lawn map file: what teach writes and mow trusts (docs/design.md §1, §4).
 
 A map is one JSON document, in local metres in the world frame of the teach run (the body
 frame at its first sample: x forward, y left, z up, origin at the camera centre):

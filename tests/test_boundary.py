@@ -1,4 +1,4 @@
-"""The taught boundary: closed, simplified, validated with shapely (DESIGN.md §4)."""
+"""The taught boundary: closed, simplified, validated with shapely (docs/design.md §4)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""The time-ordered sensor buffer (DESIGN.md §8)."""
+"""The time-ordered sensor buffer (docs/design.md §8)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Omnidirectional camera model (DESIGN.md §6): round trips, cv2.omnidir agreement, Kalibr I/O."""
+"""Omnidirectional camera model (docs/design.md §6): round trips, cv2.omnidir, Kalibr I/O."""
 
 from pathlib import Path
 

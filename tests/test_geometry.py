@@ -1,4 +1,4 @@
-"""Conventions of DESIGN.md §3 and the kinematics of §4/§5, as properties."""
+"""Conventions of docs/design.md §3 and the kinematics of §4/§5, as properties."""
 
 import numpy as np
 from hypothesis import given
@@ -107,7 +107,7 @@ def test_vectorised_over_leading_axes():
 
 @given(unit_quats(), small_vec3)
 def test_world_to_body_kinematics_finite_difference(q_wb, w):
-    """q̇_wb = ½ q_wb ⊗ (0, ω) (DESIGN.md §5) against the exact motion q_wb ⊗ exp(ω t)."""
+    """q̇_wb = ½ q_wb ⊗ (0, ω) (docs/design.md §5) against the exact motion q_wb ⊗ exp(ω t)."""
     h = 1e-6
     ahead = g.integrate_body_rate(q_wb, w, h)
     behind = g.integrate_body_rate(q_wb, w, -h)

@@ -1,4 +1,4 @@
-"""The mow-phase Localizer through its pure API (DESIGN.md §5)."""
+"""The mow-phase Localizer through its pure API (docs/design.md §5)."""
 
 import math
 

@@ -35,7 +35,7 @@ def test_black_outside_the_annulus_and_deterministic(scene):
 
 def test_landmark_x_corners_sit_at_their_exact_projection(scene):
     """A corner refiner started 0.8 px off lands on the projected landmark point: the panels
-    are ray-cast with the same camera model the estimators use (DESIGN.md §6)."""
+    are ray-cast with the same camera model the estimators use (docs/design.md §6)."""
     world, _ = scene
     quiet = OmniRenderer(world, 1, RenderSettings(noise_sigma=0.0))
     c = centre(world)

@@ -1,4 +1,4 @@
-"""The bearing-level simulator: repeatable, physically consistent streams (DESIGN.md §9)."""
+"""The bearing-level simulator: repeatable, physically consistent streams (docs/design.md §9)."""
 
 from dataclasses import replace
 

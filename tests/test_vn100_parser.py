@@ -48,7 +48,7 @@ def binary_packet(groups: int, masks: list[int], payload: bytes) -> bytes:
 
 
 def test_check_algorithms():
-    assert crc16(b"123456789") == 0x31C3  # XMODEM check value (DESIGN.md §7)
+    assert crc16(b"123456789") == 0x31C3  # XMODEM check value (docs/design.md §7)
     assert xor8(b"VNRRG,05") == int(ascii_command("VNRRG,05")[10:12], 16)
     assert ascii_command("VNRRG,05", crc=True).endswith(f"*{crc16(b'VNRRG,05'):04X}\r\n".encode())
 

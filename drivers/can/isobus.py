@@ -1,4 +1,4 @@
-"""ISO 11783 / J1939 identifiers (DESIGN.md §7).
+"""ISO 11783 / J1939 identifiers (docs/design.md §7).
 
 A 29-bit identifier is ``priority<<26 | EDP<<25 | DP<<24 | PF<<16 | PS<<8 | SA``. With
 ``PF < 240`` the message is addressed (PS is the destination, not part of the PGN); with

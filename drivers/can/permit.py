@@ -1,4 +1,4 @@
-"""Mowing permit / halt on CAN (DESIGN.md §7): ISO 11783 ISB, heartbeat, and a status frame.
+"""Mowing permit / halt on CAN (docs/design.md §7): ISO 11783 ISB, heartbeat, and a status frame.
 
 * **ISB**, PGN 64770 ("stop all implement operations"), priority 3: bytes 0–5 0xFF, byte 6 the
   transition counter (incremented on every change of state), byte 7 bits 1–2 ``00`` stop,

@@ -1,4 +1,4 @@
-"""Ground speed over ISO 11783 / J1939 (DESIGN.md §7): GBSD, WBSD and CCVS1.
+"""Ground speed over ISO 11783 / J1939 (docs/design.md §7): GBSD, WBSD and CCVS1.
 
 * Ground-based (GBSD, PGN 65097) and wheel-based (WBSD, PGN 65096) speed and distance: bytes
   0–1 speed, 0.001 m/s per bit (0–64255 valid; 0xFExx error, 0xFFxx not available); bytes

@@ -1,4 +1,4 @@
-"""VectorNav VN-100 over serial: the wire protocol (DESIGN.md §7) and the device driver.
+"""VectorNav VN-100 over serial: the wire protocol (docs/design.md §7) and the device driver.
 
 Two layers:
 

@@ -1,4 +1,4 @@
-"""VN-100 binary output packets (DESIGN.md §7): every group, every field, framing and CRC.
+"""VN-100 binary output packets (docs/design.md §7): every group, every field, framing and CRC.
 
 A packet is ``0xFA``, a group byte, one little-endian u16 field mask per group bit, the
 payload (group order, then bit order, little-endian) and a CRC-16 over everything after

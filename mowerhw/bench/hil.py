@@ -1,6 +1,6 @@
 """``mowerhw bench``: the real daemon, its real drivers, mock hardware, one simulated world.
 
-What runs (DESIGN.md §9, level 3):
+What runs (docs/design.md §9, level 3):
 
 * the mock VN-100 (:class:`drivers.imu.mock.MockVn100`) on a pseudo-terminal, measuring the
   simulated mower (:class:`.world.RealTimeMower`);

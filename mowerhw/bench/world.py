@@ -1,4 +1,4 @@
-"""The simulated mower in real time, for the hardware-in-the-loop bench (DESIGN.md §9, level 3).
+"""The simulated mower in real time, for the hardware-in-the-loop bench (docs/design.md §9).
 
 One yard (:func:`mowerhw.sim.make_world`) and one true mower pose on the host's monotonic
 clock, stepped at 200 Hz by its own thread:

@@ -1,4 +1,4 @@
-"""Cameras (DESIGN.md §6): the model, its calibration files, checks and calibration.
+"""Cameras (docs/design.md §6): the model, its calibration files, checks and calibration.
 
 * :mod:`.model` — :class:`CameraModel` and the Mei omnidirectional model with radtan
   distortion (:class:`OmniRadtanCamera`), its valid domain for any ξ;

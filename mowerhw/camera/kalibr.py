@@ -1,4 +1,4 @@
-"""Kalibr camchain files (``omni`` + ``radtan``), read and written (DESIGN.md §6).
+"""Kalibr camchain files (``omni`` + ``radtan``), read and written (docs/design.md §6).
 
 A camchain holds one entry per camera (``cam0``, ``cam1``, …). Per entry mowerhw reads
 ``camera_model``, ``intrinsics`` ``[ξ, fu, fv, cu, cv]``, ``distortion_model``,

@@ -1,4 +1,4 @@
-"""Camera models (DESIGN.md §6), in the spirit of OpenVINS' ``CamBase``.
+"""Camera models (docs/design.md §6), in the spirit of OpenVINS' ``CamBase``.
 
 :class:`CameraModel` is the small interface every model implements: ``project`` camera-frame
 points to pixels, ``lift`` pixels to unit bearings, and the ``valid`` pixel mask. The one model
@@ -103,7 +103,7 @@ class CameraModel(ABC):
 
 @dataclass(frozen=True)
 class OmniRadtanCamera(CameraModel):
-    """Unified omnidirectional (Mei) model with radial–tangential distortion (DESIGN.md §6).
+    """Unified omnidirectional (Mei) model with radial–tangential distortion (docs/design.md §6).
 
     ``xs = X/‖X‖``, ``m = xs_xy / (xs_z + ξ)``, ``md = distort(m)``,
     ``u = fu (md_x + s md_y) + cu``, ``v = fv md_y + cv`` (``s`` = ``skew``, dimensionless:

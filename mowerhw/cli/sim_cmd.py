@@ -63,7 +63,7 @@ def _common(p: argparse.ArgumentParser) -> None:
         "--level",
         default="bearing",
         choices=("bearing", "pixel"),
-        help="bench level (DESIGN.md §9): bearing = ids + noisy bearings; pixel = rendered "
+        help="bench level (docs/design.md §9): bearing = ids + noisy bearings; pixel = rendered "
         "1540x1540 images through the front end (KLT tracking, re-identification)",
     )
     p.add_argument(

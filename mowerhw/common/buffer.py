@@ -1,4 +1,4 @@
-"""The shared, bounded, time-ordered sensor buffer (DESIGN.md §8).
+"""The shared, bounded, time-ordered sensor buffer (docs/design.md §8).
 
 Device tasks ``push`` timestamped samples as they arrive; the estimator loop takes them out
 in time order across all streams (``pop_ready``). Each stream also keeps a bounded history

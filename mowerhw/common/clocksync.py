@@ -1,4 +1,4 @@
-"""Map a device clock onto the host monotonic clock (DESIGN.md §3; after Klipper's clocksync).
+"""Map a device clock onto the host monotonic clock (docs/design.md §3; after Klipper's clocksync).
 
 A device stamps each sample with its own clock (VN-100 ``TimeStartup`` in ns, a V4L2 buffer
 time); the host sees the same sample later, after a transport delay that is never negative

@@ -1,4 +1,4 @@
-"""Rotation conventions of DESIGN.md §3, in one place.
+"""Rotation conventions of docs/design.md §3, in one place.
 
 * Quaternions are Hamilton, scalar first: ``q = (w, x, y, z)``.
 * ``q_ab`` maps b-coordinates into a: ``v_a = R(q_ab) v_b``; composition ``q_ac = q_ab ⊗ q_bc``.
@@ -184,7 +184,7 @@ def rotmat_log(r: ArrayLike) -> FloatArray:
 
 
 def omega_matrix(w: ArrayLike) -> FloatArray:
-    """``Ω(ω)`` of DESIGN.md §4 / paper eq. (15): ``[[0, ωᵀ], [−ω, −[ω]×]]``.
+    """``Ω(ω)`` of docs/design.md §4 / paper eq. (15): ``[[0, ωᵀ], [−ω, −[ω]×]]``.
 
     With it, ``q̇ = ½ Ω(ω) q`` is the kinematics of ``q_{b←x}`` for any frame x fixed in the
     world while the body turns at ``ω`` (body frame): the robot-centric keyframe orientation
@@ -204,7 +204,7 @@ def quat_derivative_body_to_fixed(q_bx: ArrayLike, w_body: ArrayLike) -> FloatAr
 
 
 def quat_derivative_world_to_body(q_wb: ArrayLike, w_body: ArrayLike) -> FloatArray:
-    """``q̇_wb = ½ q_wb ⊗ (0, ω)`` (DESIGN.md §5, eq. 21 written for Hamilton ``q_wb``)."""
+    """``q̇_wb = ½ q_wb ⊗ (0, ω)`` (docs/design.md §5, eq. 21 written for Hamilton ``q_wb``)."""
     w_body = np.asarray(w_body, dtype=np.float64)
     pure = np.concatenate([np.zeros((*w_body.shape[:-1], 1)), w_body], axis=-1)
     return 0.5 * quat_multiply(q_wb, pure)

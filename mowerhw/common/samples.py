@@ -1,4 +1,4 @@
-"""Timestamped sample types that flow from drivers to estimators (DESIGN.md §3, §8).
+"""Timestamped sample types that flow from drivers to estimators (docs/design.md §3, §8).
 
 Every sample carries ``t``: seconds on the host monotonic clock (``time.monotonic_ns() / 1e9``
 at arrival, or a device timestamp mapped onto it by :mod:`mowerhw.common.clocksync`). Drivers build

@@ -1,4 +1,4 @@
-"""The pixel-level bench (DESIGN.md §9, level 2): rendered images → front end → estimators.
+"""The pixel-level bench (docs/design.md §9, level 2): rendered images → front end → estimators.
 
 The same simulated drives as the bearing level (:mod:`mowerhw.evaluation.teach`,
 :mod:`mowerhw.evaluation.mow`), but the camera delivers 1540×1540 images rendered by

@@ -17,7 +17,7 @@ Per frame (:meth:`FrontEnd.process`):
    spread over a grid; refined at full size.
 5. **Describe**: ORB descriptors in the radial frame (:mod:`.descriptors`), at birth and
    every ``descriptor_refresh_frames``, up to ``max_descriptors`` per track.
-6. **Lift** every tracked pixel to a unit bearing in the body frame (camera model, DESIGN.md
+6. **Lift** every tracked pixel to a unit bearing in the body frame (camera model, docs/design.md
    §6, eq. 24, and the mount ``q_bc``).
 
 The output (:class:`FrameTracks`) is ``(t, ids, bearings)`` as the estimators take it, plus

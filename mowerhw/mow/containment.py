@@ -1,4 +1,4 @@
-"""Containment: may the deck run here? (DESIGN.md §5 table; paper §IV).
+"""Containment: may the deck run here? (docs/design.md §5 table; paper §IV).
 
 ``s`` is the signed distance from the estimated position to the lawn's edge — positive
 inside, keep-out zones being holes — and ``σ`` the largest standard deviation of the

@@ -1,4 +1,4 @@
-"""World-centric error-state EKF of the mow phase (paper §IV, eqs 21–23; DESIGN.md §5).
+"""World-centric error-state EKF of the mow phase (paper §IV, eqs 21–23; docs/design.md §5).
 
 State: the body's world position ``x = x_b^w``, orientation ``q = q_wb``, the gyro bias and
 the yaw rate's scale error ``k`` (beyond the paper: a MEMS gyro that reads 3 % high turns

@@ -1,4 +1,4 @@
-"""The fail-safe permit decision (DESIGN.md §5, §8): halt unless every condition holds.
+"""The fail-safe permit decision (docs/design.md §5, §8): halt unless every condition holds.
 
 :class:`PermitGate` is asked after every IMU sample and on a short timer. It permits only in
 mow mode, with a valid map, every sensor fresh on the host clock (IMU 100 ms, speed 300 ms,

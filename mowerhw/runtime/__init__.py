@@ -1,4 +1,4 @@
-"""The on-board runtime (DESIGN.md §8): the asyncio daemon that wires drivers to estimators.
+"""The on-board runtime (docs/design.md §8): the asyncio daemon that wires drivers to estimators.
 
 * :mod:`.pipelines` — teach and mow estimator chains fed sample by sample (no I/O);
 * :mod:`.gate` — the fail-safe permit decision: every condition, one reason;

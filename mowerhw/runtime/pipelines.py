@@ -151,7 +151,7 @@ class TeachPipeline:
 class MowPipeline:
     """Mow mode: localize against the map, decide containment."""
 
-    LAG_S = 0.0  # the localizer takes late frames itself (state history, DESIGN.md §5)
+    LAG_S = 0.0  # the localizer takes late frames itself (state history, docs/design.md §5)
 
     def __init__(
         self,

@@ -1,4 +1,4 @@
-"""The simulated bench: worlds, true motion, sensor streams (DESIGN.md §9).
+"""The simulated bench: worlds, true motion, sensor streams (docs/design.md §9).
 
 Pure computation (numpy, shapely): used by the tests, the ``mowerhw sim`` commands, the
 tools and, through drivers/mock, by the mock hardware.

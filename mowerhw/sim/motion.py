@@ -1,4 +1,4 @@
-"""True motion of the simulated mower, in the world frame of DESIGN.md §3.
+"""True motion of the simulated mower, in the world frame of docs/design.md §3.
 
 The mower is a non-holonomic vehicle on the ground of :mod:`mowerhw.sim.terrain`: its
 contact point follows a horizontal path (the lawn edge when teaching), its attitude comes from

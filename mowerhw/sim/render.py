@@ -1,7 +1,7 @@
-"""Pixel-level bench (DESIGN.md §9, level 2): the simulated yard rendered into omni images.
+"""Pixel-level bench (docs/design.md §9, level 2): the simulated yard rendered into omni images.
 
 Every pixel of the camera's mirror annulus has a fixed ray in the body frame (the camera is
-rigidly mounted: ``R_bc · lift(u, v)``, DESIGN.md §6), computed once. A frame from a planar
+rigidly mounted: ``R_bc · lift(u, v)``, docs/design.md §6), computed once. A frame from a planar
 pose (x, y, ψ in the simulator's map frame, camera ``h`` above flat ground) is then:
 
 * **ground** — rays below the horizon meet the ground at a body-frame offset fixed per pixel;

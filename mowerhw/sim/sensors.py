@@ -1,4 +1,4 @@
-"""Sensor models of the simulated bench (DESIGN.md §9): gyro grades, ground speed, camera.
+"""Sensor models of the simulated bench (docs/design.md §9): gyro grades, ground speed, camera.
 
 * **gyro** (:class:`Gyro`): true body rate × (1 + scale-factor error) + turn-on bias + bias
   instability (a first-order Gauss–Markov process) + rate random walk + white noise, per
@@ -8,7 +8,7 @@
   white noise, wheel-slip events (the wheels turn faster than the mower moves), quantised as
   on CAN; a standing mower reads exactly 0;
 * **camera** (:class:`CameraTiming`, :func:`observe_at`): every landmark inside the camera's
-  range is projected through the omni camera model (DESIGN.md §6), kept if its pixel is valid,
+  range is projected through the omni camera model (docs/design.md §6), kept if its pixel is valid,
   perturbed with Gaussian pixel noise, kept if the noisy pixel is still valid, and lifted back
   to a unit bearing in the body frame; some frames recognise nothing (blur, glare: the frame
   arrives empty), single bearings are missed, frames are delivered late by a jittered latency

@@ -2,7 +2,7 @@
 
 Coordinates here are the *map* frame of the simulator (x, y on the ground plane, z up; the
 ground is at ``terrain.height(x, y)``). The estimators never see this frame:
-:mod:`mowerhw.sim.motion` expresses the truth in the world frame of DESIGN.md §3 (the body
+:mod:`mowerhw.sim.motion` expresses the truth in the world frame of docs/design.md §3 (the body
 frame at the first sample). Scenario presets: :mod:`mowerhw.sim.scenarios`.
 """
 

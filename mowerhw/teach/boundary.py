@@ -1,4 +1,4 @@
-"""The lawn boundary from the taught trajectory (DESIGN.md §4), validated with shapely.
+"""The lawn boundary from the taught trajectory (docs/design.md §4), validated with shapely.
 
 The closed path on the ground becomes the boundary: consecutive duplicates (standstill) are
 dropped, the loop must end near where it began, the outline is simplified (Douglas–Peucker,

@@ -1,4 +1,4 @@
-"""Depth pseudo-measurements of landmarks from two views (paper eq. 3, DESIGN.md §4).
+"""Depth pseudo-measurements of landmarks from two views (paper eq. 3, docs/design.md §4).
 
 Anchor frame ``a`` (where a landmark's bearing ``y_a`` was taken) and the current body frame
 ``b`` form a triangle with the landmark. With ``b`` the current body origin in ``a``

@@ -1,4 +1,4 @@
-"""Robot-centric EKF of the teach phase (paper §III, eqs 14–18; DESIGN.md §4).
+"""Robot-centric EKF of the teach phase (paper §III, eqs 14–18; docs/design.md §4).
 
 State: the pose of the current keyframe frame ``bj`` in the current body frame —
 ``p = x^{bj}`` and ``q = q^{bj} = q_{b←bj}`` — plus the gyro bias ``b_g`` (the paper

@@ -1,4 +1,4 @@
-"""Keyframes and the world pose (paper eqs 19–20; DESIGN.md §4).
+"""Keyframes and the world pose (paper eqs 19–20; docs/design.md §4).
 
 The robot-centric EKF estimates the current keyframe ``bj`` in the current body frame. A
 keyframe stores the world frame in its own frame, ``(x_w^{bj}, q_w^{bj})``, and the

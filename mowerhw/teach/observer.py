@@ -1,4 +1,4 @@
-"""Per-landmark nonlinear observers (paper §II, eqs 2–8; DESIGN.md §4), vectorised.
+"""Per-landmark nonlinear observers (paper §II, eqs 2–8; docs/design.md §4), vectorised.
 
 Each landmark i has the state ``z = (d, y)``: its distance and unit direction in the current
 body frame. All landmarks live in arrays (N,) and (N, 3) and are propagated and updated

@@ -8,7 +8,7 @@ It wires the pieces of paper §II–III together:
 
 1. **Standstill** (from the first sample until the ground speed leaves 0): the gyro is
    averaged into its bias; bearings are averaged into keyframe 0's anchor bearings. The
-   world frame is the body frame at the first sample (DESIGN.md §3).
+   world frame is the body frame at the first sample (docs/design.md §3).
 2. **Driving**: at IMU rate the body motion moves the EKF (eq. 14) and every landmark
    observer (eq. 2/4). At camera rate each seen landmark gets a direction update and, when
    the geometry allows, a depth pseudo-measurement (eqs 3, 5, 7); then the robot-centric
