@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 from mowerhw.cli.common import add_config_argument, load_config_or_exit, print_json, strict_json
 
@@ -125,12 +126,7 @@ def _teach(args: argparse.Namespace) -> int:
             from mowerhw.plots import teach_figures
 
             metrics["figures"] = [str(f) for f in teach_figures(outcome, out)]
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(strict_json(metrics, indent=1) + "\n")
-    if args.json:
-        print(strict_json(metrics))
-    else:
-        print_json(metrics)
+    _write_and_print(metrics, out, args.json)
     if not args.json and metrics.get("error"):
         print(f"mowerhw: teach failed: {metrics['error']}", file=sys.stderr)
     return 1 if metrics.get("diverged") else 0
@@ -226,10 +222,15 @@ def _mow(args: argparse.Namespace) -> int:
         from mowerhw.plots import mow_figures
 
         metrics["figures"] = [str(f) for f in mow_figures(outcome, out)]
+    _write_and_print(metrics, out, args.json)
+    return 0 if metrics["missed_halts"] == 0 else 1
+
+
+def _write_and_print(metrics: dict[str, Any], out: Path, as_json: bool) -> None:
+    """The run's figures into ``out/metrics.json`` and on stdout (one line with --json)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(strict_json(metrics, indent=1) + "\n")
-    if args.json:
+    if as_json:
         print(strict_json(metrics))
     else:
         print_json(metrics)
-    return 0 if metrics["missed_halts"] == 0 else 1

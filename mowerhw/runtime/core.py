@@ -7,9 +7,8 @@ fault / rebuild / resume policy and the halt-latency bookkeeping. The daemon is 
 shell around it (devices, CAN, control socket, map file, systemd); a replay drives the same
 core, so a recording gives the daemon's own decisions, faults included.
 
-Every input that can change a decision is written to a :class:`Journal` before it is applied,
-and every decision after it is made: replaying the journal through a new core (with the chains
-built at the points the journal says they were installed) gives the same decisions.
+Every input that can change a decision is journaled before it is applied, and every decision
+after it is made: replaying the journal through a new core gives the same decisions.
 
 Chains take seconds to build: the core asks for one (``on_build``), the shell builds it off
 its loop and hands it back (:meth:`install`); a replay builds it where the journal says.
