@@ -84,8 +84,10 @@ class JournalEncoder:
         if isinstance(v, LawnMap):
             if v.checksum in self._maps:
                 return {"checksum": v.checksum}
-            self._maps.add(v.checksum)
-            return {"checksum": v.checksum, "document": v.to_document()}
+            doc = v.to_document()
+            key = v.checksum or doc["checksum"]  # a map never saved has no checksum yet
+            self._maps.add(key)
+            return {"checksum": key, "document": doc}
         if isinstance(v, StartPose):
             return {
                 "position": _floats(v.position),
@@ -139,15 +141,12 @@ class JournalDecoder:
         )
 
     def lawn_map(self, d: dict[str, Any]) -> LawnMap:
-        checksum = d["checksum"]
+        key = d["checksum"]
         if "document" in d:
-            m = from_document(d["document"], "journal map")
-            if m.checksum != checksum:
-                raise JournalError(f"journal map {checksum[:19]}: its checksum does not match")
-            self.maps[checksum] = m
-        if checksum not in self.maps:
-            raise JournalError(f"journal: map {checksum[:19]} used before it was written")
-        return self.maps[checksum]
+            self.maps[key] = from_document(d["document"], "journal map")  # checksum verified
+        if key not in self.maps:
+            raise JournalError(f"journal: map {key[:19]} used before it was written")
+        return self.maps[key]
 
     def start_pose(self, d: dict[str, Any] | None) -> StartPose | None:
         if d is None:

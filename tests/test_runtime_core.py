@@ -1,0 +1,148 @@
+"""The runtime core on its own: no I/O, no threads, no clock — inputs in, decisions out."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+import pytest
+
+from mowerhw.camera import load_camchain
+from mowerhw.common.samples import ImuSample, SpeedSample
+from mowerhw.config import default_config
+from mowerhw.frontend.tracker import FrameTracks
+from mowerhw.map import Landmark, LawnMap
+from mowerhw.recording.replay import replay_journal
+from mowerhw.runtime.core import RuntimeCore
+from mowerhw.runtime.journal import JournalDecoder, JournalEncoder
+from mowerhw.runtime.pipelines import BuildRequest, build_pipeline
+
+
+def _map() -> LawnMap:
+    ang = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    rng = np.random.default_rng(0)
+    lms = [
+        Landmark(i, rng.uniform(-8, 8, 3), np.eye(3) * 1e-4, descriptor=bytes([i] * 32))
+        for i in range(8)
+    ]
+    boundary = np.c_[6 * np.cos(ang), 4 * np.sin(ang)]
+    return LawnMap(boundary=boundary, landmarks=lms, camera=None, teach={})
+
+
+class ListJournal:
+    def __init__(self) -> None:
+        self.enc = JournalEncoder()
+        self.records: list[dict[str, Any]] = []
+
+    def write(self, kind: str, payload: dict[str, Any]) -> None:  # through JSON, as recorded
+        self.records.append(json.loads(json.dumps(self.enc.encode(kind, payload))))
+
+
+@pytest.fixture(scope="module")
+def camera() -> Any:
+    cfg = default_config()
+    return load_camchain(cfg.camera.calibration, cfg.camera.camchain_key)
+
+
+def _core(camera: Any, journal: Any = None, build_now: bool = True) -> tuple[RuntimeCore, list]:
+    cfg = default_config()
+    asked: list[BuildRequest] = []
+
+    def on_build(req: BuildRequest) -> None:
+        asked.append(req)
+        if build_now:
+            core.install(req.serial, build_pipeline(cfg, camera, req))
+
+    core = RuntimeCore(cfg, journal, on_build)
+    return core, asked
+
+
+def _feed(core: RuntimeCore, t0: float, t1: float) -> Any:
+    d = None
+    for k in range(round((t1 - t0) * 100)):
+        t = t0 + 0.01 * k
+        d = core.imu(ImuSample(t, np.array([0.0, 0.0, 0.001])), t)
+        if k % 10 == 0:
+            core.speed(SpeedSample(t, 0.0))
+            core.camera_frame(t)
+    return d
+
+
+def test_a_chain_built_for_a_request_that_was_overtaken_is_not_installed(camera: Any) -> None:
+    core, asked = _core(camera, build_now=False)
+    assert core.set_mode("teach") == ""
+    old = asked[-1]
+    assert core.set_mode("idle") == ""
+    assert not core.install(old.serial, build_pipeline(default_config(), camera, old))
+    assert core.pipeline is None
+    assert core.set_mode("bogus").startswith("mode 'bogus' is not one of")
+
+
+def test_mow_faults_rebuild_and_halt_with_the_reason(camera: Any) -> None:
+    core, asked = _core(camera)
+    core.set_mode("mow")
+    core.map_loaded(_map())
+    assert core.pipeline is not None and asked[-1].kind == "mow"
+    d = _feed(core, 0.0, 1.0)
+    assert not d.permit and d.reason == "NOT_LOCALIZED"  # no landmark seen yet
+    assert core.inject("exception") == ""
+    d = _feed(core, 1.0, 1.1)
+    assert d.reason == "FAULT" and "estimator restarted" in d.detail
+    assert core.counts["estimator_faults"] == 1 and len(asked) == 2  # a new chain was asked for
+    assert core.inject("bogus").endswith("allowed: nan, exception")
+    d = core.decide(1.5)  # nothing for 0.4 s
+    assert d.reason == "SENSOR_STALE" and "imu silent" in d.detail
+    core.map_invalid("lawn.json: not valid JSON")
+    assert core.decide(1.5).reason == "MAP_INVALID"
+    core.shutdown()
+    assert core.decide(1.5).reason == "SHUTTING_DOWN"
+
+
+def test_the_journal_replays_to_the_same_decisions(camera: Any) -> None:
+    journal = ListJournal()
+    core, _ = _core(camera, journal)
+    core.set_mode("mow")
+    core.map_loaded(_map())
+    _feed(core, 0.0, 1.0)
+    core.tracks(
+        core.chains.installed_serial,
+        FrameTracks(0.95, np.array([1, 2]), np.eye(3)[:2], np.zeros((2, 2)), np.array([0, 3])),
+    )
+    core.inject("nan")
+    _feed(core, 1.0, 2.0)
+    for t in (2.05, 2.2, 2.5):
+        core.decide(t)
+    r = replay_journal(default_config(), camera, journal.records)
+    assert r.mismatches == 0 and r.gaps == 0, r.first_mismatch
+    assert r.decisions == 203 and r.live_sha256 == r.replay_sha256
+    assert r.halts_by_reason == {} and r.permit_decisions == 0  # never permitted: no landmark
+
+
+def test_the_journal_codec_round_trips_exactly(tmp_path: Any) -> None:
+    enc, dec = JournalEncoder(), JournalDecoder()
+    rng = np.random.default_rng(1)
+    tracks = FrameTracks(
+        1.25,
+        np.array([4, 9]),
+        rng.normal(size=(2, 3)),
+        rng.normal(size=(2, 2)),
+        np.array([0, 7]),
+        3.5,
+        (rng.integers(0, 255, (2, 32), dtype=np.uint8), np.zeros((0, 32), np.uint8)),
+    )
+    rec = json.loads(json.dumps(enc.encode("tracks", {"tracks": tracks})))
+    back = dec.tracks(rec["tracks"])
+    assert np.array_equal(back.bearings, tracks.bearings) and back.t == tracks.t
+    assert [d.tolist() for d in back.descriptors] == [d.tolist() for d in tracks.descriptors]
+    imu = ImuSample(0.1 + 1e-12, np.array([1e-7, -2.5, np.pi]), None, 12, 34)
+    back_imu = dec.imu(json.loads(json.dumps(enc.encode("imu", {"s": imu})))["s"])
+    assert np.array_equal(back_imu.gyro, imu.gyro) and back_imu.t == imu.t
+    m = _map()
+    m.save(tmp_path / "lawn.json")  # as the daemon's maps are: saved, with a checksum
+    first = json.loads(json.dumps(enc.encode("map_loaded", {"map": m})))["map"]
+    again = json.loads(json.dumps(enc.encode("map_loaded", {"map": m})))["map"]
+    assert "document" in first and "document" not in again  # the map is written out once
+    assert (
+        dec.lawn_map(first).checksum == m.checksum and dec.lawn_map(again) is dec.maps[m.checksum]
+    )
