@@ -381,6 +381,7 @@ def test_real_t265_camchain_both_cameras_and_the_factory_model():
 @pytest.mark.skipif(
     not real_cameras.MIRROR.exists(), reason=f"no mirror photos at {real_cameras.MIRROR}"
 )
+@pytest.mark.slow
 def test_calibrate_the_real_mirror_camera(tmp_path):
     """`mowerhw camera calibrate` on 18 real catadioptric photos (9x6 corners)."""
     report = real_cameras.calibrate_mirror(tmp_path)

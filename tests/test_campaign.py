@@ -22,6 +22,7 @@ def test_seed_lists():
 
 
 @pytest.mark.slow
+@pytest.mark.slow
 def test_local_workers_and_a_dask_cluster_give_the_same_table(tmp_path):
     distributed = pytest.importorskip("distributed", reason="dask[distributed] not installed")
     specs = [RunSpec(s, seed, "bearing", 15.0) for s in ("paper", "U-sparse") for seed in (1, 2)]

@@ -45,6 +45,7 @@ def test_driver_configures_the_mock_from_factory_settings(link):
         drv.close()
 
 
+@pytest.mark.slow
 def test_ten_seconds_of_100_hz_binary_with_one_percent_garbage(link):
     faults = Faults(garbage=0.01, bit_flip=0.005, drop_byte=0.005)
     samples = []
