@@ -117,6 +117,10 @@ def test_the_journal_replays_to_the_same_decisions(camera: Any) -> None:
     assert r.mismatches == 0 and r.gaps == 0, r.first_mismatch
     assert r.decisions == 203 and r.live_sha256 == r.replay_sha256
     assert r.halts_by_reason == {} and r.permit_decisions == 0  # never permitted: no landmark
+    # the comparison can fail: without the injected fault the replay decides otherwise
+    tampered = [rec for rec in journal.records if rec["kind"] != "inject"]
+    bad = replay_journal(default_config(), camera, tampered)
+    assert bad.mismatches > 0 and bad.gaps == 1 and bad.live_sha256 != bad.replay_sha256
 
 
 def test_the_journal_codec_round_trips_exactly(tmp_path: Any) -> None:
