@@ -16,7 +16,9 @@ def _tracked_text_files() -> list[Path]:
         ["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=False
     ).stdout.split()
     files = [ROOT / f for f in out] if out else list(ROOT.rglob("*.py"))
-    return [f for f in files if f.suffix in (".py", ".md", ".yaml", ".toml") and f.is_file()]
+    me = Path(__file__).resolve()  # the checker's own examples are not citations
+    kinds = (".py", ".md", ".yaml", ".toml")
+    return [f for f in files if f.suffix in kinds and f.is_file() and f.resolve() != me]
 
 
 def sections(text: str) -> set[int]:
