@@ -455,6 +455,36 @@ class RuntimeConfig:
 
 
 @dataclass(frozen=True)
+class SupervisorConfig:
+    """The permit supervisor: the process that alone writes the permit frames."""
+
+    enabled: bool = opt(
+        True,
+        "run estimation in a child process and let a small supervisor process own the CAN "
+        "output (false: one process, for debugging only)",
+    )
+    lease_s: float = opt(
+        0.08,
+        "a permit from the estimation side is good for this long; it is renewed with every "
+        "decision (100 Hz), so a late, stalled or dead estimator halts the deck after it",
+        ge=0.05,
+        le=0.1,
+    )
+    can_reopen_max_backoff_s: float = opt(
+        2.0, "a failed CAN bus is reopened with backoff up to this", gt=0.0, le=60.0
+    )
+    can_down_restart_s: float = opt(
+        30.0,
+        "CAN unusable this long: stop feeding systemd's watchdog (the service is restarted)",
+        gt=0.0,
+        le=3600.0,
+    )
+    child_start_timeout_s: float = opt(
+        60.0, "the estimation process must say it is running within this", gt=0.0, le=600.0
+    )
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole runtime configuration."""
 
@@ -469,6 +499,7 @@ class Config:
     containment: ContainmentConfig = section(ContainmentConfig, "containment decision")
     map: MapConfig = section(MapConfig, "lawn map")
     runtime: RuntimeConfig = section(RuntimeConfig, "daemon")
+    supervisor: SupervisorConfig = section(SupervisorConfig, "permit supervisor")
     source: Path | None = field(default=None, compare=False, metadata={"internal": True})
 
 

@@ -39,7 +39,14 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "mowerhw.imu.allan",
         "mowerhw.recording.mcap",
     ),
-    ("mowerhw.runtime", "mowerhw.recording", "mowerhw.bench", "mowerhw.cli", "mowerhw.__main__"),
+    (
+        "mowerhw.runtime",
+        "mowerhw.supervisor",
+        "mowerhw.recording",
+        "mowerhw.bench",
+        "mowerhw.cli",
+        "mowerhw.__main__",
+    ),
 )
 RUNTIME_LAYER = len(LAYERS) - 1
 IO_MODULES = {"asyncio", "serial", "can", "drivers", "socket", "termios", "pty", "select"}

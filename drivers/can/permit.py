@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import math
 import struct
+import time
 from dataclasses import dataclass
 
 import can
@@ -46,6 +47,10 @@ REASON_CODES = {
     "MAP_INVALID": 6,
     "NOT_MOWING": 7,
     "SHUTTING_DOWN": 8,
+    "ESTIMATOR_LATE": 9,
+    "LIFTED": 10,
+    "TILTED": 11,
+    "COLLISION": 12,
 }
 REASON_NAMES = {v: k for k, v in REASON_CODES.items()}
 STATE_NAMES = {v: k for k, v in STATE_CODES.items()}
@@ -143,8 +148,14 @@ class PermitSender:
         status_pgn: int = 0xFF10,
         period_s: float = 0.1,
         heartbeat_period_s: float = 0.1,
+        send_timeout_s: float = 0.01,
     ) -> None:
         self.bus = bus
+        #: how long a send may wait for room in the bus's queue (0: never, a full queue is an
+        #: error: the supervisor's loop must never block on CAN)
+        self.send_timeout_s = send_timeout_s
+        self._next_error_log = 0.0
+        self._errors_since_log = 0
         self.sa = source_address
         self.status_pgn = status_pgn
         self.period_s = period_s
@@ -157,6 +168,8 @@ class PermitSender:
         self._next_isb = 0.0
         self._next_hb = 0.0
         self.last_isb_time: float | None = None  # when a stop/permit frame last went out
+        #: while set, every heartbeat says 254 (an internal fault: the sender is not healthy)
+        self.fault = False
 
     def _send(self, pgn: int, data: bytes, priority: int = 3) -> None:
         import can
@@ -165,10 +178,17 @@ class PermitSender:
             arbitration_id=can_id(priority, pgn, self.sa), data=data, is_extended_id=True
         )
         try:
-            self.bus.send(msg, timeout=0.01)
-        except can.CanError as exc:
+            self.bus.send(msg, timeout=self.send_timeout_s)
+        except (can.CanError, OSError) as exc:
             self.stats.send_errors += 1
-            log.warning("permit: CAN send failed: %s", exc)
+            self._errors_since_log += 1
+            now = time.monotonic()
+            if now >= self._next_error_log:  # the first, then a summary every 10 s
+                more = self._errors_since_log - 1
+                log.warning(
+                    "permit: CAN send failed: %s%s", exc, f" (+{more} since)" if more else ""
+                )
+                self._next_error_log, self._errors_since_log = now + 10.0, 0
 
     def _send_isb(self, now: float) -> None:
         self._send(PGN_ISB, encode_isb(self.counter, self.permit))
@@ -211,9 +231,12 @@ class PermitSender:
             self._send(self.status_pgn, encode_status(self.status), priority=6)
             self.stats.status_sent += 1
         if self._due(now, self._next_hb):
-            self._send(PGN_HEARTBEAT, encode_heartbeat(self.sequence))
+            if self.fault:
+                self._send(PGN_HEARTBEAT, encode_heartbeat(HB_ERROR))
+            else:
+                self._send(PGN_HEARTBEAT, encode_heartbeat(self.sequence))
+                self.sequence = 0 if self.sequence >= 250 else self.sequence + 1
             self.stats.heartbeats_sent += 1
-            self.sequence = 0 if self.sequence >= 250 else self.sequence + 1
             self._next_hb = self._advance(now, self._next_hb, self.heartbeat_period_s)
 
     def next_due(self) -> float:

@@ -62,6 +62,8 @@ FAULT_KINDS = (
     "corrupt-map",
     "sigterm",
     "sigkill",
+    "estimator-stall",
+    "estimator-kill",
 )
 RECOVERY_WINDOW_S = 30.0
 
@@ -204,17 +206,20 @@ class Bench:
         raise TimeoutError(f"bench: no {what} within {timeout} s (daemon log: {self.daemon_log})")
 
     def _proc_cpu_rss(self) -> tuple[float, float]:
-        """(CPU seconds, peak RSS MB) of the running daemon."""
+        """(CPU seconds, peak RSS MB) of the running daemon: all its processes together (the
+        permit supervisor and the estimation process it started)."""
         if self.proc is None or self.proc.poll() is not None:
             return 0.0, 0.0
-        pid = self.proc.pid
-        try:
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            tick = os.sysconf("SC_CLK_TCK")
-            cpu = (int(fields[11]) + int(fields[12])) / tick
-            return cpu, _proc_status_mb(self.proc, "VmHWM")
-        except (OSError, ValueError, IndexError):
-            return 0.0, 0.0
+        cpu = rss = 0.0
+        tick = os.sysconf("SC_CLK_TCK")
+        for pid in _process_tree(self.proc.pid):
+            try:
+                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+                cpu += (int(fields[11]) + int(fields[12])) / tick
+                rss += _pid_status_mb(pid, "VmHWM")
+            except (OSError, ValueError, IndexError):
+                continue
+        return cpu, rss
 
     # -------------------------------------------------------------------------------- run
 
@@ -527,11 +532,24 @@ class Bench:
                 fh.seek(len(self.map_bytes) // 2)
                 fh.write(b"\x00garbage\x00" * 8)
             clear = lambda: _restore(path, self.map_bytes)  # noqa: E731
-        elif spec.kind in ("sigterm", "sigkill"):
+        elif spec.kind == "estimator-stall":  # the estimation process frozen (SIGSTOP)
+            pid = int((self._status(timeout=1.0) or {}).get("pid") or 0)
+            if pid and pid != self.proc.pid:  # type: ignore[union-attr]
+                os.kill(pid, signal.SIGSTOP)
+                clear = lambda: os.kill(pid, signal.SIGCONT)  # noqa: E731
+            else:
+                res.notes.append("no separate estimation process (supervisor disabled)")
+        elif spec.kind in ("sigterm", "sigkill", "estimator-kill"):
             cpu, rss = self._proc_cpu_rss()
             self.cpu_s_total += cpu
             self.peak_rss_mb = max(self.peak_rss_mb, rss)
-            self.proc.send_signal(signal.SIGTERM if spec.kind == "sigterm" else signal.SIGKILL)  # type: ignore[union-attr]
+            if spec.kind == "estimator-kill":  # the supervisor must halt and end the service
+                pid = int((self._status(timeout=1.0) or {}).get("pid") or 0)
+                os.kill(pid, signal.SIGKILL)
+            else:
+                self.proc.send_signal(  # type: ignore[union-attr]
+                    signal.SIGTERM if spec.kind == "sigterm" else signal.SIGKILL
+                )
             self.proc.wait(10.0)  # type: ignore[union-attr]
             res.notes.append(f"daemon exit status {self.proc.returncode}")  # type: ignore[union-attr]
 
@@ -540,9 +558,9 @@ class Bench:
                 self._spawn("mow")
 
             res.how = (
-                "restarted (as systemd Restart=on-failure does after SIGKILL)"
-                if spec.kind == "sigkill"
-                else "clean stop (halt + heartbeat 255); restarted by the bench"
+                "clean stop (halt + heartbeat 255); restarted by the bench"
+                if spec.kind == "sigterm"
+                else "restarted (as systemd Restart=on-failure does after a failure)"
             )
 
         def note_reason() -> None:
@@ -600,17 +618,36 @@ def _free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _proc_status_mb(proc: Any, key: str) -> float:
+def _process_tree(pid: int) -> list[int]:
+    """``pid`` and all its descendants (Linux ``/proc/PID/task/TID/children``)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                todo.extend(int(c) for c in (task / "children").read_text().split())
+            except (OSError, ValueError):
+                continue
+    return out
+
+
+def _pid_status_mb(pid: int, key: str) -> float:
     """A memory figure (``VmRSS``, ``VmHWM``) of a running process, MB; 0 if it is gone."""
-    if proc is None or proc.poll() is not None:
-        return 0.0
     try:
-        for line in Path(f"/proc/{proc.pid}/status").read_text().splitlines():
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
             if line.startswith(key + ":"):
                 return round(int(line.split()[1]) / 1024.0, 1)
     except OSError:
         pass
     return 0.0
+
+
+def _proc_status_mb(proc: Any, key: str) -> float:
+    """A memory figure of the daemon: all its processes together, MB; 0 if it is gone."""
+    if proc is None or proc.poll() is not None:
+        return 0.0
+    return round(sum(_pid_status_mb(p, key) for p in _process_tree(proc.pid)), 1)
 
 
 def _restore(path: Path, data: bytes) -> None:

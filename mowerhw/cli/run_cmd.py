@@ -66,6 +66,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config_or_exit(args.config)
     root = logging.getLogger()
     root.setLevel(min(getattr(logging, cfg.runtime.log_level), root.level))
+    if cfg.supervisor.enabled:  # the permit supervisor owns CAN; estimation in a child
+        from mowerhw.supervisor.process import run_supervised
+
+        return run_supervised(cfg, args.mode, args.record, args.duration)
     from mowerhw.runtime.daemon import run_daemon
 
     return run_daemon(cfg, args.mode, record=args.record, duration_s=args.duration)

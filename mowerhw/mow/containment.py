@@ -54,6 +54,10 @@ class Reason(StrEnum):
     MAP_INVALID = "MAP_INVALID"  # no usable map
     NOT_MOWING = "NOT_MOWING"  # the runtime is not in mow mode
     SHUTTING_DOWN = "SHUTTING_DOWN"
+    ESTIMATOR_LATE = "ESTIMATOR_LATE"  # the supervisor holds no fresh permit lease
+    LIFTED = "LIFTED"  # lifted, or a lift switch (latched until clear for a while)
+    TILTED = "TILTED"  # tilted past the limit, or rolled over
+    COLLISION = "COLLISION"  # a bump: an acceleration spike or a bump switch
 
 
 @dataclass(frozen=True)

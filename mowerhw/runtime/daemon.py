@@ -39,6 +39,7 @@ from mowerhw.runtime.control import ControlServer
 from mowerhw.runtime.core import MODES, RuntimeCore
 from mowerhw.runtime.devices import (
     CanLink,
+    DecisionOutput,
     device_status,
     open_camera,
     open_imu,
@@ -75,7 +76,11 @@ class Daemon:
     """``await Daemon(config).run()`` until SIGTERM / SIGINT or :meth:`request_stop`."""
 
     def __init__(
-        self, config: Config, mode: str | None = None, record: str | Path | None = None
+        self,
+        config: Config,
+        mode: str | None = None,
+        record: str | Path | None = None,
+        link: Any = None,
     ) -> None:
         self.cfg = config
         self.start_mode = mode or config.runtime.mode
@@ -89,7 +94,9 @@ class Daemon:
         self.pose_file = PoseFile(Path(config.runtime.pose_file))
         self.map_file = MapFile(Path(config.map.path))
         self.loop: asyncio.AbstractEventLoop | None = None
-        self.can: CanLink | None = None
+        #: where decisions go: the supervisor's pipe (``link``), else CAN in this process
+        self.link = link
+        self.can: DecisionOutput | None = None
         self.imu_dev: Vn100 | None = None
         self.camera: CameraSource | None = None
         self.loop_lag = LoopLag()
@@ -120,7 +127,14 @@ class Daemon:
         if self.record_path is not None:
             self.recorder = open_recorder(self.cfg, self.record_path)
             self.core.journal = _RecorderJournal(self.recorder)
-        self.can = CanLink(self.cfg, self._threadsafe(self._on_speed), self.recorder)
+        on_speed = self._threadsafe(self._on_speed)
+        self.can = (
+            CanLink(self.cfg, on_speed, self.recorder)
+            if self.link is None
+            else self.link.output(
+                self.cfg, on_speed, self._threadsafe(self.request_stop), self.recorder
+            )
+        )
         self.can.open()
         self.imu_dev = open_imu(self.cfg, self._threadsafe(self._on_imu), self.recorder)
         self.camera = open_camera(self.cfg, asyncio_sink(loop, self._frames))
@@ -151,8 +165,8 @@ class Daemon:
             self.core.shutdown()
         self.notifier.stopping()
         self._decide(time.monotonic())
-        if self.can is not None and self.can.sender is not None:
-            self.can.sender.shutdown(time.monotonic())
+        if self.can is not None:
+            self.can.shutdown(time.monotonic())
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -331,8 +345,7 @@ class Daemon:
             assert self.can is not None
             self.can.retry(now)
             self._decide(now)
-            if self.can.sender is not None:
-                self.can.sender.tick(now)
+            self.can.tick(now)
             if self.recorder is not None and now >= self._next_record:
                 self._next_record = now + 0.1
                 record_estimate(self.recorder, self.core, now)
@@ -346,8 +359,8 @@ class Daemon:
 
     def _next_tick_wait(self, now: float) -> float:
         due = min(now + TICK_MAX_S, self.core.next_deadline(now) + 1e-4)
-        if self.can is not None and self.can.sender is not None:
-            due = min(due, self.can.sender.next_due())
+        if self.can is not None:
+            due = min(due, self.can.next_due())
         return max(TICK_MIN_S, due - now)
 
     # --------------------------------------------------------------------------- control

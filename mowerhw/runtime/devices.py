@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import can
 
@@ -102,6 +103,52 @@ def open_recorder(cfg: Config, path: Path) -> Recorder:
     return rec
 
 
+class CanFrames:
+    """What a received CAN frame means here: recorded, and ground speed decoded (everything
+    else is counted by the reader and ignored; our own echo is skipped)."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        on_speed: Callable[[SpeedSample], None],
+        recorder: Recorder | None = None,
+    ) -> None:
+        self.own = cfg.can.source_address
+        self.on_speed = on_speed
+        self.recorder = recorder
+        self.speed_reader = SpeedReader(
+            cfg.speed.source, cfg.speed.sensor_address, cfg.speed.ccvs1_direction
+        )
+
+    def handle(self, now: float, arbitration_id: int, data: bytes, extended: bool) -> None:
+        mine = extended and (arbitration_id & 0xFF) == self.own
+        if self.recorder is not None:
+            self.recorder.can(int(now * 1e9), arbitration_id, data, extended, not mine)
+        if not extended or mine:
+            return
+        sample = self.speed_reader.handle(arbitration_id, data, now)
+        if sample is not None:
+            self.on_speed(sample)
+
+
+class DecisionOutput(Protocol):
+    """Where the daemon's decisions go: straight onto CAN (:class:`CanLink`, one process) or
+    to the permit supervisor as leases (:class:`mowerhw.supervisor.link.SupervisorLink`)."""
+
+    open_failures: int
+
+    def open(self) -> bool: ...
+    def retry(self, now: float) -> None: ...
+    def send_decision(
+        self, d: Decision, pose_xyh: tuple[float, float, float], now: float
+    ) -> bool: ...
+    def tick(self, now: float) -> None: ...
+    def next_due(self) -> float: ...
+    def shutdown(self, now: float) -> None: ...
+    def close(self) -> None: ...
+    def status(self) -> dict[str, Any]: ...
+
+
 class CanLink(ThreadedDevice):
     """The CAN bus: the permit sender, and a receive thread decoding ground speed (everything
     else is counted and ignored). A bus that cannot be opened is retried by :meth:`retry`."""
@@ -114,11 +161,8 @@ class CanLink(ThreadedDevice):
     ) -> None:
         super().__init__()
         self.cfg = cfg
-        self.on_speed = on_speed
-        self.recorder = recorder
-        self.speed_reader = SpeedReader(
-            cfg.speed.source, cfg.speed.sensor_address, cfg.speed.ccvs1_direction
-        )
+        self.frames = CanFrames(cfg, on_speed, recorder)
+        self.speed_reader = self.frames.speed_reader
         self.bus: can.BusABC | None = None
         self.sender: PermitSender | None = None
         self.open_failures = 0
@@ -151,6 +195,23 @@ class CanLink(ThreadedDevice):
         self.sender.set(d.permit, now, status)
         return was and not d.permit
 
+    def tick(self, now: float) -> None:
+        if self.sender is not None:
+            self.sender.tick(now)
+
+    def next_due(self) -> float:
+        return self.sender.next_due() if self.sender is not None else math.inf
+
+    def shutdown(self, now: float) -> None:
+        if self.sender is not None:
+            self.sender.shutdown(now)
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "speed_reader": vars(self.speed_reader.stats),
+            "permit_sender": vars(self.sender.stats) if self.sender else {},
+        }
+
     def retry(self, now: float) -> None:
         """Try to open a bus that failed, about once a second."""
         if self.sender is None and self.open_failures and now % 1.0 < 0.02:
@@ -159,7 +220,6 @@ class CanLink(ThreadedDevice):
     thread_name = "can-rx"
 
     def _run(self) -> None:
-        own = self.cfg.can.source_address
         bus = self.bus
         assert bus is not None  # the thread starts once the bus is open
         while not self._stop.is_set():
@@ -171,21 +231,9 @@ class CanLink(ThreadedDevice):
                 continue
             if msg is None:
                 continue
-            now = time.monotonic()
-            mine = msg.is_extended_id and (msg.arbitration_id & 0xFF) == own  # our echo
-            if self.recorder is not None:
-                self.recorder.can(
-                    int(now * 1e9),
-                    msg.arbitration_id,
-                    bytes(msg.data),
-                    msg.is_extended_id,
-                    not mine,
-                )
-            if not msg.is_extended_id or mine:
-                continue
-            sample = self.speed_reader.handle(msg.arbitration_id, bytes(msg.data), now)
-            if sample is not None:
-                self.on_speed(sample)
+            self.frames.handle(
+                time.monotonic(), msg.arbitration_id, bytes(msg.data), msg.is_extended_id
+            )
 
     def close(self) -> None:
         self.stop()
@@ -214,13 +262,14 @@ def record_estimate(rec: Recorder | None, core: RuntimeCore, now: float) -> None
     )
 
 
-def device_status(imu: Vn100 | None, can: CanLink | None, rec: Recorder | None) -> dict[str, Any]:
+def device_status(
+    imu: Vn100 | None, output: DecisionOutput | None, rec: Recorder | None
+) -> dict[str, Any]:
     """The devices' counters, for the status command."""
     return {
         "imu_driver": vars(imu.stats) if imu else {},
         "imu_parser": imu.parser.stats.as_dict() if imu else {},
         "imu_messages": vars(imu.extractor.stats) if imu else {},
-        "speed_reader": vars(can.speed_reader.stats) if can else {},
-        "permit_sender": vars(can.sender.stats) if can and can.sender else {},
+        **(output.status() if output is not None else {}),
         "recording": rec.status() if rec is not None else None,
     }

@@ -1,0 +1,111 @@
+"""The permit lease and the supervisor's own decision (pure: no I/O, no clock of its own).
+
+The estimation side sends a :class:`Lease` with every decision; it is good for
+``supervisor.lease_s`` after the supervisor received it. :class:`SupervisorGate` permits only
+while the newest lease is fresh and permits, and the supervisor's own checks hold (the ground
+speed it sees itself is fresh, CAN is up); otherwise it halts with the first reason that
+applies, logged once per change.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+from mowerhw.mow.containment import Reason, State
+from mowerhw.mow.gate import Decision
+
+log = logging.getLogger("mowerhw.supervisor")
+
+
+@dataclass(frozen=True, slots=True)
+class Lease:
+    """One decision of the estimation side, with the pose for the status frame."""
+
+    permit: bool
+    state: str
+    reason: str
+    detail: str
+    signed_distance_m: float
+    x: float
+    y: float
+    heading: float
+    decided_at: float  # host monotonic s (CLOCK_MONOTONIC is one clock for all processes)
+
+    @classmethod
+    def of(cls, d: Decision, pose_xyh: tuple[float, float, float], now: float) -> Lease:
+        return cls(
+            bool(d.permit),
+            str(d.state),
+            d.reason,
+            d.detail,
+            float(d.signed_distance_m),
+            *pose_xyh,
+            now,
+        )
+
+
+#: what the supervisor decides before the first lease
+NO_LEASE = Lease(
+    False, State.UNKNOWN, Reason.NOT_MOWING, "starting", math.nan, math.nan, math.nan, math.nan, 0.0
+)
+
+
+class SupervisorGate:
+    """The newest lease while it is fresh, and the supervisor's own checks."""
+
+    def __init__(self, lease_s: float) -> None:
+        self.lease_s = lease_s
+        self.lease = NO_LEASE
+        self.received_at: float | None = None
+        self.current = NO_LEASE
+        self.changes = 0
+
+    def renew(self, lease: Lease, now: float) -> None:
+        self.lease, self.received_at = lease, now
+
+    def lease_expires(self) -> float:
+        """When the newest lease runs out (``-inf`` before the first)."""
+        return -math.inf if self.received_at is None else self.received_at + self.lease_s
+
+    def decide(self, now: float, own_halt: tuple[str, str] | None = None) -> Lease:
+        """The decision for ``now``. ``own_halt``: the supervisor's own reason to halt (a
+        stale speed it sees, CAN down, shutting down), which comes first."""
+        lease = self.lease
+        if own_halt is not None:
+            d = _halt(lease, own_halt[0], own_halt[1], now)
+        elif self.received_at is None:
+            d = _halt(lease, Reason.ESTIMATOR_LATE, "no permit lease yet: estimation starting", now)
+        elif now - self.received_at > self.lease_s:
+            d = _halt(
+                lease,
+                Reason.ESTIMATOR_LATE,
+                f"no permit lease for {now - self.received_at:.3f} s (limit {self.lease_s} s): "
+                "the estimator is late, stalled or dead",
+                now,
+            )
+        else:
+            d = lease
+        if d.permit != self.current.permit or d.reason != self.current.reason:
+            self.changes += 1
+            if d.permit:
+                log.info("supervisor: PERMIT (%s)", d.state)
+            else:
+                log.warning("supervisor: HALT %s: %s", d.reason, d.detail)
+        self.current = d
+        return d
+
+
+def _halt(lease: Lease, reason: str, detail: str, now: float) -> Lease:
+    return Lease(
+        False,
+        State.UNKNOWN,
+        str(reason),
+        detail,
+        math.nan,
+        lease.x,
+        lease.y,
+        lease.heading,
+        now,
+    )

@@ -1,0 +1,136 @@
+"""The estimation side's end of the pipe to the supervisor.
+
+Decisions go up as :class:`~.lease.Lease` messages from a writer thread holding only the
+newest one (a decision is state: a newer one replaces an older one not yet sent), so the event
+loop never waits on the pipe. Ground-speed samples the supervisor reads from CAN come down;
+so do its status and the request to stop. If the pipe breaks (the supervisor died) the
+estimation process stops: it must never run without its supervisor.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from typing import Any
+
+from mowerhw.common.samples import SpeedSample
+from mowerhw.config import Config
+from mowerhw.mow.gate import Decision
+from mowerhw.recording.mcap import Recorder
+from mowerhw.runtime.devices import CanFrames
+from mowerhw.supervisor.lease import Lease
+
+log = logging.getLogger("mowerhw.daemon")
+
+
+class SupervisorLink:
+    """A :class:`mowerhw.runtime.devices.DecisionOutput` over the supervisor's pipe."""
+
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+        self.open_failures = 0
+        self.supervisor_status: dict[str, Any] = {}
+        self.leases_sent = 0
+        self._newest: Lease | None = None
+        self._permit = False
+        self._wake = threading.Condition()
+        self._closed = False
+        self._frames: CanFrames | None = None
+        self._on_lost: Callable[[str], None] | None = None
+
+    def output(
+        self,
+        cfg: Config,
+        on_speed: Callable[[SpeedSample], None],
+        on_lost: Callable[[str], None],
+        recorder: Recorder | None,
+    ) -> SupervisorLink:
+        """Bind the daemon's callbacks (thread-safe ones: they run on this link's threads).
+        The supervisor forwards every CAN frame it receives; they are recorded and their
+        ground speed decoded here, as a one-process daemon does."""
+        self._frames = CanFrames(cfg, on_speed, recorder)
+        self._on_lost = on_lost
+        return self
+
+    # ------------------------------------------------------------------ DecisionOutput
+
+    def open(self) -> bool:
+        threading.Thread(target=self._read, name="supervisor-rx", daemon=True).start()
+        threading.Thread(target=self._write, name="supervisor-tx", daemon=True).start()
+        self.send(("ready", None))
+        return True
+
+    def retry(self, now: float) -> None:
+        return None
+
+    def send_decision(self, d: Decision, pose_xyh: tuple[float, float, float], now: float) -> bool:
+        with self._wake:
+            self._newest = Lease.of(d, pose_xyh, now)
+            self._wake.notify()
+        was, self._permit = self._permit, bool(d.permit)
+        return was and not d.permit
+
+    def tick(self, now: float) -> None:
+        return None  # every decision renews the lease; the supervisor sends the frames
+
+    def next_due(self) -> float:
+        return math.inf
+
+    def shutdown(self, now: float) -> None:
+        with self._wake:
+            self._closed = True
+            self._wake.notify()
+
+    def close(self) -> None:
+        self.shutdown(0.0)
+
+    def status(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "supervisor": dict(self.supervisor_status),
+            "leases_sent": self.leases_sent,
+        }
+        if self._frames is not None:
+            out["speed_reader"] = vars(self._frames.speed_reader.stats)
+        return out
+
+    # ------------------------------------------------------------------------ threads
+
+    def send(self, msg: tuple[str, Any]) -> None:
+        try:
+            self.conn.send(msg)
+        except (OSError, EOFError, ValueError) as exc:
+            self._lost(f"cannot write to the supervisor ({exc})")
+
+    def _write(self) -> None:
+        while True:
+            with self._wake:
+                while self._newest is None and not self._closed:
+                    self._wake.wait()
+                if self._closed:
+                    return
+                lease, self._newest = self._newest, None
+            self.send(("lease", lease))
+            self.leases_sent += 1
+
+    def _read(self) -> None:
+        while True:
+            try:
+                kind, body = self.conn.recv()
+            except (OSError, EOFError, ValueError) as exc:
+                self._lost(f"the supervisor's pipe closed ({type(exc).__name__})")
+                return
+            if kind == "can" and self._frames is not None:
+                self._frames.handle(*body)
+            elif kind == "status":
+                self.supervisor_status = body
+            elif kind == "stop":
+                self._lost("the supervisor asked to stop")
+                return
+
+    def _lost(self, why: str) -> None:
+        if not self._closed and self._on_lost is not None:
+            self._closed = True
+            self._on_lost(why)

@@ -1,0 +1,396 @@
+"""The supervisor process (docs/design.md §8): what systemd starts as ``mowerhw run``.
+
+It owns the CAN bus and is the only writer of the permit frames; it starts the estimation
+process (:func:`mowerhw.supervisor.child.estimator_main`) and talks to it over one pipe:
+every CAN frame it receives goes down (the child decodes its ground speed and records it),
+every decision comes up as a lease. One plain loop, no numpy, no asyncio: it wakes when a
+lease arrives, when the newest lease runs out, when a frame is due (at least every 20 ms).
+
+Crash-only: the estimation process dying (or not starting) halts the deck, announces the
+fault (heartbeat 254), names it in the log and ends the service with exit status 1, for
+systemd to restart it. A CAN bus that fails is reopened with backoff; if it stays unusable
+for ``supervisor.can_down_restart_s`` the watchdog is no longer fed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import multiprocessing
+import signal
+import threading
+import time
+from multiprocessing.connection import Connection, wait
+from pathlib import Path
+from typing import Any
+
+import can
+
+from drivers.can.isobus import open_bus
+from drivers.can.permit import PermitSender, Status
+from drivers.can.speed import SpeedReader
+from mowerhw.config import Config
+from mowerhw.mow.containment import Reason
+from mowerhw.mow.gate import PermitGate
+from mowerhw.runtime.sdnotify import Notifier
+from mowerhw.supervisor.lease import Lease, SupervisorGate
+
+log = logging.getLogger("mowerhw.supervisor")
+
+TICK_MAX_S = 0.02
+STATUS_PERIOD_S = 0.5  # the supervisor's status, down to the child (for `mowerhw ctl status`)
+
+
+class CanPort:
+    """The bus, reopened with backoff when it fails; one log line per change of state."""
+
+    def __init__(self, cfg: Config) -> None:
+        self.cfg = cfg
+        self.bus: can.BusABC | None = None
+        self.up_since: float | None = None
+        self.down_since: float | None = time.monotonic()
+        self.reopens = 0
+        self.errors = 0
+        self._backoff = 0.1
+        self._next_try = 0.0
+        self._last_error = ""
+
+    def ensure(self, now: float) -> bool:
+        """Open the bus if it is closed and a retry is due; whether it is up."""
+        if self.bus is not None:
+            return True
+        if now < self._next_try:
+            return False
+        c = self.cfg.can
+        try:
+            extra = {"port": c.udp_port} if c.interface == "udp_multicast" else {}
+            self.bus = open_bus(c.interface, c.channel, c.bitrate, **extra)
+        except Exception as exc:
+            self._failed(now, f"cannot open ({exc})")
+            return False
+        if self.reopens or self._last_error:
+            log.warning(
+                "CAN %s %s open again after %.1f s",
+                c.interface,
+                c.channel,
+                now - (self.down_since or now),
+            )
+        else:
+            log.info("CAN %s %s open, sending as 0x%02X", c.interface, c.channel, c.source_address)
+        self.reopens += 1
+        self.up_since, self.down_since = now, None
+        self._backoff, self._last_error = 0.1, ""
+        return True
+
+    def failed(self, now: float, why: str) -> None:
+        """The bus stopped working: close it; :meth:`ensure` reopens it with backoff."""
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            with contextlib.suppress(Exception):
+                bus.shutdown()
+        self._failed(now, why)
+
+    def _failed(self, now: float, why: str) -> None:
+        self.errors += 1
+        if self.down_since is None or self.up_since is not None:
+            self.down_since = now
+        self.up_since = None
+        if why != self._last_error:  # one line per change, not per retry
+            log.error(
+                "CAN %s %s: %s; reopening with backoff",
+                self.cfg.can.interface,
+                self.cfg.can.channel,
+                why,
+            )
+            self._last_error = why
+        self._next_try = now + self._backoff
+        self._backoff = min(self._backoff * 2, self.cfg.supervisor.can_reopen_max_backoff_s)
+
+
+class Supervisor:
+    """``Supervisor(config).run()`` until SIGTERM / SIGINT; the exit status."""
+
+    def __init__(
+        self,
+        config: Config,
+        mode: str | None = None,
+        record: Path | None = None,
+        child_target: Any = None,
+        duration_s: float | None = None,
+    ) -> None:
+        self.cfg = config
+        self.duration_s = duration_s
+        self.mode = mode
+        self.record = record
+        self.child_target = child_target
+        self.gate = SupervisorGate(config.supervisor.lease_s)
+        self.speed_gate = PermitGate({"speed": config.speed.stale_after_s}, log_changes=False)
+        self.port = CanPort(config)
+        self.sender: PermitSender | None = None
+        self.notifier = Notifier()
+        self.stop_requested = ""
+        self.child: Any = None
+        self.conn: Connection | None = None
+        self.child_ready = False
+        self.counts = {"leases": 0, "frames_forwarded": 0, "send_errors": 0, "lease_expired": 0}
+        self.lease_to_frame_ms: list[float] = []
+        self._speed = SpeedReader(
+            config.speed.source, config.speed.sensor_address, config.speed.ccvs1_direction
+        )
+        self._speed_arrival: dict[str, float | None] = {"speed": None}
+        self._send_lock = threading.Lock()
+        self._rx: threading.Thread | None = None
+        self._next_status = 0.0
+        self._next_watchdog = 0.0
+
+    # -------------------------------------------------------------------------- child
+
+    def _start_child(self) -> None:
+        from mowerhw.supervisor.child import estimator_main
+
+        ctx = multiprocessing.get_context("spawn")
+        parent, child_end = ctx.Pipe(duplex=True)
+        target = self.child_target or estimator_main
+        self.child = ctx.Process(
+            target=target,
+            args=(self.cfg, self.mode, self.record, child_end, logging.getLogger().level),
+            name="mowerhw-estimation",
+            daemon=True,
+        )
+        self.child.start()
+        child_end.close()
+        self.conn = parent
+        log.info("estimation process started (pid %d)", self.child.pid)
+
+    def _to_child(self, msg: tuple[str, Any]) -> None:
+        conn = self.conn
+        if conn is None:
+            return
+        # a dead child: the loop notices it by its sentinel
+        with self._send_lock, contextlib.suppress(OSError, EOFError, ValueError):
+            conn.send(msg)
+
+    # ----------------------------------------------------------------------------- CAN
+
+    def _receive(self) -> None:
+        """CAN receive thread: every frame down to the child, the speed's freshness here."""
+        own = self.cfg.can.source_address
+        while not self.stop_requested:
+            bus = self.port.bus
+            if bus is None:
+                time.sleep(0.05)
+                continue
+            try:
+                msg = bus.recv(timeout=0.05)
+            except Exception as exc:
+                self.port.failed(time.monotonic(), f"receive failed ({exc})")
+                continue
+            if msg is None or not msg.is_extended_id or (msg.arbitration_id & 0xFF) == own:
+                continue
+            now = time.monotonic()
+            data = bytes(msg.data)
+            self._to_child(("can", (now, msg.arbitration_id, data, True)))
+            self.counts["frames_forwarded"] += 1
+            s = self._speed.handle(msg.arbitration_id, data, now)
+            if s is not None and s.valid:
+                self._speed_arrival["speed"] = now
+
+    def _send_frames(self, d: Lease, now: float) -> None:
+        if not self.port.ensure(now):
+            self.sender = None
+            return
+        bus = self.port.bus
+        assert bus is not None
+        if self.sender is None or self.sender.bus is not bus:
+            c, p = self.cfg.can, self.cfg.permit
+            self.sender = PermitSender(
+                bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s, 0.0
+            )
+        sender = self.sender
+        errors = sender.stats.send_errors
+        status = Status(
+            d.state, d.permit, d.reason or "NONE", d.signed_distance_m, d.x, d.y, d.heading
+        )
+        sender.fault = d.reason in (Reason.FAULT, Reason.ESTIMATOR_LATE) and self.child_ready
+        was = sender.permit
+        sender.set(d.permit, now, status)
+        if was and not d.permit and d.decided_at > 0:
+            self.lease_to_frame_ms.append(round((time.monotonic() - d.decided_at) * 1e3, 3))
+            del self.lease_to_frame_ms[:-200]
+        sender.tick(now)
+        if sender.stats.send_errors > errors:
+            self.counts["send_errors"] += sender.stats.send_errors - errors
+            if sender.stats.send_errors - errors >= 3:
+                self.port.failed(now, "sending failed")
+
+    # --------------------------------------------------------------------------- loop
+
+    def _own_halt(self, now: float) -> tuple[str, str] | None:
+        if self.stop_requested:
+            return Reason.SHUTTING_DOWN, f"the supervisor is stopping ({self.stop_requested})"
+        if self.lease_mow():
+            stale = self.speed_gate.stale(now, self._speed_arrival)
+            if stale is not None:
+                return Reason.SENSOR_STALE, f"{stale[1]} (seen by the supervisor)"
+        return None
+
+    def lease_mow(self) -> bool:
+        """The estimator is mowing (its newest lease is about mowing, permitted or not)."""
+        return self.gate.lease.reason not in (Reason.NOT_MOWING, Reason.SHUTTING_DOWN)
+
+    def request_stop(self, why: str) -> None:
+        if not self.stop_requested:
+            log.warning("supervisor: stopping (%s): halting the deck", why)
+        self.stop_requested = why
+
+    def run(self) -> int:
+        previous = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                previous[sig] = signal.signal(
+                    sig, lambda s, f: self.request_stop(signal.Signals(s).name)
+                )
+        try:
+            return self._run()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+
+    def _run(self) -> int:
+        self.port.ensure(time.monotonic())
+        self._rx = threading.Thread(target=self._receive, name="can-rx", daemon=True)
+        self._rx.start()
+        self._start_child()
+        assert self.conn is not None and self.child is not None
+        started = time.monotonic()
+        status = 0
+        while True:
+            now = time.monotonic()
+            due = now + TICK_MAX_S
+            if self.sender is not None:
+                due = min(due, self.sender.next_due())
+            expires = self.gate.lease_expires()
+            if expires > now:
+                due = min(due, expires + 1e-4)
+            ready = wait([self.conn, self.child.sentinel], max(0.0005, due - now))
+            now = time.monotonic()
+            if self.conn in ready:
+                self._drain(now)
+            if self.child.sentinel in ready or not self.child.is_alive():
+                self.child.join(timeout=1.0)  # for its exit code
+                if not self.stop_requested:
+                    log.error(
+                        "the estimation process died (exit code %s): halting the deck and "
+                        "ending the service",
+                        self.child.exitcode,
+                    )
+                    status = 1
+                self.request_stop("the estimation process ended")
+                break
+            if self.duration_s is not None and now - started > self.duration_s:
+                self.request_stop("duration")
+            if self.stop_requested:
+                break
+            if not self.child_ready and now - started > self.cfg.supervisor.child_start_timeout_s:
+                log.error(
+                    "the estimation process did not start within %.0f s",
+                    self.cfg.supervisor.child_start_timeout_s,
+                )
+                self.request_stop("estimation start-up timed out")
+                status = 1
+                break
+            self._decide(now)
+        self._shutdown(status)
+        return status
+
+    def _drain(self, now: float) -> None:
+        assert self.conn is not None
+        try:
+            while self.conn.poll():
+                kind, body = self.conn.recv()
+                if kind == "lease":
+                    self.gate.renew(body, now)
+                    self.counts["leases"] += 1
+                elif kind == "ready":
+                    self.child_ready = True
+                    self.notifier.ready("supervisor: estimation running")
+                    log.info("estimation process running; permit supervisor ready")
+        except (OSError, EOFError):
+            pass  # a dead child: its sentinel says so
+        self._decide(now)
+
+    def _decide(self, now: float) -> None:
+        late = self.gate.received_at is not None and now > self.gate.lease_expires()
+        if late and self.gate.current.reason != Reason.ESTIMATOR_LATE:
+            self.counts["lease_expired"] += 1
+        d = self.gate.decide(now, self._own_halt(now))
+        self._send_frames(d, now)
+        if now >= self._next_status:
+            self._next_status = now + STATUS_PERIOD_S
+            self._to_child(("status", self.status(now)))
+        self._watchdog(now)
+
+    def _watchdog(self, now: float) -> None:
+        period = self.notifier.watchdog_period_s
+        if period is None or now < self._next_watchdog:
+            return
+        down = self.port.down_since
+        if down is not None and now - down > self.cfg.supervisor.can_down_restart_s:
+            if self._next_watchdog != math.inf:
+                log.error(
+                    "CAN unusable for %.0f s: no more watchdog pings (systemd restarts "
+                    "the service)",
+                    now - down,
+                )
+            self._next_watchdog = math.inf
+            return
+        self._next_watchdog = now + period
+        self.notifier.watchdog()
+
+    def status(self, now: float) -> dict[str, Any]:
+        d = self.gate.current
+        age = None if self.gate.received_at is None else round(now - self.gate.received_at, 4)
+        return {
+            "permit": d.permit,
+            "reason": d.reason,
+            "detail": d.detail,
+            "lease_age_s": age,
+            "lease_s": self.gate.lease_s,
+            "can_up": self.port.bus is not None,
+            "can_reopens": max(0, self.port.reopens - 1),
+            "can_errors": self.port.errors,
+            "lease_to_frame_ms": self.lease_to_frame_ms[-50:],
+            "permit_sender": vars(self.sender.stats) if self.sender else {},
+            **self.counts,
+        }
+
+    def _shutdown(self, status: int) -> None:
+        now = time.monotonic()
+        self.notifier.stopping()
+        if self.sender is not None:
+            if status:
+                self.sender.fault = True
+                self.sender.error(now)
+            else:
+                self.sender.shutdown(now)
+        self._to_child(("stop", None))
+        if self.child is not None:
+            self.child.join(timeout=10.0)
+            if self.child.is_alive():
+                self.child.terminate()
+                self.child.join(timeout=2.0)
+        if self.port.bus is not None:
+            with contextlib.suppress(Exception):
+                self.port.bus.shutdown()
+        log.info("supervisor stopped")
+
+
+def run_supervised(
+    config: Config,
+    mode: str | None = None,
+    record: Path | None = None,
+    duration_s: float | None = None,
+) -> int:
+    """``mowerhw run`` with the permit supervisor: the exit status."""
+    return Supervisor(config, mode, record, duration_s=duration_s).run()

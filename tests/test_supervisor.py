@@ -1,0 +1,84 @@
+"""The permit supervisor: leases, and the supervisor process with a scripted estimation
+process on python-can's virtual bus, the mock mower controller listening."""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+from drivers.can.isobus import open_bus
+from drivers.can.mock_mower import MockMowerController
+from drivers.can.mock_speed import MockSpeedSensor
+from drivers.can.permit import HB_ERROR
+from mowerhw.config import config_from_dict, config_to_dict, default_config
+from mowerhw.mow.containment import Reason
+from mowerhw.supervisor.lease import Lease, SupervisorGate
+from mowerhw.supervisor.mock_estimator import scripted_estimator
+from mowerhw.supervisor.process import Supervisor
+
+
+def _lease(permit: bool = True, reason: str = "") -> Lease:
+    return Lease(permit, "INSIDE", reason, "", 1.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def test_a_lease_permits_only_while_it_is_fresh() -> None:
+    gate = SupervisorGate(0.08)
+    d = gate.decide(0.0)
+    assert not d.permit and d.reason == Reason.ESTIMATOR_LATE and "no permit lease yet" in d.detail
+    gate.renew(_lease(), 1.0)
+    assert gate.decide(1.05).permit
+    late = gate.decide(1.1)
+    assert not late.permit and late.reason == Reason.ESTIMATOR_LATE
+    assert "no permit lease for 0.100 s (limit 0.08 s)" in late.detail
+    gate.renew(_lease(False, "OUTSIDE"), 1.2)
+    assert gate.decide(1.21).reason == "OUTSIDE"  # the estimator's own halt passes through
+    gate.renew(_lease(), 1.3)
+    own = gate.decide(1.31, (Reason.SENSOR_STALE, "speed silent"))
+    assert not own.permit and own.reason == Reason.SENSOR_STALE  # its own checks come first
+
+
+def test_the_supervisor_halts_a_quiet_estimator_and_ends_when_it_dies(tmp_path: Path) -> None:
+    channel = f"sup-{uuid.uuid4().hex[:8]}"
+    raw = config_to_dict(default_config())
+    raw["can"].update(interface="virtual", channel=channel)
+    cfg = config_from_dict(raw, tmp_path, "test config")
+    bus, speed_bus = open_bus("virtual", channel), open_bus("virtual", channel)
+    mower = MockMowerController(bus, permit_source=cfg.can.source_address).start()
+    speed = MockSpeedSensor(speed_bus, lambda t: 0.3).start()  # the supervisor sees it too
+    sup = Supervisor(cfg, child_target=scripted_estimator)
+    out: dict[str, Any] = {}
+    heartbeats: list[int] = []
+
+    def watch() -> None:
+        while "status" not in out:
+            hb = mower.state.hb_sequence
+            if hb is not None and (not heartbeats or heartbeats[-1] != hb):
+                heartbeats.append(hb)
+            mower.evaluate(time.monotonic())
+            time.sleep(0.005)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        out["status"] = sup.run()
+        time.sleep(0.1)
+    finally:
+        out.setdefault("status", None)
+        watcher.join(2.0)
+        mower.stop()
+        speed.stop()
+        bus.shutdown()
+        speed_bus.shutdown()
+    events = mower.state.events
+    runs = [e for e in events if e.running]
+    stops = [e for e in events if not e.running]
+    assert out["status"] == 1  # the estimation process died: the service ends, non-zero
+    assert len(runs) >= 2, events  # permitted, halted while quiet, permitted again
+    quiet_stop = next(e for e in stops if e.t > runs[0].t)
+    assert quiet_stop.reason == "ISB stop"
+    assert sup.counts["lease_expired"] >= 1
+    assert HB_ERROR in heartbeats  # the fault is announced by the heartbeat
+    assert not mower.deck_running
