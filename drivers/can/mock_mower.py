@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import can
@@ -40,6 +41,8 @@ class MowerState:
     status: Status | None = None
     events: list[DeckEvent] = field(default_factory=list)
     frames: int = 0
+    #: (time, sequence) of the recent heartbeats: what a controller saw around a fault
+    heartbeats: deque[tuple[float, int]] = field(default_factory=lambda: deque(maxlen=4000))
 
 
 class MockMowerController(ThreadedDevice):
@@ -98,6 +101,7 @@ class MockMowerController(ThreadedDevice):
             elif ident.pgn == PGN_HEARTBEAT:
                 s.hb_sequence = data[0]
                 s.hb_time = now
+                s.heartbeats.append((now, data[0]))
             elif ident.pgn == self.status_pgn:
                 s.status = decode_status(data)
 

@@ -64,6 +64,7 @@ FAULT_KINDS = (
     "sigkill",
     "estimator-stall",
     "estimator-kill",
+    "can-down",
 )
 RECOVERY_WINDOW_S = 30.0
 
@@ -526,6 +527,15 @@ class Bench:
             clear = self.camera.frozen.clear
         elif spec.kind in ("nan", "exception"):
             request(self.sock, "fault", args=[spec.kind])
+        elif spec.kind == "can-down":  # the supervisor's CAN interface away for D s
+            request(self.sock, "fault", args=[spec.kind, str(spec.duration_s)])
+            n_hb = len(ctl.state.heartbeats)
+
+            def heartbeats_after() -> None:
+                seen = [seq for _, seq in list(ctl.state.heartbeats)[n_hb:]][:12]
+                res.notes.append(f"heartbeats seen from the fault on: {seen}")
+
+            self._actions.append((t0 + spec.duration_s + 2.0, heartbeats_after))
         elif spec.kind == "corrupt-map":
             path = Path(self.cfg_path.parent / "lawn.json")
             with open(path, "r+b") as fh:  # damaged in place, as a bad disk or editor would

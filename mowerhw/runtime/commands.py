@@ -18,6 +18,7 @@ class Controllable(Protocol):
 
     cfg: Config
     core: RuntimeCore
+    link: Any
 
     async def set_mode(self, mode: str) -> dict[str, Any]: ...
     async def finish_teach(self) -> dict[str, Any]: ...
@@ -38,7 +39,14 @@ async def handle_command(d: Controllable, cmd: str, args: dict[str, Any]) -> dic
     if cmd == "fault":
         if not d.cfg.runtime.fault_injection:
             return {"ok": False, "error": "fault injection is off (runtime.fault_injection)"}
-        kind = str(args.get("kind") or (args.get("args") or [""])[0])
+        words = [str(a) for a in (args.get("args") or [])]
+        kind = str(args.get("kind") or (words or [""])[0])
+        if kind == "can-down":  # the supervisor's CAN interface, taken away for a while
+            if d.link is None:
+                return {"ok": False, "error": "can-down needs the permit supervisor"}
+            seconds = float(args.get("seconds") or (words[1:] or ["3"])[0])
+            d.link.send(("fault", {"kind": kind, "seconds": seconds}))
+            return {"ok": True, "injected": kind, "seconds": seconds}
         problem = d.core.inject(kind)
         return {"ok": False, "error": problem} if problem else {"ok": True, "injected": kind}
     return {"ok": False, "error": f"unknown command {cmd!r}"}

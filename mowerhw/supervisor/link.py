@@ -37,6 +37,7 @@ class SupervisorLink:
         self._newest: Lease | None = None
         self._permit = False
         self._wake = threading.Condition()
+        self._send_lock = threading.Lock()
         self._closed = False
         self._frames: CanFrames | None = None
         self._on_lost: Callable[[str], None] | None = None
@@ -100,7 +101,8 @@ class SupervisorLink:
 
     def send(self, msg: tuple[str, Any]) -> None:
         try:
-            self.conn.send(msg)
+            with self._send_lock:
+                self.conn.send(msg)
         except (OSError, EOFError, ValueError) as exc:
             self._lost(f"cannot write to the supervisor ({exc})")
 

@@ -55,6 +55,7 @@ class CanPort:
         self._backoff = 0.1
         self._next_try = 0.0
         self._last_error = ""
+        self._gone_until = 0.0  # fault injection: the interface is away until then
 
     def ensure(self, now: float) -> bool:
         """Open the bus if it is closed and a retry is due; whether it is up."""
@@ -63,6 +64,9 @@ class CanPort:
         if now < self._next_try:
             return False
         c = self.cfg.can
+        if now < self._gone_until:
+            self._failed(now, "cannot open (No such device: the interface is away)")
+            return False
         try:
             extra = {"port": c.udp_port} if c.interface == "udp_multicast" else {}
             self.bus = open_bus(c.interface, c.channel, c.bitrate, **extra)
@@ -82,6 +86,11 @@ class CanPort:
         self.up_since, self.down_since = now, None
         self._backoff, self._last_error = 0.1, ""
         return True
+
+    def take_away(self, now: float, seconds: float) -> None:
+        """Fault injection: the interface disappears for ``seconds`` (an adapter unplugged)."""
+        self._gone_until = now + seconds
+        self.failed(now, "the interface went away (fault injection)")
 
     def failed(self, now: float, why: str) -> None:
         """The bus stopped working: close it; :meth:`ensure` reopens it with backoff."""
@@ -184,7 +193,8 @@ class Supervisor:
             try:
                 msg = bus.recv(timeout=0.05)
             except Exception as exc:
-                self.port.failed(time.monotonic(), f"receive failed ({exc})")
+                if self.port.bus is bus:  # not the one just closed on purpose
+                    self.port.failed(time.monotonic(), f"receive failed ({exc})")
                 continue
             if msg is None or not msg.is_extended_id or (msg.arbitration_id & 0xFF) == own:
                 continue
@@ -312,6 +322,8 @@ class Supervisor:
                 if kind == "lease":
                     self.gate.renew(body, now)
                     self.counts["leases"] += 1
+                elif kind == "fault" and body.get("kind") == "can-down":
+                    self.port.take_away(now, float(body.get("seconds", 3.0)))
                 elif kind == "ready":
                     self.child_ready = True
                     self.notifier.ready("supervisor: estimation running")
