@@ -455,6 +455,47 @@ class RuntimeConfig:
 
 
 @dataclass(frozen=True)
+class SafetyConfig:
+    """Lift, tilt, rollover and collision: the supervisor halts on each (docs/design.md §8).
+    Tilt and rollover come from the IMU's gravity vector, lift and collision from its
+    acceleration and from the mower controller's own switches (CAN, ``safety.switches_pgn``)."""
+
+    tilt_limit_deg: float = opt(
+        35.0, "halt (TILTED) when tilted more than this for tilt_debounce_s", gt=0.0, le=90.0
+    )
+    tilt_debounce_s: float = opt(1.0, "how long a tilt must last to halt", ge=0.0, le=10.0)
+    rollover_deg: float = opt(
+        60.0, "halt (TILTED) at once when tilted more than this (rolling over)", gt=0.0, le=180.0
+    )
+    lift_accel_mps2: float = opt(
+        3.0,
+        "halt (LIFTED) when the vertical specific force exceeds gravity by this for "
+        "lift_debounce_s (being lifted)",
+        gt=0.0,
+    )
+    lift_debounce_s: float = opt(0.1, "how long a lift must last to halt", ge=0.0, le=5.0)
+    bump_accel_mps2: float = opt(
+        25.0, "halt (COLLISION) at once on a horizontal acceleration above this", gt=0.0
+    )
+    clear_s: float = opt(
+        2.0, "a lift, tilt or collision is latched until clear for this long", ge=0.0, le=60.0
+    )
+    filter_s: float = opt(
+        0.05, "time constant of the low-pass on the acceleration for lift", ge=0.0, le=1.0
+    )
+    tilt_filter_s: float = opt(
+        0.3,
+        "time constant of the low-pass giving the gravity direction for tilt (a jolt must "
+        "not look like rolling over)",
+        ge=0.0,
+        le=5.0,
+    )
+    switches_pgn: int = opt(
+        0xFF11, "PGN of the mower controller's lift/bump/stop switch frame", ge=0xFF00, le=0xFFFF
+    )
+
+
+@dataclass(frozen=True)
 class SupervisorConfig:
     """The permit supervisor: the process that alone writes the permit frames."""
 
@@ -500,6 +541,7 @@ class Config:
     map: MapConfig = section(MapConfig, "lawn map")
     runtime: RuntimeConfig = section(RuntimeConfig, "daemon")
     supervisor: SupervisorConfig = section(SupervisorConfig, "permit supervisor")
+    safety: SafetyConfig = section(SafetyConfig, "lift, tilt, rollover, collision")
     source: Path | None = field(default=None, compare=False, metadata={"internal": True})
 
 

@@ -11,6 +11,7 @@ the status frame (containment state) so a bench can turn the mower at NEAR_EDGE.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections import deque
@@ -18,8 +19,9 @@ from dataclasses import dataclass, field
 
 import can
 
-from drivers.can.isobus import PGN_HEARTBEAT, PGN_ISB, parse_id
+from drivers.can.isobus import PGN_HEARTBEAT, PGN_ISB, can_id, parse_id
 from drivers.can.permit import HB_ERROR, HB_SHUTDOWN, ISB_PERMIT, Status, decode_isb, decode_status
+from drivers.can.switches import Switches, encode_switches
 from drivers.threaded import ThreadedDevice
 
 
@@ -57,6 +59,8 @@ class MockMowerController(ThreadedDevice):
         timeout_s: float = 0.3,
         status_pgn: int = 0xFF10,
         poll_s: float = 0.005,
+        switches_pgn: int | None = None,
+        source_address: int = 0x28,
     ) -> None:
         super().__init__()
         self.bus = bus
@@ -67,6 +71,13 @@ class MockMowerController(ThreadedDevice):
         self.state = MowerState()
         self.deck_running = False
         self._lock = threading.Lock()
+        #: the controller's own lift / bump / stop switches, sent every 100 ms and on every
+        #: change when ``switches_pgn`` is given (a test or the bench sets them)
+        self.switches = Switches()
+        self.switches_pgn = switches_pgn
+        self.sa = source_address
+        self._sent_switches: Switches | None = None
+        self._next_switches = 0.0
 
     def start(self) -> MockMowerController:
         self._start_thread()
@@ -79,6 +90,23 @@ class MockMowerController(ThreadedDevice):
             if msg is not None:
                 self.handle(msg.arbitration_id, bytes(msg.data), now)
             self.evaluate(now)
+            if self.switches_pgn is not None:
+                self._send_switches(now)
+
+    def _send_switches(self, now: float) -> None:
+        sw = self.switches
+        if sw == self._sent_switches and now < self._next_switches:
+            return
+        import can
+
+        msg = can.Message(
+            arbitration_id=can_id(6, self.switches_pgn or 0, self.sa),
+            data=encode_switches(sw),
+            is_extended_id=True,
+        )
+        with contextlib.suppress(can.CanError, OSError):
+            self.bus.send(msg, timeout=0.0)
+        self._sent_switches, self._next_switches = sw, now + 0.1
 
     def handle(self, arbitration_id: int, data: bytes, now: float) -> None:
         ident = parse_id(arbitration_id)

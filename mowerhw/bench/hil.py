@@ -48,6 +48,7 @@ import numpy as np
 import shapely
 import yaml
 
+from drivers.can.switches import Switches
 from mowerhw.evaluation.scoring import score_halts
 from mowerhw.runtime.control import request
 
@@ -65,6 +66,9 @@ FAULT_KINDS = (
     "estimator-stall",
     "estimator-kill",
     "can-down",
+    "lift",
+    "tilt",
+    "bump",
 )
 RECOVERY_WINDOW_S = 30.0
 
@@ -250,7 +254,10 @@ class Bench:
         vn = MockVn100(self.out / "vn100", source=mower.imu_source, seed=self.seed)
         speed = MockSpeedSensor(bus, mower.speed_source)
         controller = MockMowerController(
-            bus, cfg.can.source_address, status_pgn=cfg.permit.status_pgn
+            bus,
+            cfg.can.source_address,
+            status_pgn=cfg.permit.status_pgn,
+            switches_pgn=cfg.safety.switches_pgn,
         )
         mower.deck_running = lambda: controller.deck_running
         camera = MockCameraServer(
@@ -513,7 +520,9 @@ class Bench:
         and recovery are read from the mock controller's deck events afterwards."""
         ctl = self.controller
         t0 = time.monotonic()
-        res = FaultResult(spec.kind, round(t0 - t_mow0, 2), spec.duration_s, ctl.deck_running)
+        # one-shot faults last as long as they last; recovery counts from their end
+        duration = {"bump": 0.2, "nan": 0.0, "exception": 0.0}.get(spec.kind, spec.duration_s)
+        res = FaultResult(spec.kind, round(t0 - t_mow0, 2), duration, ctl.deck_running)
         res.t0 = t0
         res.n_events = len(ctl.state.events)
         clear: Any = None
@@ -527,6 +536,8 @@ class Bench:
             clear = self.camera.frozen.clear
         elif spec.kind in ("nan", "exception"):
             request(self.sock, "fault", args=[spec.kind])
+        elif spec.kind in ("lift", "tilt", "bump"):
+            clear = self._disturb(spec.kind, t0, spec.duration_s)
         elif spec.kind == "can-down":  # the supervisor's CAN interface away for D s
             request(self.sock, "fault", args=[spec.kind, str(spec.duration_s)])
             n_hb = len(ctl.state.heartbeats)
@@ -583,9 +594,27 @@ class Bench:
             if clear is not None:
                 clear()
 
-        self._actions.append((t0 + min(0.5, spec.duration_s * 0.5), note_reason))
-        self._actions.append((t0 + spec.duration_s, cleared))
+        self._actions.append((t0 + min(0.5, max(duration, 0.1) * 0.5), note_reason))
+        self._actions.append((t0 + duration, cleared))
         return res
+
+    def _disturb(self, kind: str, t0: float, duration_s: float) -> Any:
+        """A lift (the lift switch, and the accelerometer reading 1.5 g for 0.3 s), a tilt
+        (gravity 45° off the body's up axis for the duration) or a bump (a 3 g jolt for 60
+        ms and the bumper for 0.2 s); what clears it."""
+        g = 9.80665
+        ctl, mower = self.controller, self.mower
+        if kind == "lift":
+            mower.accel_events.append((t0, t0 + 0.3, np.array([0.0, 0.0, 1.5 * g])))
+            ctl.switches = Switches(lifted=True)
+        elif kind == "tilt":
+            c, s = math.cos(math.radians(45.0)), math.sin(math.radians(45.0))
+            mower.accel_events.append((t0, t0 + duration_s, np.array([0.0, g * s, g * c])))
+        else:
+            mower.accel_events.append((t0, t0 + 0.06, np.array([-3.0 * g, 0.0, g])))
+            ctl.switches = Switches(bumped=True)
+            self._actions.append((t0 + 0.2, lambda: setattr(ctl, "switches", Switches())))
+        return lambda: setattr(ctl, "switches", Switches())
 
     def _finish_faults(self) -> None:
         """Stop and recovery of each fault, from the mock controller's deck events."""

@@ -76,6 +76,9 @@ class RealTimeMower(ThreadedDevice):
         self.log: list[tuple[float, float, float, float, float, int, int]] = []
         self._lock = threading.Lock()
         self._imu_prev: tuple[float, float] | None = None  # (t, yaw) at the last IMU packet
+        #: (from, until, specific force in the body frame): what a lift, tilt or bump makes the
+        #: accelerometer read (host monotonic s)
+        self.accel_events: list[tuple[float, float, FloatArray]] = []
 
     # ---------------------------------------------------------------------------- control
 
@@ -222,6 +225,9 @@ class RealTimeMower(ThreadedDevice):
         white = g.noise_density / math.sqrt(max(dt, 1e-3))
         gyro_b = np.array([0.0, 0.0, rate]) + self.bias + self.rng.normal(0.0, white, 3)
         accel_b = np.array([0.0, 0.0, 9.80665])  # specific force at rest, body z up
+        for t0, t1, forced in self.accel_events:
+            if t0 <= now < t1:
+                accel_b = forced
         return MockImuState(
             gyro=self.r_ib @ gyro_b,
             accel=self.r_ib @ accel_b,

@@ -90,6 +90,7 @@ class RuntimeCore:
         self.stream_notes: dict[str, tuple[float, str]] = {}
         self.counts: Counter[str] = Counter()
         self.halt_latencies: list[HaltLatency] = []
+        self.last_accel: tuple[float, float, float] | None = None
         self.chains = ChainRequests(on_build)
         self._inject = ""
         self._last_good_pose: StartPose | None = None
@@ -113,6 +114,9 @@ class RuntimeCore:
         self.last_arrival["imu"] = now
         self.counts["imu"] += 1
         gyro = self.r_bi @ sample.gyro
+        if sample.accel is not None:  # for the supervisor's lift/tilt/collision checks
+            ax, ay, az = (float(v) for v in self.r_bi @ sample.accel)
+            self.last_accel = (ax, ay, az)
         self.buffer.push(
             Stream.IMU,
             ImuSample(sample.t, gyro, None, sample.device_time_ns, sample.host_time_ns),

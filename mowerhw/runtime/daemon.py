@@ -264,7 +264,10 @@ class Daemon:
         return d
 
     def _send(self, d: Decision, now: float) -> None:
-        if self.can is not None and self.can.send_decision(d, self.core.pose_xyh(), now):
+        sent = self.can is not None and self.can.send_decision(
+            d, self.core.pose_xyh(), now, self.core.last_accel
+        )
+        if sent:
             self.core.halt_sent(time.monotonic())
         pose = self.core.take_pose_to_save()
         lawn_map = self.core.map

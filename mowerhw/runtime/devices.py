@@ -140,7 +140,11 @@ class DecisionOutput(Protocol):
     def open(self) -> bool: ...
     def retry(self, now: float) -> None: ...
     def send_decision(
-        self, d: Decision, pose_xyh: tuple[float, float, float], now: float
+        self,
+        d: Decision,
+        pose_xyh: tuple[float, float, float],
+        now: float,
+        accel: tuple[float, float, float] | None = None,
     ) -> bool: ...
     def tick(self, now: float) -> None: ...
     def next_due(self) -> float: ...
@@ -185,7 +189,13 @@ class CanLink(ThreadedDevice):
         log.info("CAN %s %s open, sending as 0x%02X", c.interface, c.channel, c.source_address)
         return True
 
-    def send_decision(self, d: Decision, pose_xyh: tuple[float, float, float], now: float) -> bool:
+    def send_decision(
+        self,
+        d: Decision,
+        pose_xyh: tuple[float, float, float],
+        now: float,
+        accel: tuple[float, float, float] | None = None,
+    ) -> bool:
         """The permit or halt of a decision, with the status frame; True if it stopped a
         permit (a halt just went out)."""
         if self.sender is None:

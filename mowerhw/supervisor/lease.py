@@ -32,9 +32,17 @@ class Lease:
     y: float
     heading: float
     decided_at: float  # host monotonic s (CLOCK_MONOTONIC is one clock for all processes)
+    #: the newest IMU sample's specific force, body frame (m/s²; NaN if the IMU has none)
+    accel: tuple[float, float, float] = (math.nan, math.nan, math.nan)
 
     @classmethod
-    def of(cls, d: Decision, pose_xyh: tuple[float, float, float], now: float) -> Lease:
+    def of(
+        cls,
+        d: Decision,
+        pose_xyh: tuple[float, float, float],
+        now: float,
+        accel: tuple[float, float, float] = (math.nan, math.nan, math.nan),
+    ) -> Lease:
         return cls(
             bool(d.permit),
             str(d.state),
@@ -43,6 +51,7 @@ class Lease:
             float(d.signed_distance_m),
             *pose_xyh,
             now,
+            accel,
         )
 
 

@@ -67,9 +67,15 @@ class SupervisorLink:
     def retry(self, now: float) -> None:
         return None
 
-    def send_decision(self, d: Decision, pose_xyh: tuple[float, float, float], now: float) -> bool:
+    def send_decision(
+        self,
+        d: Decision,
+        pose_xyh: tuple[float, float, float],
+        now: float,
+        accel: tuple[float, float, float] | None = None,
+    ) -> bool:
         with self._wake:
-            self._newest = Lease.of(d, pose_xyh, now)
+            self._newest = Lease.of(d, pose_xyh, now, accel or (math.nan, math.nan, math.nan))
             self._wake.notify()
         was, self._permit = self._permit, bool(d.permit)
         return was and not d.permit

@@ -30,11 +30,13 @@ import can
 from drivers.can.isobus import open_bus
 from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
+from drivers.can.switches import decode_switches
 from mowerhw.config import Config
 from mowerhw.mow.containment import Reason
 from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
 from mowerhw.supervisor.lease import Lease, SupervisorGate
+from mowerhw.supervisor.safety import SafetyMonitor
 
 log = logging.getLogger("mowerhw.supervisor")
 
@@ -136,6 +138,8 @@ class Supervisor:
         self.gate = SupervisorGate(config.supervisor.lease_s)
         self.speed_gate = PermitGate({"speed": config.speed.stale_after_s}, log_changes=False)
         self.port = CanPort(config)
+        self.safety = SafetyMonitor(config.safety)
+        self._safety_lock = threading.Lock()
         self.sender: PermitSender | None = None
         self.notifier = Notifier()
         self.stop_requested = ""
@@ -200,6 +204,12 @@ class Supervisor:
                 continue
             now = time.monotonic()
             data = bytes(msg.data)
+            if (msg.arbitration_id >> 8) & 0x3FFFF == self.cfg.safety.switches_pgn:
+                sw = decode_switches(data)
+                if sw is not None:
+                    with self._safety_lock:
+                        self.safety.switches(now, sw.lifted, sw.bumped, sw.stop)
+                continue
             self._to_child(("can", (now, msg.arbitration_id, data, True)))
             self.counts["frames_forwarded"] += 1
             s = self._speed.handle(msg.arbitration_id, data, now)
@@ -239,6 +249,10 @@ class Supervisor:
     def _own_halt(self, now: float) -> tuple[str, str] | None:
         if self.stop_requested:
             return Reason.SHUTTING_DOWN, f"the supervisor is stopping ({self.stop_requested})"
+        with self._safety_lock:
+            unsafe = self.safety.halt(now)
+        if unsafe is not None:
+            return unsafe
         if self.lease_mow():
             stale = self.speed_gate.stale(now, self._speed_arrival)
             if stale is not None:
@@ -322,6 +336,8 @@ class Supervisor:
                 if kind == "lease":
                     self.gate.renew(body, now)
                     self.counts["leases"] += 1
+                    with self._safety_lock:
+                        self.safety.imu(body.decided_at, body.accel)
                 elif kind == "fault" and body.get("kind") == "can-down":
                     self.port.take_away(now, float(body.get("seconds", 3.0)))
                 elif kind == "ready":
@@ -373,6 +389,7 @@ class Supervisor:
             "can_reopens": max(0, self.port.reopens - 1),
             "can_errors": self.port.errors,
             "lease_to_frame_ms": self.lease_to_frame_ms[-50:],
+            "tilt_deg": round(self.safety.tilt_deg, 1),
             "permit_sender": vars(self.sender.stats) if self.sender else {},
             **self.counts,
         }
