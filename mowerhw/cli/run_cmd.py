@@ -70,7 +70,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from mowerhw.supervisor.process import run_supervised
 
         return run_supervised(cfg, args.mode, args.record, args.duration)
-    from mowerhw.runtime.daemon import run_daemon
+    from mowerhw.runtime.process import run_daemon
 
     return run_daemon(cfg, args.mode, record=args.record, duration_s=args.duration)
 
@@ -79,7 +79,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     cfg = load_config_or_exit(args.config)
     root = logging.getLogger()
     root.setLevel(min(getattr(logging, cfg.runtime.log_level), root.level))
-    from mowerhw.runtime.daemon import run_daemon
+    from mowerhw.runtime.process import run_daemon
 
     return run_daemon(cfg, "idle", record=args.out, duration_s=args.duration)
 

@@ -235,6 +235,12 @@ def quat_distance(p: ArrayLike, q: ArrayLike) -> FloatArray:
     return quat_angle(quat_multiply(quat_conjugate(p), q))
 
 
+def tuple3(v: ArrayLike) -> tuple[float, float, float]:
+    """A 3-vector as a tuple of Python floats (for messages between processes)."""
+    x, y, z = (float(c) for c in np.asarray(v, dtype=np.float64).reshape(3))
+    return x, y, z
+
+
 def yaw_rotation(yaw: float) -> FloatArray:
     """``R_z(ψ)``: the rotation by heading ψ about the vertical (a planar pose's ``R_wb``;
     its transpose takes world vectors into such a body)."""

@@ -7,10 +7,8 @@ fault / rebuild / resume policy and the halt-latency bookkeeping. The daemon is 
 shell around it (devices, CAN, control socket, map file, systemd); a replay drives the same
 core, so a recording gives the daemon's own decisions, faults included.
 
-Every input that can change a decision is journaled before it is applied, and every decision
-after it is made: replaying the journal through a new core gives the same decisions.
-
-Chains take seconds to build: the core asks for one (``on_build``), the shell builds it off
+Every input that can change a decision is journaled before it is applied, every decision after
+it. Chains take seconds to build: the core asks for one (``on_build``), the shell builds it off
 its loop and hands it back (:meth:`install`); a replay builds it where the journal says.
 """
 
@@ -26,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from mowerhw.common.buffer import SensorBuffer
-from mowerhw.common.geometry import quat_to_rotmat
+from mowerhw.common.geometry import quat_to_rotmat, tuple3
 from mowerhw.common.samples import ImuSample, SpeedSample, Stream
 from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
@@ -115,8 +113,7 @@ class RuntimeCore:
         self.counts["imu"] += 1
         gyro = self.r_bi @ sample.gyro
         if sample.accel is not None:  # for the supervisor's lift/tilt/collision checks
-            ax, ay, az = (float(v) for v in self.r_bi @ sample.accel)
-            self.last_accel = (ax, ay, az)
+            self.last_accel = tuple3(self.r_bi @ sample.accel)
         self.buffer.push(
             Stream.IMU,
             ImuSample(sample.t, gyro, None, sample.device_time_ns, sample.host_time_ns),
@@ -147,8 +144,7 @@ class RuntimeCore:
         self.counts["frames"] += 1
 
     def frame_pipeline(self) -> tuple[int, Pipeline] | None:
-        """The chain a new frame is for (its serial, for :meth:`tracks`), if frames are
-        wanted now."""
+        """The chain a new frame is for (its serial, for :meth:`tracks`), if wanted now."""
         if self.pipeline is None or (self.mode == "teach" and self.teach_state != "recording"):
             return None
         return self.chains.installed_serial, self.pipeline

@@ -38,11 +38,12 @@ from mowerhw.runtime.commands import core_status, handle_command
 from mowerhw.runtime.control import ControlServer
 from mowerhw.runtime.core import MODES, RuntimeCore
 from mowerhw.runtime.devices import (
-    CanLink,
     DecisionOutput,
+    RecorderJournal,
     device_status,
     open_camera,
     open_imu,
+    open_output,
     open_recorder,
     record_estimate,
 )
@@ -60,16 +61,6 @@ log = logging.getLogger("mowerhw.daemon")
 
 TICK_MIN_S = 0.0005
 TICK_MAX_S = 0.02
-
-
-class _RecorderJournal:
-    """The core's journal, into the run's recording."""
-
-    def __init__(self, recorder: Recorder) -> None:
-        self.recorder = recorder
-
-    def write(self, kind: str, payload: dict[str, Any]) -> None:
-        self.recorder.journal(time.monotonic_ns(), kind, payload)
 
 
 class Daemon:
@@ -126,16 +117,14 @@ class Daemon:
         await control.start()
         if self.record_path is not None:
             self.recorder = open_recorder(self.cfg, self.record_path)
-            self.core.journal = _RecorderJournal(self.recorder)
-        on_speed = self._threadsafe(self._on_speed)
-        self.can = (
-            CanLink(self.cfg, on_speed, self.recorder)
-            if self.link is None
-            else self.link.output(
-                self.cfg, on_speed, self._threadsafe(self.request_stop), self.recorder
-            )
+            self.core.journal = RecorderJournal(self.recorder)
+        self.can = open_output(
+            self.cfg,
+            self.link,
+            self._threadsafe(self._on_speed),
+            self._threadsafe(self.request_stop),
+            self.recorder,
         )
-        self.can.open()
         self.imu_dev = open_imu(self.cfg, self._threadsafe(self._on_imu), self.recorder)
         self.camera = open_camera(self.cfg, asyncio_sink(loop, self._frames))
         await self.set_mode(self.start_mode)
@@ -392,24 +381,4 @@ class Daemon:
         return out
 
 
-def run_daemon(
-    config: Config,
-    mode: str | None = None,
-    record: str | Path | None = None,
-    duration_s: float | None = None,
-) -> int:
-    """Run until stopped; the exit status (0 after a clean stop)."""
-    from mowerhw.runtime.process import tune_process
-
-    tune_process()
-    daemon = Daemon(config, mode, record)
-
-    async def main() -> int:
-        if duration_s is not None:
-            asyncio.get_running_loop().call_later(duration_s, daemon.request_stop, "duration")
-        return await daemon.run()
-
-    return asyncio.run(main())
-
-
-__all__ = ["MODES", "Daemon", "run_daemon"]
+__all__ = ["MODES", "Daemon"]

@@ -73,6 +73,16 @@ def open_camera(cfg: Config, on_frame: Callable[[FrameSample], None]) -> CameraS
     return camera
 
 
+class RecorderJournal:
+    """The runtime core's journal, into the run's recording."""
+
+    def __init__(self, recorder: Recorder) -> None:
+        self.recorder = recorder
+
+    def write(self, kind: str, payload: dict[str, Any]) -> None:
+        self.recorder.journal(time.monotonic_ns(), kind, payload)
+
+
 def open_recorder(cfg: Config, path: Path) -> Recorder:
     """A recording of this run: the config, the camera calibration and the map attached, and
     the runtime core's journal (so a replay gives the daemon's decisions)."""
@@ -151,6 +161,23 @@ class DecisionOutput(Protocol):
     def shutdown(self, now: float) -> None: ...
     def close(self) -> None: ...
     def status(self) -> dict[str, Any]: ...
+
+
+def open_output(
+    cfg: Config,
+    link: Any,
+    on_speed: Callable[[SpeedSample], None],
+    on_lost: Callable[[str], None],
+    recorder: Recorder | None,
+) -> DecisionOutput:
+    """Where decisions go, opened: the supervisor's ``link`` if there is one, else CAN."""
+    out: DecisionOutput = (
+        CanLink(cfg, on_speed, recorder)
+        if link is None
+        else link.output(cfg, on_speed, on_lost, recorder)
+    )
+    out.open()
+    return out
 
 
 class CanLink(ThreadedDevice):

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import logging
 import sys
 import time
+from pathlib import Path
+
+from mowerhw.config import Config
 
 log = logging.getLogger("mowerhw.daemon")
 
@@ -45,3 +49,23 @@ class LoopLag:
             del self.lags_ms[: -self.keep]
             if lag > 50.0:
                 log.warning("event loop was blocked for %.0f ms", lag)
+
+
+def run_daemon(
+    config: Config,
+    mode: str | None = None,
+    record: str | Path | None = None,
+    duration_s: float | None = None,
+) -> int:
+    """Run until stopped; the exit status (0 after a clean stop)."""
+    from mowerhw.runtime.daemon import Daemon
+
+    tune_process()
+    daemon = Daemon(config, mode, record)
+
+    async def main() -> int:
+        if duration_s is not None:
+            asyncio.get_running_loop().call_later(duration_s, daemon.request_stop, "duration")
+        return await daemon.run()
+
+    return asyncio.run(main())

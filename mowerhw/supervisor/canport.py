@@ -1,0 +1,90 @@
+"""The supervisor's CAN bus: reopened with backoff when it fails (bus-off, interface down,
+adapter unplugged), one log line per change of state, never a line per retry."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+
+import can
+
+from drivers.can.isobus import open_bus
+from mowerhw.config import Config
+
+log = logging.getLogger("mowerhw.supervisor")
+
+
+class CanPort:
+    """The bus, reopened with backoff when it fails; one log line per change of state."""
+
+    def __init__(self, cfg: Config) -> None:
+        self.cfg = cfg
+        self.bus: can.BusABC | None = None
+        self.up_since: float | None = None
+        self.down_since: float | None = time.monotonic()
+        self.reopens = 0
+        self.errors = 0
+        self._backoff = 0.1
+        self._next_try = 0.0
+        self._last_error = ""
+        self._gone_until = 0.0  # fault injection: the interface is away until then
+
+    def ensure(self, now: float) -> bool:
+        """Open the bus if it is closed and a retry is due; whether it is up."""
+        if self.bus is not None:
+            return True
+        if now < self._next_try:
+            return False
+        c = self.cfg.can
+        if now < self._gone_until:
+            self._failed(now, "cannot open (No such device: the interface is away)")
+            return False
+        try:
+            extra = {"port": c.udp_port} if c.interface == "udp_multicast" else {}
+            self.bus = open_bus(c.interface, c.channel, c.bitrate, **extra)
+        except Exception as exc:
+            self._failed(now, f"cannot open ({exc})")
+            return False
+        if self.reopens or self._last_error:
+            log.warning(
+                "CAN %s %s open again after %.1f s",
+                c.interface,
+                c.channel,
+                now - (self.down_since or now),
+            )
+        else:
+            log.info("CAN %s %s open, sending as 0x%02X", c.interface, c.channel, c.source_address)
+        self.reopens += 1
+        self.up_since, self.down_since = now, None
+        self._backoff, self._last_error = 0.1, ""
+        return True
+
+    def take_away(self, now: float, seconds: float) -> None:
+        """Fault injection: the interface disappears for ``seconds`` (an adapter unplugged)."""
+        self._gone_until = now + seconds
+        self.failed(now, "the interface went away (fault injection)")
+
+    def failed(self, now: float, why: str) -> None:
+        """The bus stopped working: close it; :meth:`ensure` reopens it with backoff."""
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            with contextlib.suppress(Exception):
+                bus.shutdown()
+        self._failed(now, why)
+
+    def _failed(self, now: float, why: str) -> None:
+        self.errors += 1
+        if self.down_since is None or self.up_since is not None:
+            self.down_since = now
+        self.up_since = None
+        if why != self._last_error:  # one line per change, not per retry
+            log.error(
+                "CAN %s %s: %s; reopening with backoff",
+                self.cfg.can.interface,
+                self.cfg.can.channel,
+                why,
+            )
+            self._last_error = why
+        self._next_try = now + self._backoff
+        self._backoff = min(self._backoff * 2, self.cfg.supervisor.can_reopen_max_backoff_s)
