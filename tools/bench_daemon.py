@@ -4,7 +4,9 @@
   goes quiet for 0.6 s every ``--halt-every`` seconds (each time the daemon must halt); and
   every mow-phase halt (OUTSIDE at the edge, …) counts too. Latency = arrival of the
   revealing sample (or the staleness deadline) → the ISB stop frame sent, from the daemon;
-* CPU share of the daemon process at real-time rates (100 Hz IMU, 10 Hz speed, 4 Hz
+* the permit supervisor: lease → frame latency, loop stalls over 20 ms, leases that ran out
+  (spurious ESTIMATOR_LATE halts when the machine is loaded: ``--load N`` CPU hogs);
+* CPU share of the daemon's processes at real-time rates (100 Hz IMU, 10 Hz speed, 4 Hz
   1540×1540 frames), from /proc;
 * memory: the daemon's RSS every 10 s (a soak: ``--duration 3600``).
 
@@ -28,6 +30,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--map", type=Path, help="a map of the yard (default: pixel-level sim teach)")
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--load", type=int, default=0, help="CPU hogs beside the daemon")
     args = ap.parse_args()
     map_path = args.map
     if map_path is None:
@@ -40,7 +43,12 @@ def main() -> None:
     n = int(args.duration // args.halt_every)
     faults = [FaultSpec("speed-stop", args.halt_every * (k + 0.5), 0.6) for k in range(n)]
     bench = Bench(
-        duration_s=args.duration, seed=args.seed, out_dir=args.out, faults=faults, map_path=map_path
+        duration_s=args.duration,
+        seed=args.seed,
+        out_dir=args.out,
+        faults=faults,
+        map_path=map_path,
+        load=args.load,
     )
     r = bench.run()
     stops = [f["stop_after_ms"] for f in r.get("faults", []) if f["stop_after_ms"] is not None]
@@ -58,6 +66,9 @@ def main() -> None:
         "peak_rss_mb": r["peak_rss_mb"],
         "rss_mb_over_time": bench.rss_samples,
         "missed_halts": r["missed_halts"],
+        "false_halt_fraction": r["false_halt_fraction"],
+        "supervisor": r.get("supervisor"),
+        "load_processes": args.load,
         "position_rmse_m": r["position_rmse_m"],
     }
     print(json.dumps(out, indent=1))

@@ -69,6 +69,7 @@ FAULT_KINDS = (
     "lift",
     "tilt",
     "bump",
+    "estimator-delay",
 )
 RECOVERY_WINDOW_S = 30.0
 
@@ -126,8 +127,12 @@ class Bench:
         map_path: str | Path | None = None,
         config_path: str | Path | None = None,
         record: str | Path | None = None,
+        load: int = 0,
+        estimator_delay_ms: float = 150.0,
     ) -> None:
         self.record = Path(record) if record else None
+        self.load = load  # CPU hogs beside the daemon: a loaded mower computer
+        self.estimator_delay_ms = estimator_delay_ms
         self.duration_s = duration_s
         self.seed = seed
         self.scenario = scenario
@@ -272,6 +277,9 @@ class Bench:
         )
         started = [mower.start(), vn.start(), speed.start(), controller.start(), camera.start()]
         metrics: dict[str, Any] = {}
+        hogs = [
+            subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(self.load)
+        ]
         try:
             if self.given_map is None:
                 metrics.update(self._teach(world, truth))
@@ -284,10 +292,15 @@ class Bench:
             self.peak_rss_mb = max(self.peak_rss_mb, rss)
             self.cpu_s_total += cpu
             self._stop_daemon()
+            for hog in hogs:
+                hog.kill()
+                hog.wait()
             for dev in reversed(started):
                 with contextlib.suppress(Exception):
                     dev.stop()
             bus.shutdown()
+        if self.load:
+            metrics["load_processes"] = self.load
         metrics["wall_s"] = round(time.monotonic() - t_wall0, 1)
         metrics["out_dir"] = str(self.out)
         return metrics
@@ -444,6 +457,20 @@ class Bench:
         self.peak_rss_mb = max(self.peak_rss_mb, rss)
         mow_s = time.monotonic() - t_mow0
         metrics = self._score_mow(world, t_mow0, windows, latencies, mow_s)
+        sup = st.get("supervisor")
+        if sup:  # the permit supervisor's own figures (the process that sends the frames)
+            metrics["supervisor"] = {
+                k: sup.get(k)
+                for k in (
+                    "lease_to_frame_ms",
+                    "max_loop_lag_ms",
+                    "loop_stalls_over_20ms",
+                    "lease_expired",
+                    "leases",
+                    "can_reopens",
+                    "send_errors",
+                )
+            }
         metrics["halts_by_reason"] = dict(
             sorted(_count(d["reason"] for d in latencies).items())  # type: ignore[arg-type]
         )
@@ -536,6 +563,9 @@ class Bench:
             clear = self.camera.frozen.clear
         elif spec.kind in ("nan", "exception"):
             request(self.sock, "fault", args=[spec.kind])
+        elif spec.kind == "estimator-delay":  # every IMU sample takes estimator_delay_ms
+            request(self.sock, "fault", args=[spec.kind, str(self.estimator_delay_ms)])
+            clear = lambda: request(self.sock, "fault", args=[spec.kind, "0"])  # noqa: E731
         elif spec.kind in ("lift", "tilt", "bump"):
             clear = self._disturb(spec.kind, t0, spec.duration_s)
         elif spec.kind == "can-down":  # the supervisor's CAN interface away for D s

@@ -37,6 +37,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--record", type=Path, metavar="FILE.mcap", help="the daemon records the run (MCAP)"
     )
+    p.add_argument(
+        "--load",
+        type=int,
+        default=0,
+        metavar="N",
+        help="N CPU hogs beside the daemon (a loaded or slow mower computer)",
+    )
+    p.add_argument(
+        "--estimator-delay",
+        type=float,
+        default=150.0,
+        metavar="MS",
+        help="how long each IMU sample takes during an estimator-delay fault (default 150 ms, "
+        "beyond the 80 ms lease)",
+    )
     p.add_argument("--json", action="store_true", help="print only the JSON object")
     p.set_defaults(handler=cmd_bench)
 
@@ -59,6 +74,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         faults=faults,
         map_path=args.map,
         record=args.record,
+        load=args.load,
+        estimator_delay_ms=args.estimator_delay,
     )
     result = bench.run()
     print(strict_json(result, indent=None if args.json else 2))

@@ -19,6 +19,7 @@ class Controllable(Protocol):
     cfg: Config
     core: RuntimeCore
     link: Any
+    estimator_delay_s: float
 
     async def set_mode(self, mode: str) -> dict[str, Any]: ...
     async def finish_teach(self) -> dict[str, Any]: ...
@@ -47,6 +48,10 @@ async def handle_command(d: Controllable, cmd: str, args: dict[str, Any]) -> dic
             seconds = float(args.get("seconds") or (words[1:] or ["3"])[0])
             d.link.send(("fault", {"kind": kind, "seconds": seconds}))
             return {"ok": True, "injected": kind, "seconds": seconds}
+        if kind == "estimator-delay":  # a slow estimator: each IMU sample takes this long
+            ms = float(args.get("ms") or (words[1:] or ["0"])[0])
+            d.estimator_delay_s = max(0.0, ms) / 1e3
+            return {"ok": True, "injected": kind, "ms": ms}
         problem = d.core.inject(kind)
         return {"ok": False, "error": problem} if problem else {"ok": True, "injected": kind}
     return {"ok": False, "error": f"unknown command {cmd!r}"}

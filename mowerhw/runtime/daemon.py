@@ -91,6 +91,7 @@ class Daemon:
         self.imu_dev: Vn100 | None = None
         self.camera: CameraSource | None = None
         self.loop_lag = LoopLag()
+        self.estimator_delay_s = 0.0
         self._frames: asyncio.Queue[FrameSample] | None = None
         self._stop_event: asyncio.Event | None = None
         self._frontend_pool = ThreadPoolExecutor(1, thread_name_prefix="frontend")
@@ -198,6 +199,8 @@ class Daemon:
     # --------------------------------------------------------------------------- inputs
 
     def _on_imu(self, s: ImuSample) -> None:
+        if self.estimator_delay_s:  # fault injection: an estimator too slow for the lease
+            time.sleep(self.estimator_delay_s)
         now = time.monotonic()
         self._send(self.core.imu(s, now), time.monotonic())
 

@@ -69,8 +69,15 @@ class Supervisor:
         self.child: Any = None
         self.conn: Connection | None = None
         self.child_ready = False
-        self.counts = {"leases": 0, "frames_forwarded": 0, "send_errors": 0, "lease_expired": 0}
+        self.counts = {
+            "leases": 0,
+            "frames_forwarded": 0,
+            "send_errors": 0,
+            "lease_expired": 0,
+            "loop_stalls_over_20ms": 0,
+        }
         self.lease_to_frame_ms: list[float] = []
+        self.max_loop_lag_ms = 0.0
         self._speed = SpeedReader(
             config.speed.source, config.speed.sensor_address, config.speed.ccvs1_direction
         )
@@ -160,7 +167,7 @@ class Supervisor:
         sender.set(d.permit, now, status)
         if was and not d.permit and d.decided_at > 0:
             self.lease_to_frame_ms.append(round((time.monotonic() - d.decided_at) * 1e3, 3))
-            del self.lease_to_frame_ms[:-200]
+            del self.lease_to_frame_ms[:-2000]
         sender.tick(now)
         if sender.stats.send_errors > errors:
             self.counts["send_errors"] += sender.stats.send_errors - errors
@@ -222,6 +229,11 @@ class Supervisor:
                 due = min(due, expires + 1e-4)
             ready = wait([self.conn, self.child.sentinel], max(0.0005, due - now))
             now = time.monotonic()
+            if not ready:  # woke on its own deadline: how late (a busy or starved process)
+                lag_ms = (now - due) * 1e3
+                self.max_loop_lag_ms = max(self.max_loop_lag_ms, lag_ms)
+                if lag_ms > 20.0:
+                    self.counts["loop_stalls_over_20ms"] += 1
             if self.conn in ready:
                 self._drain(now)
             if self.child.sentinel in ready or not self.child.is_alive():
@@ -311,7 +323,8 @@ class Supervisor:
             "can_up": self.port.bus is not None,
             "can_reopens": max(0, self.port.reopens - 1),
             "can_errors": self.port.errors,
-            "lease_to_frame_ms": self.lease_to_frame_ms[-50:],
+            "lease_to_frame_ms": _percentiles(self.lease_to_frame_ms),
+            "max_loop_lag_ms": round(self.max_loop_lag_ms, 2),
             "tilt_deg": round(self.safety.tilt_deg, 1),
             "permit_sender": vars(self.sender.stats) if self.sender else {},
             **self.counts,
@@ -346,3 +359,15 @@ def run_supervised(
 ) -> int:
     """``mowerhw run`` with the permit supervisor: the exit status."""
     return Supervisor(config, mode, record, duration_s=duration_s).run()
+
+
+def _percentiles(values: list[float]) -> dict[str, float | int | None]:
+    if not values:
+        return {"p50": None, "p99": None, "max": None, "n": 0}
+    v = sorted(values)
+    return {
+        "p50": v[len(v) // 2],
+        "p99": v[min(len(v) - 1, int(0.99 * len(v)))],
+        "max": v[-1],
+        "n": len(v),
+    }
