@@ -511,6 +511,13 @@ class SupervisorConfig:
         ge=0.05,
         le=0.1,
     )
+    settle_s: float = opt(
+        1.0,
+        "after a lease ran out, leases must come in time this long before the deck may run "
+        "again (no flicker from an estimator that keeps being late)",
+        ge=0.0,
+        le=30.0,
+    )
     can_reopen_max_backoff_s: float = opt(
         2.0, "a failed CAN bus is reopened with backoff up to this", gt=0.0, le=60.0
     )

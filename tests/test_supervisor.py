@@ -35,8 +35,13 @@ def test_a_lease_permits_only_while_it_is_fresh() -> None:
     assert "no permit lease for 0.100 s (limit 0.08 s)" in late.detail
     gate.renew(_lease(False, "OUTSIDE"), 1.2)
     assert gate.decide(1.21).reason == "OUTSIDE"  # the estimator's own halt passes through
-    gate.renew(_lease(), 1.3)
-    own = gate.decide(1.31, (Reason.SENSOR_STALE, "speed silent"))
+    gate.renew(_lease(), 1.25)
+    settling = gate.decide(1.26)  # in time again, but it was late: settle first
+    assert not settling.permit and "leases in time again for 0.06 of 1.0 s" in settling.detail
+    for k in range(1, 21):
+        gate.renew(_lease(), 1.25 + 0.05 * k)
+    assert gate.decide(2.26).permit
+    own = gate.decide(2.27, (Reason.SENSOR_STALE, "speed silent"))
     assert not own.permit and own.reason == Reason.SENSOR_STALE  # its own checks come first
 
 

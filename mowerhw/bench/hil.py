@@ -563,7 +563,7 @@ class Bench:
             clear = self.camera.frozen.clear
         elif spec.kind in ("nan", "exception"):
             request(self.sock, "fault", args=[spec.kind])
-        elif spec.kind == "estimator-delay":  # every IMU sample takes estimator_delay_ms
+        elif spec.kind == "estimator-delay":  # blocked estimator_delay_ms every 200 ms
             request(self.sock, "fault", args=[spec.kind, str(self.estimator_delay_ms)])
             clear = lambda: request(self.sock, "fault", args=[spec.kind, "0"])  # noqa: E731
         elif spec.kind in ("lift", "tilt", "bump"):

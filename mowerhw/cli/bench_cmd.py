@@ -49,8 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=150.0,
         metavar="MS",
-        help="how long each IMU sample takes during an estimator-delay fault (default 150 ms, "
-        "beyond the 80 ms lease)",
+        help="during an estimator-delay fault the estimation process is blocked this long "
+        "every 200 ms (default 150 ms, beyond the 80 ms lease)",
     )
     p.add_argument("--json", action="store_true", help="print only the JSON object")
     p.set_defaults(handler=cmd_bench)

@@ -48,7 +48,7 @@ async def handle_command(d: Controllable, cmd: str, args: dict[str, Any]) -> dic
             seconds = float(args.get("seconds") or (words[1:] or ["3"])[0])
             d.link.send(("fault", {"kind": kind, "seconds": seconds}))
             return {"ok": True, "injected": kind, "seconds": seconds}
-        if kind == "estimator-delay":  # a slow estimator: each IMU sample takes this long
+        if kind == "estimator-delay":  # a slow estimator: blocked this long every 200 ms
             ms = float(args.get("ms") or (words[1:] or ["0"])[0])
             d.estimator_delay_s = max(0.0, ms) / 1e3
             return {"ok": True, "injected": kind, "ms": ms}

@@ -92,6 +92,7 @@ class Daemon:
         self.camera: CameraSource | None = None
         self.loop_lag = LoopLag()
         self.estimator_delay_s = 0.0
+        self._next_delay = 0.0
         self._frames: asyncio.Queue[FrameSample] | None = None
         self._stop_event: asyncio.Event | None = None
         self._frontend_pool = ThreadPoolExecutor(1, thread_name_prefix="frontend")
@@ -199,8 +200,6 @@ class Daemon:
     # --------------------------------------------------------------------------- inputs
 
     def _on_imu(self, s: ImuSample) -> None:
-        if self.estimator_delay_s:  # fault injection: an estimator too slow for the lease
-            time.sleep(self.estimator_delay_s)
         now = time.monotonic()
         self._send(self.core.imu(s, now), time.monotonic())
 
@@ -337,6 +336,11 @@ class Daemon:
             await asyncio.sleep(wait)
             now = time.monotonic()
             self.loop_lag.woke(due, now)
+            if self.estimator_delay_s and now >= self._next_delay:
+                # fault injection: the estimation side blocked this long every 200 ms (a
+                # computer too slow for it): its decisions come late, the leases run out
+                self._next_delay = now + 0.2
+                time.sleep(self.estimator_delay_s)
             assert self.can is not None
             self.can.retry(now)
             self._decide(now)

@@ -62,16 +62,25 @@ NO_LEASE = Lease(
 
 
 class SupervisorGate:
-    """The newest lease while it is fresh, and the supervisor's own checks."""
+    """The newest lease while it is fresh, and the supervisor's own checks. After a lease ran
+    out, leases must come in time for ``settle_s`` before a permit again: an estimator that
+    is late again and again must not make the deck flicker."""
 
-    def __init__(self, lease_s: float) -> None:
+    def __init__(self, lease_s: float, settle_s: float = 1.0) -> None:
         self.lease_s = lease_s
+        self.settle_s = settle_s
         self.lease = NO_LEASE
         self.received_at: float | None = None
         self.current = NO_LEASE
         self.changes = 0
+        self._on_time_since: float | None = None  # leases in time since
+        self._was_late = False
 
     def renew(self, lease: Lease, now: float) -> None:
+        if self.received_at is None or now - self.received_at > self.lease_s:
+            self._on_time_since = now  # the first lease, or the first in time after a gap
+        if self.received_at is not None and now - self.received_at > self.lease_s:
+            self._was_late = True
         self.lease, self.received_at = lease, now
 
     def lease_expires(self) -> float:
@@ -80,18 +89,29 @@ class SupervisorGate:
 
     def decide(self, now: float, own_halt: tuple[str, str] | None = None) -> Lease:
         """The decision for ``now``. ``own_halt``: the supervisor's own reason to halt (a
-        stale speed it sees, CAN down, shutting down), which comes first."""
+        stale speed it sees, lifted or tilted, shutting down), which comes first."""
         lease = self.lease
+        late = Reason.ESTIMATOR_LATE
         if own_halt is not None:
             d = _halt(lease, own_halt[0], own_halt[1], now)
         elif self.received_at is None:
-            d = _halt(lease, Reason.ESTIMATOR_LATE, "no permit lease yet: estimation starting", now)
+            d = _halt(lease, late, "no permit lease yet: estimation starting", now)
         elif now - self.received_at > self.lease_s:
+            self._was_late = True
             d = _halt(
                 lease,
-                Reason.ESTIMATOR_LATE,
+                late,
                 f"no permit lease for {now - self.received_at:.3f} s (limit {self.lease_s} s): "
                 "the estimator is late, stalled or dead",
+                now,
+            )
+        elif lease.permit and self._was_late and now - (self._on_time_since or now) < self.settle_s:
+            on_time = now - (self._on_time_since or now)
+            d = _halt(
+                lease,
+                late,
+                f"leases in time again for {on_time:.2f} of {self.settle_s} s after the "
+                "estimator was late",
                 now,
             )
         else:
@@ -100,7 +120,7 @@ class SupervisorGate:
             self.changes += 1
             if d.permit:
                 log.info("supervisor: PERMIT (%s)", d.state)
-            else:
+            elif d.reason != self.current.reason:
                 log.warning("supervisor: HALT %s: %s", d.reason, d.detail)
         self.current = d
         return d

@@ -14,7 +14,7 @@ from mowerhw.supervisor.lease import Lease
 DEFAULT_SCRIPT: tuple[tuple[float, str], ...] = (
     (1.0, "permit"),
     (0.5, "quiet"),
-    (0.8, "permit"),
+    (1.6, "permit"),  # longer than supervisor.settle_s (1 s): permitted again
     (0.0, "exit"),
 )
 

@@ -58,7 +58,7 @@ class Supervisor:
         self.mode = mode
         self.record = record
         self.child_target = child_target
-        self.gate = SupervisorGate(config.supervisor.lease_s)
+        self.gate = SupervisorGate(config.supervisor.lease_s, config.supervisor.settle_s)
         self.speed_gate = PermitGate({"speed": config.speed.stale_after_s}, log_changes=False)
         self.port = CanPort(config)
         self.safety = SafetyMonitor(config.safety)
