@@ -134,3 +134,26 @@ def test_replay_of_a_recording_without_journal_says_so(tmp_path: Path) -> None:
     rec.close()
     with pytest.raises(ReplayError, match="no runtime journal"):
         replay_decisions(tmp_path / "old.mcap")
+
+
+def test_a_task_that_dies_ends_the_daemon_non_zero(tmp_path: Path, caplog: Any) -> None:
+    channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
+    cfg = _config(tmp_path, channel)
+    imu = MockVn100(tmp_path / "vn100").start()
+    daemon = Daemon(cfg, "idle")
+
+    def broken() -> str:
+        raise RuntimeError("a bug in the ticker")
+
+    async def scenario() -> int:
+        task = asyncio.create_task(daemon.run())
+        await _until(lambda: daemon.core.last_arrival["imu"] is not None, 20, "IMU data")
+        daemon.core.status_line = broken  # type: ignore[method-assign]
+        return await asyncio.wait_for(task, 20)
+
+    try:
+        status = asyncio.run(scenario())
+    finally:
+        imu.stop()
+    assert status == 1  # crash-only: systemd (or the supervisor) restarts it
+    assert "the ticker task died (RuntimeError('a bug in the ticker'))" in caplog.text

@@ -101,6 +101,8 @@ class Daemon:
         self._pose_future: Future[None] | None = None
         self._builds: dict[int, asyncio.Future[Any]] = {}
         self._tasks: set[asyncio.Future[Any]] = set()
+        self._names: dict[asyncio.Future[Any], str] = {}
+        self.exit_status = 0
         self._next_map_check = 0.0
         self._next_record = 0.0
         self._started = time.monotonic()
@@ -130,7 +132,7 @@ class Daemon:
         self.imu_dev = open_imu(self.cfg, self._threadsafe(self._on_imu), self.recorder)
         self.camera = open_camera(self.cfg, asyncio_sink(loop, self._frames))
         await self.set_mode(self.start_mode)
-        tasks = [self._spawn(self._ticker()), self._spawn(self._frame_task())]
+        tasks = [self._spawn(self._ticker(), "ticker"), self._spawn(self._frame_task(), "frontend")]
         self.notifier.ready(self.core.status_line())
         log.info(
             "running: mode %s, control socket %s, pid %d",
@@ -142,7 +144,7 @@ class Daemon:
             await self._stop_event.wait()
         finally:
             await self._shutdown(tasks, control)
-        return 0
+        return self.exit_status
 
     def request_stop(self, why: str = "stop requested") -> None:
         if not self.core.shutting_down:
@@ -186,16 +188,21 @@ class Daemon:
 
         return call
 
-    def _spawn(self, coro: Awaitable[Any]) -> asyncio.Future[Any]:
+    def _spawn(self, coro: Awaitable[Any], name: str) -> asyncio.Future[Any]:
         task = asyncio.ensure_future(coro)
+        self._names[task] = name
         self._tasks.add(task)
         task.add_done_callback(self._task_done)
         return task
 
     def _task_done(self, task: asyncio.Future[Any]) -> None:
+        """Crash-only: a task that dies halts the deck and ends the process (exit 1)."""
         self._tasks.discard(task)
-        if not task.cancelled() and task.exception() is not None:
-            log.error("background task failed: %r", task.exception())
+        name = self._names.pop(task, "?")
+        if not task.cancelled() and (exc := task.exception()) is not None:
+            log.error("the %s task died (%r): halting and ending the process", name, exc)
+            self.exit_status = 1
+            self.request_stop(f"the {name} task died")
 
     # --------------------------------------------------------------------------- inputs
 
@@ -241,7 +248,7 @@ class Daemon:
             )
             self.core.install(req.serial, pipe)
 
-        self._builds = {req.serial: self._spawn(build())}
+        self._builds = {req.serial: self._spawn(build(), "chain build")}
 
     async def _built(self) -> None:
         """Wait for the chain the core asked for last (mode changes answer after it)."""
@@ -306,7 +313,7 @@ class Daemon:
             elif self.core.mode == "mow":
                 self.core.map_reloaded(got)
 
-        self._spawn(reload())
+        self._spawn(reload(), "map reload")
 
     async def finish_teach(self) -> dict[str, Any]:
         pipe = self.core.begin_finish_teach()
@@ -353,7 +360,7 @@ class Daemon:
                 self._check_map_file()
             if self.cfg.runtime.auto_finish_teach and self.core.teach_loop_done():
                 log.info("teach: loop detected (stopped back at the start); finishing")
-                self._spawn(self.finish_teach())
+                self._spawn(self.finish_teach(), "teach finish")
             self.notifier.tick(now, self.core.status_line())
 
     def _next_tick_wait(self, now: float) -> float:

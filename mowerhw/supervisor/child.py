@@ -36,4 +36,4 @@ def estimator_main(
 
     tune_process()
     daemon = Daemon(config, mode, record, link=SupervisorLink(conn))
-    asyncio.run(daemon.run())
+    raise SystemExit(asyncio.run(daemon.run()))

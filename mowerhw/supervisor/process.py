@@ -341,7 +341,7 @@ class Supervisor:
                 self.sender.shutdown(now)
         self._to_child(("stop", None))
         if self.child is not None:
-            self.child.join(timeout=10.0)
+            self.child.join(timeout=3.0)  # within systemd's TimeoutStopSec (5 s)
             if self.child.is_alive():
                 self.child.terminate()
                 self.child.join(timeout=2.0)
