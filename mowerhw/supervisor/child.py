@@ -16,12 +16,13 @@ from mowerhw.supervisor.link import SupervisorLink
 
 
 def _die_with_parent() -> None:
-    """Linux: SIGTERM this process when the supervisor dies (even by SIGKILL)."""
+    """Linux: kill this process when the supervisor dies (even by SIGKILL): without its
+    supervisor it can permit nothing, and a stalled one would never handle a SIGTERM."""
     with contextlib.suppress(Exception):
         import ctypes
 
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
 def estimator_main(

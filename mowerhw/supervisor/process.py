@@ -342,9 +342,10 @@ class Supervisor:
         self._to_child(("stop", None))
         if self.child is not None:
             self.child.join(timeout=3.0)  # within systemd's TimeoutStopSec (5 s)
-            if self.child.is_alive():
-                self.child.terminate()
-                self.child.join(timeout=2.0)
+            if self.child.is_alive():  # stalled: it cannot even handle a SIGTERM
+                log.error("the estimation process did not stop: killing it")
+                self.child.kill()
+                self.child.join(timeout=1.0)
         if self.port.bus is not None:
             with contextlib.suppress(Exception):
                 self.port.bus.shutdown()
