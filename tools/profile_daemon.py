@@ -1,0 +1,129 @@
+"""Where the daemon's CPU goes: a bench run, and py-spy sampling both of the daemon's
+processes (the permit supervisor and the estimation process, every thread) while it mows;
+each sample is put in the part of the runtime it belongs to. Prints one JSON object: per
+process, the share of one core per part (samples / (rate × seconds)).
+
+    .venv/bin/python tools/profile_daemon.py --map MAP --duration 60 --spy 30
+
+Needs ``py-spy`` (pip) and permission to read the processes (ptrace).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import tempfile
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+#: the first matching frame (innermost last) names the part a sample belongs to
+PARTS = (
+    ("front end: ORB descriptors", "OrbDescriber.describe"),
+    ("front end: KLT tracking", "FrontEnd._track"),
+    ("front end: detection", "FrontEnd._detect"),
+    ("front end: other", "FrontEnd.process"),
+    ("vision: association + localizer update", "MowVision.use"),
+    ("localizer: IMU propagation", "Localizer.imu"),
+    ("core: decisions", "RuntimeCore._decide"),
+    ("core: other", "RuntimeCore."),
+    ("VN-100 reading and parsing", "Vn100._run"),
+    ("camera stream", "StreamCamera"),
+    ("supervisor: leases and frames", "Supervisor._decide"),
+    ("supervisor: lease messages", "Supervisor._drain"),
+    ("supervisor: CAN receive", "Supervisor._receive"),
+    ("link to the supervisor", "SupervisorLink."),
+    ("recording", "Recorder."),
+    ("event loop, other", "BaseEventLoop"),
+)
+
+
+def part_of(stack: str) -> str:
+    for name, marker in PARTS:
+        if marker in stack:
+            return name
+    return "other"
+
+
+def children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, ValueError):
+            continue
+    return out
+
+
+def spy(pid: int, seconds: float, rate: int, path: Path) -> subprocess.Popen[bytes]:
+    cmd = ["py-spy", "record", "--format", "raw", "-o", str(path), "-d", str(int(seconds))]
+    cmd += ["-r", str(rate), "-p", str(pid), "--nonblocking"]
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def summarise(path: Path, seconds: float, rate: int) -> dict[str, Any]:
+    parts: Counter[str] = Counter()
+    total = 0
+    for line in path.read_text().splitlines():
+        stack, _, n = line.rpartition(" ")
+        if not n.isdigit():
+            continue
+        parts[part_of(stack)] += int(n)
+        total += int(n)
+    scale = 100.0 / (rate * seconds)
+    return {
+        "cpu_percent_of_one_core": round(total * scale, 1),
+        "by_part_percent_of_one_core": {k: round(v * scale, 1) for k, v in parts.most_common()},
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--map", type=Path, required=True, help="a map of the yard (sim teach)")
+    ap.add_argument("--duration", type=float, default=60.0, help="seconds of mowing")
+    ap.add_argument("--spy", type=float, default=30.0, help="seconds of sampling while mowing")
+    ap.add_argument("--rate", type=int, default=100, help="samples per second")
+    ap.add_argument("--seed", type=int, default=7)
+    args = ap.parse_args()
+    if shutil.which("py-spy") is None:
+        raise SystemExit("profile_daemon: needs py-spy (pip install py-spy)")
+    from mowerhw.bench import Bench
+
+    out = Path(tempfile.mkdtemp(prefix="mowerhw-profile-"))
+    bench = Bench(duration_s=args.duration, seed=args.seed, out_dir=out, map_path=args.map)
+    found: dict[str, Path] = {}
+
+    def sample() -> None:
+        while bench.proc is None:
+            time.sleep(0.2)
+        time.sleep(15.0)  # start-up, localization, the first permit
+        sup = bench.proc.pid
+        procs = {"supervisor": sup, **{"estimation": c for c in children(sup)[-1:]}}
+        spies = []
+        for name, pid in procs.items():
+            found[name] = out / f"{name}.txt"
+            spies.append(spy(pid, args.spy, args.rate, found[name]))
+        for s in spies:
+            s.wait()
+
+    t = threading.Thread(target=sample, daemon=True)
+    t.start()
+    r = bench.run()
+    t.join(timeout=5.0)
+    result: dict[str, Any] = {
+        "bench_cpu_percent_all_processes": r["cpu_percent"],
+        "peak_rss_mb_all_processes": r["peak_rss_mb"],
+        "sampled_s": args.spy,
+    }
+    for name, path in found.items():
+        if path.exists():
+            result[name] = summarise(path, args.spy, args.rate)
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
