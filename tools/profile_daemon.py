@@ -102,7 +102,10 @@ def main() -> None:
             time.sleep(0.2)
         time.sleep(15.0)  # start-up, localization, the first permit
         sup = bench.proc.pid
-        procs = {"supervisor": sup, **{"estimation": c for c in children(sup)[-1:]}}
+        procs = {"supervisor": sup}
+        kids = children(sup)
+        if kids:
+            procs["estimation"] = kids[-1]  # after the multiprocessing resource tracker
         spies = []
         for name, pid in procs.items():
             found[name] = out / f"{name}.txt"
