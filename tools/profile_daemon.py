@@ -103,9 +103,9 @@ def main() -> None:
         time.sleep(15.0)  # start-up, localization, the first permit
         sup = bench.proc.pid
         procs = {"supervisor": sup}
-        kids = children(sup)
-        if kids:
-            procs["estimation"] = kids[-1]  # after the multiprocessing resource tracker
+        for kid in children(sup):  # not the multiprocessing resource tracker
+            if b"spawn_main" in Path(f"/proc/{kid}/cmdline").read_bytes():
+                procs["estimation"] = kid
         spies = []
         for name, pid in procs.items():
             found[name] = out / f"{name}.txt"
