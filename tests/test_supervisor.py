@@ -87,3 +87,21 @@ def test_the_supervisor_halts_a_quiet_estimator_and_ends_when_it_dies(tmp_path: 
     assert sup.counts["lease_expired"] >= 1
     assert HB_ERROR in heartbeats  # the fault is announced by the heartbeat
     assert not mower.deck_running
+
+
+def test_the_switch_frame_round_trips_and_decodes_with_the_shipped_dbc() -> None:
+    import pytest
+
+    from drivers.can.isobus import can_id
+    from drivers.can.switches import PGN_SWITCHES, Switches, decode_switches, encode_switches
+
+    for sw in (Switches(), Switches(lifted=True), Switches(bumped=True, stop=True)):
+        assert decode_switches(encode_switches(sw)) == sw
+    assert decode_switches(bytes([0x01] + [0xFF] * 7)) is None  # reserved bits not set: refused
+    cantools = pytest.importorskip("cantools")
+    dbc = Path(__file__).resolve().parents[1] / "configs" / "mowerhw.dbc"
+    db = cantools.database.load_file(str(dbc), frame_id_mask=0x03FFFF00)
+    msg = db.get_message_by_name("MowerSwitches")
+    assert msg.frame_id & 0x03FFFF00 == can_id(6, PGN_SWITCHES, 0x28) & 0x03FFFF00
+    got = msg.decode(encode_switches(Switches(lifted=True, stop=True)))
+    assert got == {"Lifted": 1, "BumperPressed": 0, "StopButtonPressed": 1}
