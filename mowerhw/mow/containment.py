@@ -22,7 +22,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from enum import StrEnum
 
 import numpy as np
 import shapely
@@ -31,33 +30,11 @@ from numpy.typing import NDArray
 from shapely.geometry import Polygon
 from shapely.geometry.polygon import orient
 
+from mowerhw.common.reasons import Reason as Reason
+from mowerhw.common.reasons import State as State
 from mowerhw.config import ContainmentConfig
 
 FloatArray = NDArray[np.float64]
-
-
-class State(StrEnum):
-    INSIDE = "INSIDE"
-    NEAR_EDGE = "NEAR_EDGE"
-    OUTSIDE = "OUTSIDE"
-    UNKNOWN = "UNKNOWN"
-
-
-class Reason(StrEnum):
-    """Why the deck is halted (empty string while permitted)."""
-
-    OUTSIDE = "OUTSIDE"  # beyond the boundary or inside a keep-out zone
-    UNCERTAIN = "UNCERTAIN"  # σ above containment.sigma_max_m
-    NOT_LOCALIZED = "NOT_LOCALIZED"  # starting, lost, or re-initialising
-    SENSOR_STALE = "SENSOR_STALE"  # IMU, speed or camera silent for too long
-    FAULT = "FAULT"  # estimator produced NaN / raised; it was reset
-    MAP_INVALID = "MAP_INVALID"  # no usable map
-    NOT_MOWING = "NOT_MOWING"  # the runtime is not in mow mode
-    SHUTTING_DOWN = "SHUTTING_DOWN"
-    ESTIMATOR_LATE = "ESTIMATOR_LATE"  # the supervisor holds no fresh permit lease
-    LIFTED = "LIFTED"  # lifted, or a lift switch (latched until clear for a while)
-    TILTED = "TILTED"  # tilted past the limit, or rolled over
-    COLLISION = "COLLISION"  # a bump: an acceleration spike or a bump switch
 
 
 @dataclass(frozen=True)

@@ -13,10 +13,13 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
+from mowerhw.common.reasons import Reason, State
 from mowerhw.config import Config, stale_limits_s
-from mowerhw.mow.containment import ContainmentResult, Reason, State
+
+if TYPE_CHECKING:
+    from mowerhw.mow.containment import ContainmentResult
 
 log = logging.getLogger("mowerhw.permit")
 

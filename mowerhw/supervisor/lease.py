@@ -13,7 +13,7 @@ import logging
 import math
 from dataclasses import dataclass
 
-from mowerhw.mow.containment import Reason, State
+from mowerhw.common.reasons import Reason, State
 from mowerhw.mow.gate import Decision
 
 log = logging.getLogger("mowerhw.supervisor")

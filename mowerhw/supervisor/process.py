@@ -28,8 +28,8 @@ from typing import Any
 from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
 from drivers.can.switches import decode_switches
+from mowerhw.common.reasons import Reason
 from mowerhw.config import Config
-from mowerhw.mow.containment import Reason
 from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
 from mowerhw.supervisor.canport import CanPort

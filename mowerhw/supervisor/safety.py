@@ -18,8 +18,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from mowerhw.common.reasons import Reason
 from mowerhw.config import SafetyConfig
-from mowerhw.mow.containment import Reason
 
 G = 9.80665
 
