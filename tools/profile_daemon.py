@@ -42,6 +42,22 @@ PARTS = (
 )
 
 
+#: a sample whose innermost frame is one of these is a thread waiting, not working (py-spy
+#: without --native cannot always tell)
+IDLE_LEAVES = (
+    "EpollSelector.select",
+    "Condition.wait",
+    "Event.wait",
+    "_worker (concurrent/futures/thread.py:81)",
+    "Connection.recv",
+    "Connection._recv",
+    "_poll",
+    "wait (multiprocessing/connection.py",
+    "select (selectors.py",
+    "Vn100._read_available",  # select() on the serial port, natively
+)
+
+
 def part_of(stack: str) -> str:
     for name, marker in PARTS:
         if marker in stack:
@@ -71,6 +87,9 @@ def summarise(path: Path, seconds: float, rate: int) -> dict[str, Any]:
     for line in path.read_text().splitlines():
         stack, _, n = line.rpartition(" ")
         if not n.isdigit():
+            continue
+        leaf = stack.rsplit(";", 1)[-1]
+        if any(marker in leaf for marker in IDLE_LEAVES):
             continue
         parts[part_of(stack)] += int(n)
         total += int(n)
