@@ -530,6 +530,20 @@ class SupervisorConfig:
     child_start_timeout_s: float = opt(
         60.0, "the estimation process must say it is running within this", gt=0.0, le=600.0
     )
+    nice: int = opt(
+        -10,
+        "scheduling priority of the supervisor (lower runs first: a loaded computer must not "
+        "delay a halt); needs CAP_SYS_NICE or systemd's Nice=, else it stays as started",
+        ge=-20,
+        le=19,
+    )
+    estimation_nice: int = opt(
+        -5,
+        "scheduling priority of the estimation process (behind the supervisor, ahead of "
+        "ordinary work: it must renew the lease in time)",
+        ge=-20,
+        le=19,
+    )
 
 
 @dataclass(frozen=True)

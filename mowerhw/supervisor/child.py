@@ -34,7 +34,9 @@ def estimator_main(
     logging.basicConfig(level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from mowerhw.runtime.daemon import Daemon
     from mowerhw.runtime.process import tune_process
+    from mowerhw.supervisor.process import set_priority
 
+    set_priority(config.supervisor.estimation_nice, "the estimation process")
     tune_process()
     daemon = Daemon(config, mode, record, link=SupervisorLink(conn))
     raise SystemExit(asyncio.run(daemon.run()))

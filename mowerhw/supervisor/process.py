@@ -18,6 +18,7 @@ import contextlib
 import logging
 import math
 import multiprocessing
+import os
 import signal
 import threading
 import time
@@ -40,6 +41,20 @@ log = logging.getLogger("mowerhw.supervisor")
 
 TICK_MAX_S = 0.02
 STATUS_PERIOD_S = 0.5  # the supervisor's status, down to the child (for `mowerhw ctl status`)
+
+
+def set_priority(nice: int, who: str) -> None:
+    """Run this process at ``nice`` (Linux); say so once if that is not allowed."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+    except (PermissionError, OSError) as exc:
+        log.warning(
+            "%s: cannot run at nice %d (%s); it keeps nice %d",
+            who,
+            nice,
+            exc,
+            os.getpriority(os.PRIO_PROCESS, 0),
+        )
 
 
 class Supervisor:
@@ -205,13 +220,17 @@ class Supervisor:
                 previous[sig] = signal.signal(
                     sig, lambda s, f: self.request_stop(signal.Signals(s).name)
                 )
+        nice = os.getpriority(os.PRIO_PROCESS, 0)
         try:
             return self._run()
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+            with contextlib.suppress(OSError):  # as it was (a test runs it in-process)
+                os.setpriority(os.PRIO_PROCESS, 0, nice)
 
     def _run(self) -> int:
+        set_priority(self.cfg.supervisor.nice, "the permit supervisor")
         self.port.ensure(time.monotonic())
         self._rx = threading.Thread(target=self._receive, name="can-rx", daemon=True)
         self._rx.start()
