@@ -537,6 +537,14 @@ class SupervisorConfig:
         ge=-20,
         le=19,
     )
+    realtime_priority: int = opt(
+        10,
+        "SCHED_FIFO priority of the supervisor (it sleeps between frames, so it takes little; "
+        "a loaded computer then cannot delay it); 0: normal scheduling. Needs "
+        "CAP_SYS_NICE or systemd's CPUSchedulingPolicy=fifo; its children never inherit it",
+        ge=0,
+        le=50,
+    )
     estimation_nice: int = opt(
         -5,
         "scheduling priority of the estimation process (behind the supervisor, ahead of "

@@ -57,6 +57,20 @@ def set_priority(nice: int, who: str) -> None:
         )
 
 
+def set_realtime(priority: int) -> None:
+    """SCHED_FIFO at ``priority`` (Linux), reset on fork: the estimation process it starts
+    runs normally. Said once if not allowed."""
+    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+        return
+    if os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0) == os.SCHED_FIFO:
+        return  # systemd's CPUSchedulingPolicy=fifo did it
+    try:
+        policy = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
+        os.sched_setscheduler(0, policy, os.sched_param(priority))
+    except (PermissionError, OSError) as exc:
+        log.warning("the permit supervisor: cannot run SCHED_FIFO %d (%s)", priority, exc)
+
+
 class Supervisor:
     """``Supervisor(config).run()`` until SIGTERM / SIGINT; the exit status."""
 
@@ -228,9 +242,11 @@ class Supervisor:
                 signal.signal(sig, handler)
             with contextlib.suppress(OSError):  # as it was (a test runs it in-process)
                 os.setpriority(os.PRIO_PROCESS, 0, nice)
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
     def _run(self) -> int:
         set_priority(self.cfg.supervisor.nice, "the permit supervisor")
+        set_realtime(self.cfg.supervisor.realtime_priority)
         self.port.ensure(time.monotonic())
         self._rx = threading.Thread(target=self._receive, name="can-rx", daemon=True)
         self._rx.start()
