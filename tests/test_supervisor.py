@@ -105,3 +105,33 @@ def test_the_switch_frame_round_trips_and_decodes_with_the_shipped_dbc() -> None
     assert msg.frame_id & 0x03FFFF00 == can_id(6, PGN_SWITCHES, 0x28) & 0x03FFFF00
     got = msg.decode(encode_switches(Switches(lifted=True, stop=True)))
     assert got == {"Lifted": 1, "BumperPressed": 0, "StopButtonPressed": 1}
+
+
+def test_a_failing_can_bus_is_reopened_with_backoff_and_logged_per_change(
+    tmp_path: Path, monkeypatch: Any, caplog: Any
+) -> None:
+    import mowerhw.supervisor.canport as canport
+
+    raw = config_to_dict(default_config())
+    raw["can"].update(interface="virtual", channel=f"down-{uuid.uuid4().hex[:8]}")
+    cfg = config_from_dict(raw, tmp_path, "test config")
+    fail = {"on": True}
+
+    def fake_open(interface: str, channel: str, bitrate: int = 0, **kw: Any) -> Any:
+        if fail["on"]:
+            raise OSError("No such device")
+        return open_bus(interface, channel)
+
+    monkeypatch.setattr(canport, "open_bus", fake_open)
+    port = canport.CanPort(cfg)
+    t0 = time.monotonic()
+    tries = [t for t in (t0 + k * 0.05 for k in range(4000)) if port.ensure(t) or True]
+    # 200 s of retries: the backoff grows to 2 s, so ~100 attempts, not 4000
+    assert port.bus is None and 90 <= port.errors <= 120
+    text = caplog.text
+    assert text.count("cannot open (No such device); reopening with backoff") == 1
+    assert "still down after 6" in text  # the periodic summary (every 60 s)
+    fail["on"] = False
+    assert port.ensure(t0 + 1e6) and "open again after" in caplog.text
+    assert tries
+    port.bus.shutdown()  # type: ignore[union-attr]

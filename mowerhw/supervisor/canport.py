@@ -14,6 +14,9 @@ from mowerhw.config import Config
 
 log = logging.getLogger("mowerhw.supervisor")
 
+#: while CAN stays down, one summary line this often (s)
+SUMMARY_PERIOD_S = 60.0
+
 
 class CanPort:
     """The bus, reopened with backoff when it fails; one log line per change of state."""
@@ -29,6 +32,8 @@ class CanPort:
         self._next_try = 0.0
         self._last_error = ""
         self._gone_until = 0.0  # fault injection: the interface is away until then
+        self._attempts = 0  # failed opens since the bus went down
+        self._next_summary = 0.0
 
     def ensure(self, now: float) -> bool:
         """Open the bus if it is closed and a retry is due; whether it is up."""
@@ -56,6 +61,7 @@ class CanPort:
         else:
             log.info("CAN %s %s open, sending as 0x%02X", c.interface, c.channel, c.source_address)
         self.reopens += 1
+        self._attempts = 0
         self.up_since, self.down_since = now, None
         self._backoff, self._last_error = 0.1, ""
         return True
@@ -78,6 +84,18 @@ class CanPort:
         if self.down_since is None or self.up_since is not None:
             self.down_since = now
         self.up_since = None
+        self._attempts += 1
+        if why == self._last_error and now >= self._next_summary:  # the periodic summary
+            log.error(
+                "CAN %s %s still down after %.0f s (%d attempts to reopen; last: %s)",
+                self.cfg.can.interface,
+                self.cfg.can.channel,
+                now - (self.down_since or now),
+                self._attempts,
+                why,
+            )
+        if why != self._last_error or now >= self._next_summary:
+            self._next_summary = now + SUMMARY_PERIOD_S
         if why != self._last_error:  # one line per change, not per retry
             log.error(
                 "CAN %s %s: %s; reopening with backoff",
