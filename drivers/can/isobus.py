@@ -56,12 +56,21 @@ def parse_id(arbitration_id: int) -> J1939Id:
     return J1939Id(priority, (edp << 17) | (dp << 16) | (pf << 8), sa, ps)
 
 
-def open_bus(interface: str, channel: str, bitrate: int = 250000, **kwargs: Any) -> can.BusABC:
-    """A python-can bus from config values (``can.interface``, ``can.channel``)."""
+def open_bus(
+    interface: str,
+    channel: str,
+    bitrate: int = 250000,
+    udp_port: int | None = None,
+    **kwargs: Any,
+) -> can.BusABC:
+    """A python-can bus from config values (``can.interface``, ``can.channel``, and
+    ``can.udp_port`` for ``udp_multicast``)."""
     import can
 
     if interface == "virtual":
         return can.Bus(interface="virtual", channel=channel, receive_own_messages=False, **kwargs)
     if interface == "udp_multicast":  # frames between processes on one host (the bench)
+        if udp_port is not None:
+            kwargs["port"] = udp_port
         return can.Bus(interface=interface, channel=channel, **kwargs)
     return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **kwargs)

@@ -97,8 +97,6 @@ class MockMowerController(ThreadedDevice):
         sw = self.switches
         if sw == self._sent_switches and now < self._next_switches:
             return
-        import can
-
         msg = can.Message(
             arbitration_id=can_id(6, self.switches_pgn or 0, self.sa),
             data=encode_switches(sw),

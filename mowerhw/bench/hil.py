@@ -48,6 +48,7 @@ import numpy as np
 import shapely
 import yaml
 
+from drivers.can.isobus import open_bus
 from drivers.can.switches import Switches
 from mowerhw.evaluation.scoring import score_halts
 from mowerhw.runtime.control import request
@@ -234,7 +235,6 @@ class Bench:
     # -------------------------------------------------------------------------------- run
 
     def run(self) -> dict[str, Any]:
-        import can
 
         from drivers.camera.mock_server import MockCameraServer
         from drivers.can.mock_mower import MockMowerController
@@ -255,7 +255,7 @@ class Bench:
         truth = teach_loop(world.lawn, sc.speed_mps, sc.camera_height_m, standstill_s=1.0)
         mower = RealTimeMower(world, truth, self.seed, q_bi=cfg.imu.q_bi)
         renderer = OmniRenderer(world, self.seed)
-        bus = can.Bus(interface="udp_multicast", channel=self.can_channel, port=self.can_port)
+        bus = open_bus("udp_multicast", self.can_channel, udp_port=self.can_port)
         vn = MockVn100(self.out / "vn100", source=mower.imu_source, seed=self.seed)
         speed = MockSpeedSensor(bus, mower.speed_source)
         controller = MockMowerController(

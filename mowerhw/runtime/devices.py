@@ -201,8 +201,7 @@ class CanLink(ThreadedDevice):
     def open(self) -> bool:
         c = self.cfg.can
         try:
-            extra = {"port": c.udp_port} if c.interface == "udp_multicast" else {}
-            self.bus = open_bus(c.interface, c.channel, c.bitrate, **extra)
+            self.bus = open_bus(c.interface, c.channel, c.bitrate, udp_port=c.udp_port)
         except Exception as exc:  # can.CanError, OSError: retried
             if self.open_failures == 0:
                 log.error("CAN %s %s: cannot open (%s); retrying", c.interface, c.channel, exc)
@@ -228,9 +227,7 @@ class CanLink(ThreadedDevice):
         if self.sender is None:
             return False
         status = Status(d.state, d.permit, d.reason or "NONE", d.signed_distance_m, *pose_xyh)
-        was = self.sender.permit
-        self.sender.set(d.permit, now, status)
-        return was and not d.permit
+        return self.sender.set(d.permit, now, status) and not d.permit
 
     def tick(self, now: float) -> None:
         if self.sender is not None:

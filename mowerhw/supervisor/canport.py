@@ -46,8 +46,7 @@ class CanPort:
             self._failed(now, "cannot open (No such device: the interface is away)")
             return False
         try:
-            extra = {"port": c.udp_port} if c.interface == "udp_multicast" else {}
-            self.bus = open_bus(c.interface, c.channel, c.bitrate, **extra)
+            self.bus = open_bus(c.interface, c.channel, c.bitrate, udp_port=c.udp_port)
         except Exception as exc:
             self._failed(now, f"cannot open ({exc})")
             return False

@@ -73,14 +73,18 @@ class SupervisorGate:
         self.received_at: float | None = None
         self.current = NO_LEASE
         self.changes = 0
+        self.expired = 0  # how many times the lease ran out
         self._on_time_since: float | None = None  # leases in time since
         self._was_late = False
+        self._expired_now = False
+
+    def _ran_out(self, now: float) -> bool:
+        return self.received_at is not None and now - self.received_at > self.lease_s
 
     def renew(self, lease: Lease, now: float) -> None:
-        if self.received_at is None or now - self.received_at > self.lease_s:
+        if self.received_at is None or self._ran_out(now):
             self._on_time_since = now  # the first lease, or the first in time after a gap
-        if self.received_at is not None and now - self.received_at > self.lease_s:
-            self._was_late = True
+            self._was_late = self._was_late or self.received_at is not None
         self.lease, self.received_at = lease, now
 
     def lease_expires(self) -> float:
@@ -92,11 +96,15 @@ class SupervisorGate:
         stale speed it sees, lifted or tilted, shutting down), which comes first."""
         lease = self.lease
         late = Reason.ESTIMATOR_LATE
+        ran_out = self._ran_out(now)
+        if ran_out and not self._expired_now:
+            self.expired += 1
+        self._expired_now = ran_out
         if own_halt is not None:
             d = _halt(lease, own_halt[0], own_halt[1], now)
         elif self.received_at is None:
             d = _halt(lease, late, "no permit lease yet: estimation starting", now)
-        elif now - self.received_at > self.lease_s:
+        elif ran_out:
             self._was_late = True
             d = _halt(
                 lease,

@@ -26,6 +26,7 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
+from drivers.can.isobus import parse_id
 from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
 from drivers.can.switches import decode_switches
@@ -102,7 +103,6 @@ class Supervisor:
             "leases": 0,
             "frames_forwarded": 0,
             "send_errors": 0,
-            "lease_expired": 0,
             "loop_stalls_over_20ms": 0,
         }
         self.lease_to_frame_ms: list[float] = []
@@ -163,7 +163,7 @@ class Supervisor:
                 continue
             now = time.monotonic()
             data = bytes(msg.data)
-            if (msg.arbitration_id >> 8) & 0x3FFFF == self.cfg.safety.switches_pgn:
+            if parse_id(msg.arbitration_id).pgn == self.cfg.safety.switches_pgn:
                 sw = decode_switches(data)
                 if sw is not None:
                     with self._safety_lock:
@@ -192,9 +192,8 @@ class Supervisor:
             d.state, d.permit, d.reason or "NONE", d.signed_distance_m, d.x, d.y, d.heading
         )
         sender.fault = d.reason in (Reason.FAULT, Reason.ESTIMATOR_LATE) and self.child_ready
-        was = sender.permit
-        sender.set(d.permit, now, status)
-        if was and not d.permit and d.decided_at > 0:
+        stopped = sender.set(d.permit, now, status) and not d.permit
+        if stopped and d.decided_at > 0:
             self.lease_to_frame_ms.append(round((time.monotonic() - d.decided_at) * 1e3, 3))
             del self.lease_to_frame_ms[:-2000]
         sender.tick(now)
@@ -316,12 +315,8 @@ class Supervisor:
                     log.info("estimation process running; permit supervisor ready")
         except (OSError, EOFError):
             pass  # a dead child: its sentinel says so
-        self._decide(now)
 
     def _decide(self, now: float) -> None:
-        late = self.gate.received_at is not None and now > self.gate.lease_expires()
-        if late and self.gate.current.reason != Reason.ESTIMATOR_LATE:
-            self.counts["lease_expired"] += 1
         d = self.gate.decide(now, self._own_halt(now))
         self._send_frames(d, now)
         if now >= self._next_status:
@@ -361,6 +356,7 @@ class Supervisor:
             "lease_to_frame_ms": _percentiles(self.lease_to_frame_ms),
             "max_loop_lag_ms": round(self.max_loop_lag_ms, 2),
             "tilt_deg": round(self.safety.tilt_deg, 1),
+            "lease_expired": self.gate.expired,
             "permit_sender": vars(self.sender.stats) if self.sender else {},
             **self.counts,
         }
