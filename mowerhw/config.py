@@ -16,6 +16,9 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import os
+import re
+import reprlib
 import types
 import typing
 from dataclasses import dataclass, field
@@ -66,7 +69,8 @@ def opt(default: Any, doc: str = "", **rules: Any) -> Any:
     """A config field: default, one-line doc, validation rules.
 
     Rules: ``choices`` (tuple), ``ge``/``gt``/``le``/``lt`` (numeric bounds), ``unit_norm``
-    (a quaternion), ``exists`` (a path that must exist), ``nonempty`` (strings).
+    (a quaternion), ``exists`` (a path that must exist), ``nonempty`` (strings), ``octal``
+    (messages show the value in octal).
     """
     meta = {"doc": doc, **rules}
     if isinstance(default, list | dict):
@@ -388,7 +392,11 @@ class MowConfig(MotionNoiseConfig):
     init_sigma_heading_rad: float = opt(0.02, "σ of the start pose's heading", gt=0.0)
     min_landmarks: int = opt(3, "fewest accepted landmarks for a frame to count as a fix", ge=1)
     max_dead_reckoning_s: float = opt(
-        3.0, "halt (UNCERTAIN) when the last landmark fix is older than this", gt=0.0, le=60.0
+        3.0,
+        "halt (UNCERTAIN) when the last landmark fix is older than this; at most 10 s (speed "
+        "scale errors of a few per cent grow to decimetres beyond)",
+        gt=0.0,
+        le=10.0,
     )
     localized_after_frames: int = opt(
         3, "good frames needed after a (re)start to be localized", ge=1
@@ -411,13 +419,44 @@ class MowConfig(MotionNoiseConfig):
 
 @dataclass(frozen=True)
 class ContainmentConfig:
-    """Containment decision (docs/design.md §5 table)."""
+    """Containment decision (docs/design.md §5 table). Each bound keeps the guarantee that a
+    permit means "inside, with k σ to spare" (docs/design.md §5, "Bounds"): values outside
+    them are refused, however the rest of the config is set."""
 
-    margin_m: float = opt(0.4, "NEAR_EDGE band width (the paper's 0.4 m turn threshold)", ge=0.0)
-    k_sigma: float = opt(3.0, "how many σ of position uncertainty to keep from the edge", ge=0.0)
-    sigma_max_m: float = opt(0.3, "above this σ the position is UNKNOWN (halt)", gt=0.0)
-    soft_persist: int = opt(3, "consecutive samples a soft OUTSIDE must last to halt", ge=1, le=100)
-    hard_margin_m: float = opt(0.1, "beyond this far outside (minus kσ) halt at once", ge=0.0)
+    margin_m: float = opt(
+        0.4,
+        "NEAR_EDGE band width (the paper's 0.4 m turn threshold); at least 0.1 m so the "
+        "mower's controller is told to turn before the deck must halt",
+        ge=0.1,
+        le=2.0,
+    )
+    k_sigma: float = opt(
+        3.0,
+        "how many σ of position uncertainty to keep from the edge; at least 2 (below, one "
+        "permit in 40 could be given outside)",
+        ge=2.0,
+        le=10.0,
+    )
+    sigma_max_m: float = opt(
+        0.3,
+        "above this σ the position is UNKNOWN (halt); at most 0.5 m (beyond, a lawn edge "
+        "cannot be told apart from the neighbour's)",
+        gt=0.0,
+        le=0.5,
+    )
+    soft_persist: int = opt(
+        3,
+        "consecutive samples a soft OUTSIDE must last to halt; at most 10 (0.1 s of decisions)",
+        ge=1,
+        le=10,
+    )
+    hard_margin_m: float = opt(
+        0.1,
+        "beyond this far outside (minus kσ) halt at once; at most 0.3 m (the soft band is "
+        "for noise at the edge, not for leaving the lawn)",
+        ge=0.0,
+        le=0.3,
+    )
 
 
 # -------------------------------------------------------------------------- runtime sections
@@ -428,6 +467,12 @@ class MapConfig:
     """The lawn map (boundary, keep-out zones, landmarks)."""
 
     path: Path = opt(Path("/var/lib/mowerhw/lawn.json"), "map file written by teach, read by mow")
+    max_bytes: int = opt(
+        64 << 20, "a bigger map file is refused (MAP_INVALID)", ge=1 << 16, le=1 << 30
+    )
+    load_timeout_s: float = opt(
+        10.0, "a map load (in its own process) that takes longer is refused", gt=0.0, le=120.0
+    )
 
 
 @dataclass(frozen=True)
@@ -437,7 +482,29 @@ class RuntimeConfig:
     mode: str = opt("idle", "start-up mode", choices=("idle", "teach", "mow"))
     control_socket: Path = opt(Path("/run/mowerhw/control.sock"), "control socket path")
     log_level: str = opt("INFO", "log level", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-    socket_mode: int = opt(0o660, "permissions of the control socket", ge=0, le=0o777)
+    socket_mode: int = opt(
+        0o660,
+        "permissions of the control socket: owner and group only (at most 0770; anyone who "
+        "can open it may ask for the status)",
+        ge=0,
+        le=0o770,
+        octal=True,
+    )
+    control_group: str | None = opt(
+        None,
+        "group whose members may change the mode and write maps over the control socket "
+        "(besides the service's user and root); null: nobody else",
+    )
+    control_max_clients: int = opt(8, "control socket connections served at once", ge=1, le=64)
+    control_idle_s: float = opt(
+        60.0, "a control connection without a complete request this long is closed", gt=0.0
+    )
+    control_requests_per_s: float = opt(
+        20.0,
+        "requests a control client may send per second (all together: four times this)",
+        gt=0.0,
+        le=1000.0,
+    )
     auto_finish_teach: bool = opt(
         True, "finish teach by itself when the mower stops back at its start after a loop"
     )
@@ -578,11 +645,22 @@ class Config:
 
 
 def _fmt(value: Any) -> str:
+    """A value as a message shows it (at most 80 characters)."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 10**18:
+        return "a number too large"
     if isinstance(value, str):
-        return repr(value)
-    if isinstance(value, float) and value.is_integer():
-        return str(int(value)) if abs(value) < 1e15 else repr(value)
-    return str(value) if not isinstance(value, list | dict) else repr(value)
+        text = repr(value)
+    elif isinstance(value, float) and value.is_integer():
+        text = str(int(value)) if abs(value) < 1e15 else repr(value)
+    elif isinstance(value, list | dict):
+        text = reprlib.repr(value)
+    else:
+        text = str(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+_INT_TEXT = re.compile(r"[+-]?(0[oO][0-7]+|0[xX][0-9a-fA-F]+|[0-9]{1,18})")
+_FLOAT_TEXT = re.compile(r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?")
 
 
 def _check_scalar(tp: Any, value: Any, key: str, meta: dict, base: Path | None) -> Any:
@@ -592,15 +670,22 @@ def _check_scalar(tp: Any, value: Any, key: str, meta: dict, base: Path | None) 
             raise ValueError(f"{key}: {_fmt(value)} is not true or false")
         return value
     if tp is int:
+        if isinstance(value, str) and _INT_TEXT.match(value.strip()):
+            value = int(value.strip(), 0)  # "0o660", "0x90" (YAML 1.2 spellings)
         if isinstance(value, bool) or not isinstance(value, int):
-            if isinstance(value, float) and value.is_integer():
+            if isinstance(value, float) and value.is_integer() and abs(value) < 2**63:
                 value = int(value)
             else:
                 raise ValueError(f"{key}: {_fmt(value)} is not a whole number")
     elif tp is float:
+        if isinstance(value, str) and _FLOAT_TEXT.match(value.strip()):
+            value = float(value)  # "1e-3": YAML 1.1 reads it as a string
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ValueError(f"{key}: {_fmt(value)} is not a number")
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:
+            raise ValueError(f"{key}: {_fmt(value)} is not a finite number") from None
         if not math.isfinite(value):
             raise ValueError(f"{key}: {_fmt(value)} is not a finite number")
     elif tp is str:
@@ -627,8 +712,9 @@ def _check_scalar(tp: Any, value: Any, key: str, meta: dict, base: Path | None) 
         ("lt", lambda v, b: v < b, "less than"),
     ):
         if rule in meta and not ok(value, meta[rule]):
+            shown = (lambda v: f"{v:#o}") if meta.get("octal") else _fmt
             raise ValueError(
-                f"{key}: {_fmt(value)} is out of range: must be {words} {_fmt(meta[rule])}"
+                f"{key}: {shown(value)} is out of range: must be {words} {shown(meta[rule])}"
             )
     return value
 
@@ -804,9 +890,57 @@ def _resolve_camera_rotation(cfg: Config) -> Config:
     return dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, q_bc=q_bc))
 
 
+#: CAN interfaces with no mower on them: the only ones ``runtime.fault_injection`` may use
+BENCH_CAN_INTERFACES = ("virtual", "udp_multicast")
+
+
+def _runtime_checks(cfg: Config) -> list[str]:
+    """The daemon's files and sockets: no two the same, nothing world-writable, no test
+    hooks on a real mower."""
+    problems = []
+    rt = cfg.runtime
+    if rt.socket_mode & 0o007:
+        problems.append(
+            f"runtime.socket_mode: {rt.socket_mode:#o} lets every user on the computer send "
+            "commands; at most 0770 (owner and group)"
+        )
+    if rt.fault_injection and cfg.can.interface not in BENCH_CAN_INTERFACES:
+        problems.append(
+            f"runtime.fault_injection: only for the test bench (can.interface "
+            f"{' or '.join(BENCH_CAN_INTERFACES)}), not with can.interface "
+            f"{cfg.can.interface!r}: a real mower must not take injected faults"
+        )
+    paths = {
+        "map.path": cfg.map.path,
+        "map picture (map.path with .png)": cfg.map.path.with_suffix(".png"),
+        "map backup (map.path + .bak)": cfg.map.path.with_name(cfg.map.path.name + ".bak"),
+        "runtime.control_socket": rt.control_socket,
+        "control socket lock (runtime.control_socket + .lock)": Path(
+            str(rt.control_socket) + ".lock"
+        ),
+        "runtime.pose_file": rt.pose_file,
+    }
+    seen: dict[Path, str] = {}
+    for name, path in paths.items():
+        key = Path(os.path.realpath(path))
+        if key in seen:
+            problems.append(f"{name}: {path} is also {seen[key]}; each needs its own file")
+        seen.setdefault(key, name)
+    sock = rt.control_socket
+    if sock.exists() and not sock.is_socket():
+        kind = "a directory" if sock.is_dir() else "a file that is not a socket"
+        problems.append(
+            f"runtime.control_socket: {sock} is {kind}; the daemon would have to delete it"
+        )
+    for name, path in (("map.path", cfg.map.path), ("runtime.pose_file", rt.pose_file)):
+        if path.is_dir():
+            problems.append(f"{name}: {path} is a directory, not a file")
+    return problems
+
+
 def _cross_checks(cfg: Config) -> list[str]:
     """Rules between keys, and files the config points at."""
-    problems = []
+    problems = _runtime_checks(cfg)
     if (
         cfg.imu.driver == "vn100"
         and cfg.imu.output == "ascii"
@@ -869,17 +1003,58 @@ def camera_rotation(cfg: Config, t_cam_imu: Any = None) -> Quat:
     return derived
 
 
+#: a config file is at most this big (bytes) and nests at most this deep
+MAX_CONFIG_BYTES = 1 << 20
+MAX_YAML_DEPTH = 16
+
+
+class _LimitedLoader(yaml.SafeLoader):
+    """YAML without aliases (a "billion laughs" document expands from them) and with a
+    bounded nesting depth."""
+
+    _depth = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(
+                None, None, "aliases (*name) are not allowed in a config", event.start_mark
+            )
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                raise yaml.composer.ComposerError(
+                    None,
+                    None,
+                    f"nested more than {MAX_YAML_DEPTH} levels deep",
+                    self.peek_event().start_mark,
+                )
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
 def load_config(path: str | Path) -> Config:
-    """Load and validate a YAML config file."""
+    """Load and validate a YAML config file (at most :data:`MAX_CONFIG_BYTES`)."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        if path.exists() and not path.is_file():
+            raise ConfigError(["not a regular file"], str(path))
+        with path.open("rb") as f:
+            data = f.read(MAX_CONFIG_BYTES + 1)
+        if len(data) > MAX_CONFIG_BYTES:
+            raise ConfigError([f"larger than {MAX_CONFIG_BYTES} bytes"], str(path))
+        text = data.decode("utf-8")
     except FileNotFoundError:
         raise ConfigError(["file not found"], str(path)) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError([f"cannot read the file: {exc}"], str(path)) from None
     try:
-        raw = yaml.safe_load(text)
+        raw = yaml.load(text, Loader=_LimitedLoader)  # a SafeLoader
+    except RecursionError:
+        raise ConfigError(["nested too deeply"], str(path)) from None
+    except (ValueError, OverflowError) as exc:  # e.g. a number of thousands of digits
+        raise ConfigError([f"not a usable YAML value: {str(exc)[:120]}"], str(path)) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

@@ -39,6 +39,8 @@ import datetime as _dt
 import hashlib
 import json
 import math
+import os
+import stat
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -65,6 +67,14 @@ FRAME_DESCRIPTION = (
 MIN_AREA_M2 = 4.0
 MIN_LANDMARKS = 4
 DESCRIPTOR_BYTES = 32  # one ORB descriptor (mowerhw.frontend.descriptors)
+#: a map file is at most this big (bytes): ~60,000 landmarks with a few views each
+MAX_MAP_BYTES = 64 << 20
+#: every coordinate lies within this many metres of the map's origin (the teach start)
+MAX_COORDINATE_M = 10_000.0
+#: a landmark's position σ is at most this (m); a bigger one is no landmark
+MAX_LANDMARK_SIGMA_M = 100.0
+#: integers in the file (ids, key frames) fit in a signed 64-bit number
+MAX_ID = 2**63 - 1
 
 
 class MapError(ValueError):
@@ -144,6 +154,15 @@ class LawnMap:
                 out.append(f"keep-out {zone.name!r}: not inside the lawn boundary")
             elif poly.area <= 0.0:
                 out.append(f"keep-out {zone.name!r}: has no area")
+        if outline.is_valid and self.keepouts and outline.area >= MIN_AREA_M2:
+            try:
+                left = float(self.lawn_polygon().area)
+            except shapely.errors.GEOSException:
+                left = 0.0
+            if left < MIN_AREA_M2:
+                out.append(
+                    f"keep-outs: they leave {left:.1f} m² to mow, less than {MIN_AREA_M2} m²"
+                )
         if len(self.landmarks) < MIN_LANDMARKS:
             out.append(
                 f"landmarks: {len(self.landmarks)} mapped, at least {MIN_LANDMARKS} needed to "
@@ -278,23 +297,46 @@ def _digest(doc: dict[str, Any]) -> str:
 def _points(value: Any, where: str, min_points: int) -> FloatArray:
     try:
         arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise MapError(f"{where}: must be a list of [x, y] numbers") from None
     if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < min_points:
         raise MapError(f"{where}: must be a list of at least {min_points} [x, y] points")
     if not np.all(np.isfinite(arr)):
         raise MapError(f"{where}: has non-finite coordinates")
+    if np.max(np.abs(arr)) > MAX_COORDINATE_M:
+        raise MapError(f"{where}: coordinates beyond ±{MAX_COORDINATE_M:.0f} m of the map's origin")
     return arr
 
 
-def _vector(value: Any, where: str, shape: tuple[int, ...]) -> FloatArray:
+def _vector(value: Any, where: str, shape: tuple[int, ...], limit: float = math.inf) -> FloatArray:
     try:
         arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise MapError(f"{where}: must be numbers of shape {shape}") from None
     if arr.shape != shape or not np.all(np.isfinite(arr)):
         raise MapError(f"{where}: must be finite numbers of shape {shape}")
+    if np.max(np.abs(arr)) > limit:
+        raise MapError(f"{where}: values beyond ±{limit:g}")
     return arr
+
+
+def _covariance(value: Any, where: str) -> FloatArray:
+    """A landmark's 3×3 position covariance: symmetric, positive semi-definite, σ bounded."""
+    cov = _vector(value, where, (3, 3))
+    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12):
+        raise MapError(f"{where}: not symmetric")
+    eig = np.linalg.eigvalsh(cov)
+    if eig[0] < -1e-12 * max(1.0, float(eig[-1])):
+        raise MapError(f"{where}: not positive semi-definite (eigenvalue {eig[0]:.3g})")
+    if eig[-1] > MAX_LANDMARK_SIGMA_M**2:
+        raise MapError(
+            f"{where}: σ of {math.sqrt(eig[-1]):.3g} m; at most {MAX_LANDMARK_SIGMA_M} m"
+        )
+    return cov
+
+
+def _int_id(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_ID
 
 
 def from_document(doc: Any, source: str = "map") -> LawnMap:
@@ -335,12 +377,8 @@ def from_document(doc: Any, source: str = "map") -> LawnMap:
         raise MapError(f"{source}: landmarks must be a list")
     for k, lm in enumerate(raw_lms):
         where = f"{source}: landmarks[{k}]"
-        if (
-            not isinstance(lm, dict)
-            or not isinstance(lm.get("id"), int)
-            or isinstance(lm.get("id"), bool)
-        ):
-            raise MapError(f"{where}: needs an integer id")
+        if not isinstance(lm, dict) or not _int_id(lm.get("id")):
+            raise MapError(f"{where}: needs an integer id from 0 to 2**63 - 1")
         desc = lm.get("descriptor")
         try:
             desc_bytes = base64.b64decode(desc, validate=True) if desc is not None else None
@@ -352,19 +390,23 @@ def from_document(doc: Any, source: str = "map") -> LawnMap:
                 f"{DESCRIPTOR_BYTES}-byte ORB descriptors"
             )
         kf = lm.get("keyframe")
+        if kf is not None and not _int_id(kf):
+            raise MapError(f"{where}.keyframe: must be null or an integer from 0 to 2**63 - 1")
         landmarks.append(
             Landmark(
                 id=lm["id"],
-                xyz=_vector(lm.get("xyz"), f"{where}.xyz", (3,)),
-                covariance=_vector(lm.get("covariance"), f"{where}.covariance", (3, 3)),
+                xyz=_vector(lm.get("xyz"), f"{where}.xyz", (3,), MAX_COORDINATE_M),
+                covariance=_covariance(lm.get("covariance"), f"{where}.covariance"),
                 descriptor=desc_bytes,
-                keyframe=kf if isinstance(kf, int) else None,
+                keyframe=kf,
             )
         )
     dock = doc.get("dock") or {}
     if not isinstance(dock, dict):
         raise MapError(f"{source}: dock must be an object")
-    dock_pos = _vector(dock.get("position", [0, 0, 0]), f"{source}: dock.position", (3,))
+    dock_pos = _vector(
+        dock.get("position", [0, 0, 0]), f"{source}: dock.position", (3,), MAX_COORDINATE_M
+    )
     dock_q = _vector(
         dock.get("quaternion_wxyz", [1, 0, 0, 0]), f"{source}: dock.quaternion_wxyz", (4,)
     )
@@ -396,28 +438,89 @@ def from_document(doc: Any, source: str = "map") -> LawnMap:
     return lawn
 
 
-def load(path: str | Path) -> LawnMap:
-    """Load and fully validate a map file (see the module doc for what is refused)."""
+def read_map_bytes(path: str | Path, max_bytes: int = MAX_MAP_BYTES) -> bytes:
+    """The bytes of a map file: a regular file (not a FIFO, device or directory, which could
+    block or never end) of at most ``max_bytes``; :class:`MapError` otherwise."""
     path = Path(path)
     try:
-        data = path.read_bytes()
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
         raise MapError(
             f"{path}: map file not found (teach a map first: `mowerhw run --mode teach`)"
         ) from None
     except OSError as exc:
         raise MapError(f"{path}: cannot read the map file ({exc.strerror})") from None
-    if not data.strip():
-        raise MapError(f"{path}: the map file is empty")
     try:
-        doc = json.loads(data)
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise MapError(f"{path}: not a regular file (a map is a JSON file)")
+        if st.st_size > max_bytes:
+            raise MapError(f"{path}: {st.st_size} bytes; a map is at most {max_bytes} bytes")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(max_bytes + 1)
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read the map file ({exc.strerror})") from None
+    finally:
+        os.close(fd)
+    if len(data) > max_bytes:
+        raise MapError(f"{path}: more than {max_bytes} bytes; a map is at most that")
+    return data
+
+
+def parse_map_json(data: bytes, source: str) -> Any:
+    """The JSON document of a map file, parsed with limits (digits of an integer, no
+    duplicate keys, no NaN, nesting within the interpreter's recursion limit);
+    :class:`MapError` naming the problem."""
+    if not data.strip():
+        raise MapError(f"{source}: the map file is empty")
+    try:
+        return json.loads(
+            data,
+            parse_int=_bounded_int,
+            parse_constant=_no_constant,
+            object_pairs_hook=_unique_keys,
+        )
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         where = (
             f" at line {exc.lineno}, column {exc.colno}"
             if isinstance(exc, json.JSONDecodeError)
             else ""
         )
-        raise MapError(f"{path}: not valid JSON{where}: the file is truncated or corrupt") from None
+        raise MapError(
+            f"{source}: not valid JSON{where}: the file is truncated or corrupt"
+        ) from None
+    except _JsonLimit as exc:
+        raise MapError(f"{source}: {exc}") from None
+    except RecursionError:
+        raise MapError(f"{source}: JSON nested too deeply") from None
+
+
+class _JsonLimit(ValueError):
+    pass
+
+
+def _bounded_int(text: str) -> int:
+    if len(text.lstrip("-")) > 19:
+        raise _JsonLimit(f"an integer of {len(text)} digits; at most 19 (64-bit) allowed")
+    return int(text)
+
+
+def _no_constant(text: str) -> Any:
+    raise _JsonLimit(f"{text} is not a number a map may hold")
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _JsonLimit(f"the key {key[:40]!r} appears twice in one object")
+        out[key] = value
+    return out
+
+
+def load(path: str | Path, max_bytes: int = MAX_MAP_BYTES) -> LawnMap:
+    """Load and fully validate a map file (see the module doc for what is refused)."""
+    doc = parse_map_json(read_map_bytes(path, max_bytes), str(path))
     return from_document(doc, str(path))
 
 

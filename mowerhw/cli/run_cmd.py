@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from mowerhw.cli.common import add_config_argument, load_config_or_exit, strict_json
+from mowerhw.config import EX_CONFIG, Config
 from mowerhw.runtime.control import COMMANDS
 
 
@@ -62,10 +63,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.set_defaults(handler=cmd_ctl)
 
 
+def _claim_socket_or_exit(cfg: Config) -> int:
+    """The control socket's lock (kept for the process's life), or exit 78: two daemons on
+    one socket would take each other's commands."""
+    from mowerhw.runtime.control import ControlSocketBusy, claim_control_socket
+
+    try:
+        return claim_control_socket(cfg.runtime.control_socket)
+    except ControlSocketBusy as exc:
+        print(f"mowerhw run: {exc}", file=sys.stderr)
+    except OSError as exc:
+        print(
+            f"mowerhw run: cannot lock the control socket {cfg.runtime.control_socket}: {exc}",
+            file=sys.stderr,
+        )
+    raise SystemExit(EX_CONFIG)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config_or_exit(args.config)
     root = logging.getLogger()
     root.setLevel(min(getattr(logging, cfg.runtime.log_level), root.level))
+    _claim_socket_or_exit(cfg)
     if cfg.supervisor.enabled:  # the permit supervisor owns CAN; estimation in a child
         from mowerhw.supervisor.process import run_supervised
 
@@ -79,6 +98,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     cfg = load_config_or_exit(args.config)
     root = logging.getLogger()
     root.setLevel(min(getattr(logging, cfg.runtime.log_level), root.level))
+    _claim_socket_or_exit(cfg)
     from mowerhw.runtime.process import run_daemon
 
     return run_daemon(cfg, "idle", record=args.out, duration_s=args.duration)

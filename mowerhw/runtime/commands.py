@@ -63,12 +63,32 @@ async def _save_map(d: Controllable, args: dict[str, Any]) -> dict[str, Any]:
     target = args.get("path") or (args.get("args") or [None])[0]
     if d.core.map is None:
         return {"ok": False, "error": "no map loaded (mow mode loads one; teach makes one)"}
-    path = Path(target) if target else Path(d.cfg.map.path)
+    try:
+        path = map_save_path(Path(d.cfg.map.path), target)
+    except ValueError as exc:
+        return {"ok": False, "error": str(exc)}
     try:
         await d.save_map(path)
     except (MapError, OSError) as exc:
         return {"ok": False, "error": str(exc)}
     return {"ok": True, "map": str(path)}
+
+
+def map_save_path(map_path: Path, target: Any) -> Path:
+    """Where ``save-map [target]`` may write: the configured map, or a ``.json`` file in its
+    directory (relative names are taken there); ValueError naming the rule otherwise."""
+    if target is None or target == "":
+        return map_path
+    if not isinstance(target, str) or "\0" in target or len(target) > 255:
+        raise ValueError("save-map: the path must be a file name of at most 255 characters")
+    folder = map_path.parent.resolve()
+    path = (folder / target).resolve()
+    if path.suffix != ".json" or path.parent != folder or path.name.startswith("."):
+        raise ValueError(
+            f"save-map: {target!r} is not allowed; maps are saved as NAME.json in the map "
+            f"directory {folder}"
+        )
+    return path
 
 
 def core_status(core: RuntimeCore, now: float) -> dict[str, Any]:

@@ -35,7 +35,7 @@ from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.mow.gate import Decision
 from mowerhw.recording.mcap import Recorder
 from mowerhw.runtime.commands import core_status, handle_command
-from mowerhw.runtime.control import ControlServer
+from mowerhw.runtime.control import ControlPolicy, ControlServer
 from mowerhw.runtime.core import MODES, RuntimeCore
 from mowerhw.runtime.devices import (
     DecisionOutput,
@@ -83,7 +83,9 @@ class Daemon:
         self.core = RuntimeCore(config, on_build=self._on_build)
         self.notifier = Notifier()
         self.pose_file = PoseFile(Path(config.runtime.pose_file))
-        self.map_file = MapFile(Path(config.map.path))
+        self.map_file = MapFile(
+            Path(config.map.path), config.map.max_bytes, config.map.load_timeout_s
+        )
         self.loop: asyncio.AbstractEventLoop | None = None
         #: where decisions go: the supervisor's pipe (``link``), else CAN in this process
         self.link = link
@@ -91,6 +93,7 @@ class Daemon:
         self.imu_dev: Vn100 | None = None
         self.camera: CameraSource | None = None
         self.loop_lag = LoopLag()
+        self.control: ControlServer | None = None
         self.estimator_delay_s = 0.0
         self._next_delay = 0.0
         self._frames: asyncio.Queue[FrameSample] | None = None
@@ -117,8 +120,19 @@ class Daemon:
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, self.request_stop, sig.name)
         rt = self.cfg.runtime
-        control = ControlServer(rt.control_socket, self.handle_command, rt.socket_mode)
+        control = ControlServer(
+            rt.control_socket,
+            self.handle_command,
+            rt.socket_mode,
+            ControlPolicy(
+                rt.control_max_clients,
+                rt.control_idle_s,
+                rt.control_requests_per_s,
+                rt.control_group,
+            ),
+        )
         await control.start()
+        self.control = control
         if self.record_path is not None:
             self.recorder = open_recorder(self.cfg, self.record_path)
             self.core.journal = RecorderJournal(self.recorder)
@@ -243,9 +257,15 @@ class Daemon:
 
         async def build() -> None:
             loop = asyncio.get_running_loop()
-            pipe = await loop.run_in_executor(
-                self._work_pool, build_pipeline, self.cfg, self.camera_model, req
-            )
+            try:
+                pipe = await loop.run_in_executor(
+                    self._work_pool, build_pipeline, self.cfg, self.camera_model, req
+                )
+            except Exception as exc:  # a map the checks let through: halt, do not crash-loop
+                if req.kind != "mow":
+                    raise
+                self.core.map_invalid(f"{self.cfg.map.path}: cannot localize on it ({exc!r})")
+                return
             self.core.install(req.serial, pipe)
 
         self._builds = {req.serial: self._spawn(build(), "chain build")}
@@ -304,14 +324,18 @@ class Daemon:
         """Mow mode: a map file that changed is reloaded."""
         if not self.map_file.changed():
             return
-        log.warning("map file %s changed: reloading", self.map_file.path)
+        if not self.map_file.retrying():
+            log.warning("map file %s changed: reloading", self.map_file.path)
 
         async def reload() -> None:
             got = await self.map_file.load(self._work_pool)
             if isinstance(got, str):
                 self.core.map_invalid(got)
             elif self.core.mode == "mow":
-                self.core.map_reloaded(got)
+                try:
+                    self.core.map_reloaded(got)
+                except Exception as exc:  # geometry the checks let through: still no mowing
+                    self.core.map_invalid(f"{self.map_file.path}: unusable ({exc!r})")
 
         self._spawn(reload(), "map reload")
 
@@ -388,6 +412,7 @@ class Daemon:
             **core_status(self.core, now),
             "map": str(self.cfg.map.path),
             "loop_lag_ms_over_5": self.loop_lag.lags_ms[-50:],
+            "control": self.control.status() if self.control else {},
             **device_status(self.imu_dev, self.can, self.recorder),
         }
         out["counts"]["can_open_failures"] = self.can.open_failures if self.can else 0

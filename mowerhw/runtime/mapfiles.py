@@ -7,18 +7,21 @@ import asyncio
 import contextlib
 import json
 import logging
+import multiprocessing
 import os
 import shutil
+import stat
 import tempfile
 import time
 from concurrent.futures import Executor
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from mowerhw.common.fileio import write_atomic
-from mowerhw.map import LawnMap, MapError
+from mowerhw.map import MAX_MAP_BYTES, LawnMap, MapError
 from mowerhw.map import load as load_map
 from mowerhw.runtime.pipelines import StartPose, TeachPipeline
 
@@ -40,17 +43,39 @@ def file_stamp(path: Path) -> FileStamp | None:
 
 
 class MapFile:
-    """The map file the daemon mows on: loaded and checked off the event loop, and watched
-    for changes (an edited keep-out takes effect; a corrupt file halts until it is fixed)."""
+    """The map file the daemon mows on: loaded and checked in a separate process, and watched
+    for changes (an edited keep-out takes effect; a bad file halts until it is fixed).
 
-    def __init__(self, path: Path) -> None:
+    Whatever is wrong with the file — not there, not a regular file (a FIFO would block a
+    reader for good, ``/dev/zero`` never ends), over ``map.max_bytes``, not JSON, nested or
+    numbered beyond the limits, invalid, or a load that takes over ``map.load_timeout_s`` or
+    kills its process — is a problem string (MAP_INVALID), never an exception, and never a
+    stall of the event loop: the parse runs in a child process that is killed when late.
+    A failed load is tried again every :attr:`RETRY_S` (a transient failure clears by itself).
+    """
+
+    RETRY_S = 2.0
+
+    def __init__(self, path: Path, max_bytes: int = MAX_MAP_BYTES, timeout_s: float = 10.0) -> None:
         self.path = Path(path)
+        self.max_bytes = max_bytes
+        self.timeout_s = timeout_s
         self._stamp: FileStamp | None = None
         self._loading = False
+        self._failed_at: float | None = None
 
     def changed(self) -> bool:
-        """The file is not the one last loaded (and no load is under way)."""
-        return not self._loading and file_stamp(self.path) != self._stamp
+        """The file is not the one last loaded, or the last load failed :attr:`RETRY_S` ago
+        (and no load is under way)."""
+        if self._loading:
+            return False
+        if file_stamp(self.path) != self._stamp:
+            return True
+        return self._failed_at is not None and time.monotonic() - self._failed_at >= self.RETRY_S
+
+    def retrying(self) -> bool:
+        """The next load is a retry of a failed one (the file itself did not change)."""
+        return self._failed_at is not None and file_stamp(self.path) == self._stamp
 
     async def load(self, pool: Executor) -> LawnMap | str:
         """The checked map, or the problem that makes it unusable (logged as MAP_INVALID)."""
@@ -58,17 +83,77 @@ class MapFile:
         self._loading = True
         try:
             loop = asyncio.get_running_loop()
-            return await loop.run_in_executor(pool, load_checked_map, self.path)
-        except MapError as exc:
-            log.error("MAP_INVALID: %s", exc)
-            return str(exc)
+            got: LawnMap = await loop.run_in_executor(
+                pool, load_map_isolated, self.path, self.max_bytes, self.timeout_s
+            )
+            self._failed_at = None
+            return got
+        except Exception as exc:  # anything: the map is unusable, the daemon carries on
+            problem = str(exc) if isinstance(exc, MapError) else f"{self.path}: {exc!r}"
+            if self._failed_at is None:
+                log.error("MAP_INVALID: %s", problem)
+            self._failed_at = time.monotonic()
+            return problem
         finally:
             self._loading = False
 
 
-def load_checked_map(path: Path) -> LawnMap:
+def load_map_isolated(path: Path, max_bytes: int, timeout_s: float) -> LawnMap:
+    """:func:`load_checked_map` in a child process (blocking: call it from a worker thread),
+    so a huge, hostile or endless file costs that process, not the daemon's event loop;
+    :class:`MapError` for every failure."""
+    path = Path(path)
+    try:  # cheap refusals first, without a process
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise MapError(
+            f"{path}: map file not found (teach a map first: `mowerhw run --mode teach`)"
+        ) from None
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read the map file ({exc.strerror})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise MapError(f"{path}: not a regular file (a map is a JSON file)")
+    if st.st_size > max_bytes:
+        raise MapError(f"{path}: {st.st_size} bytes; a map is at most {max_bytes} bytes")
+    ctx = multiprocessing.get_context("spawn")
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(
+        target=_load_in_child, args=(str(path), max_bytes, send), name="map-loader", daemon=True
+    )
+    child.start()
+    send.close()
+    try:
+        if not receive.poll(timeout_s):
+            raise MapError(f"{path}: loading took over {timeout_s:g} s (map.load_timeout_s)")
+        kind, body = receive.recv()
+    except (EOFError, OSError):
+        child.join(1.0)
+        raise MapError(f"{path}: the map loader died (exit code {child.exitcode})") from None
+    finally:
+        receive.close()
+        if child.is_alive():
+            child.kill()
+        child.join(5.0)
+    if kind != "ok":
+        raise MapError(str(body))
+    assert isinstance(body, LawnMap)
+    return body
+
+
+def _load_in_child(path: str, max_bytes: int, conn: Connection) -> None:
+    try:
+        conn.send(("ok", load_checked_map(Path(path), max_bytes)))
+    except MapError as exc:
+        conn.send(("error", str(exc)))
+    except BaseException as exc:  # MemoryError, RecursionError, a bug: say so, do not hang
+        conn.send(("error", f"{path}: cannot load the map ({type(exc).__name__}: {exc})"[:500]))
+    finally:
+        conn.close()
+
+
+def load_checked_map(path: Path, max_bytes: int = MAX_MAP_BYTES) -> LawnMap:
     """The map at ``path``, or :class:`MapError` naming every problem it has."""
-    lawn_map = load_map(path)
+    lawn_map = load_map(path, max_bytes)
     problems = lawn_map.problems()
     if problems:
         raise MapError(f"{path}: " + "; ".join(problems))
