@@ -1049,18 +1049,24 @@ def load_config(path: str | Path) -> Config:
         raise ConfigError(["file not found"], str(path)) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError([f"cannot read the file: {exc}"], str(path)) from None
+    raw = parse_config_yaml(text, str(path))
+    return config_from_dict(raw, base_dir=path.resolve().parent, source=str(path))
+
+
+def parse_config_yaml(text: str, source: str) -> Any:
+    """The YAML document of a config, read with limits (no aliases, bounded depth);
+    :class:`ConfigError` naming the problem."""
     try:
-        raw = yaml.load(text, Loader=_LimitedLoader)  # a SafeLoader
+        return yaml.load(text, Loader=_LimitedLoader)  # a SafeLoader
     except RecursionError:
-        raise ConfigError(["nested too deeply"], str(path)) from None
+        raise ConfigError(["nested too deeply"], source) from None
     except (ValueError, OverflowError) as exc:  # e.g. a number of thousands of digits
-        raise ConfigError([f"not a usable YAML value: {str(exc)[:120]}"], str(path)) from None
+        raise ConfigError([f"not a usable YAML value: {str(exc)[:120]}"], source) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError([f"not valid YAML{where}: {problem}"], str(path)) from None
-    return config_from_dict(raw, base_dir=path.resolve().parent, source=str(path))
+        raise ConfigError([f"not valid YAML{where}: {problem}"], source) from None
 
 
 def default_config() -> Config:

@@ -341,6 +341,18 @@ def _int_id(value: Any) -> bool:
 
 def from_document(doc: Any, source: str = "map") -> LawnMap:
     """Validate a parsed map document; raise :class:`MapError` on anything wrong."""
+    try:
+        return _from_document(doc, source)
+    except MapError:
+        raise
+    except (TypeError, ValueError, AttributeError, KeyError, IndexError, OverflowError) as exc:
+        # a shape no check above names: still a refusal with a message, never a traceback
+        raise MapError(
+            f"{source}: malformed map ({type(exc).__name__}: {str(exc)[:200]})"
+        ) from None
+
+
+def _from_document(doc: Any, source: str) -> LawnMap:
     if not isinstance(doc, dict):
         raise MapError(f"{source}: not a mowerhw map (the top level is not an object)")
     if doc.get("format") != FORMAT:
@@ -365,7 +377,10 @@ def from_document(doc: Any, source: str = "map") -> LawnMap:
         )
     boundary = _points(doc.get("boundary"), f"{source}: boundary", 3)
     keepouts = []
-    for k, zone in enumerate(doc.get("keepout_zones") or []):
+    zones = doc.get("keepout_zones") or []
+    if not isinstance(zones, list):
+        raise MapError(f"{source}: keepout_zones must be a list")
+    for k, zone in enumerate(zones):
         if not isinstance(zone, dict) or not isinstance(zone.get("name"), str):
             raise MapError(f"{source}: keepout_zones[{k}] needs a name and a polygon")
         keepouts.append(

@@ -242,17 +242,23 @@ def recording_figure(recording: str | Path, path: str | Path) -> tuple[Path, str
     est: list[tuple[float, float, float]] = []
     truth: list[tuple[float, float, float]] = []
     states: list[tuple[float, str, bool]] = []
+    unreadable = 0
     for topic, log_ns, msg in rd.messages():
         t = log_ns * 1e-9
         times.setdefault(topic, []).append(t)
-        if topic == "/estimate/pose":
-            p = msg["pose"]["position"]
-            est.append((t, p["x"], p["y"]))
-        elif topic == "/truth/pose":
-            p = msg["pose"]["position"]
-            truth.append((t, p["x"], p["y"]))
-        elif topic == "/estimate/state":
-            states.append((t, msg["state"], bool(msg["permit"])))
+        try:
+            if topic == "/estimate/pose":
+                p = msg["pose"]["position"]
+                est.append((t, float(p["x"]), float(p["y"])))
+            elif topic == "/truth/pose":
+                p = msg["pose"]["position"]
+                truth.append((t, float(p["x"]), float(p["y"])))
+            elif topic == "/estimate/state":
+                states.append((t, str(msg["state"]), bool(msg["permit"])))
+        except (KeyError, TypeError, ValueError):  # a damaged message: skipped, counted
+            unreadable += 1
+    if unreadable:
+        rd.warning += f"{'; ' if rd.warning else ''}{unreadable} message(s) unreadable, skipped"
     if not times:
         raise ValueError(f"{recording}: no messages ({rd.warning or 'empty recording'})")
     t0 = min(v[0] for v in times.values())

@@ -88,3 +88,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.handler(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # `mowerhw ... | head`
+        return 1
+    except OSError as exc:  # a file that cannot be read or written: a failure, said plainly
+        print(f"mowerhw {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # a bug: one line for the user, the traceback with -vv
+        logging.getLogger("mowerhw").debug("internal error", exc_info=True)
+        print(
+            f"mowerhw {args.command}: internal error ({type(exc).__name__}: {str(exc)[:300]}); "
+            "run again with -vv for the traceback and report it",
+            file=sys.stderr,
+        )
+        return 70

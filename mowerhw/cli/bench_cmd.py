@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from mowerhw.cli.common import strict_json
+from mowerhw.cli.common import number, output_dir, seed_number, strict_json
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,8 +22,13 @@ def register(sub: argparse._SubParsersAction) -> None:
             "object. Takes about 70 s of teaching plus --duration of mowing, in real time."
         ),
     )
-    p.add_argument("--duration", type=float, default=120.0, help="seconds of mowing (default 120)")
-    p.add_argument("--seed", type=int, default=7, help="which simulated yard (default 7)")
+    p.add_argument(
+        "--duration",
+        type=number(float, gt=0, le=86400),
+        default=120.0,
+        help="seconds of mowing (default 120)",
+    )
+    p.add_argument("--seed", type=seed_number, default=7, help="which simulated yard (default 7)")
     p.add_argument("--scenario", default="paper", choices=("paper",), help="yard type")
     p.add_argument(
         "--fault",
@@ -33,20 +38,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"inject a fault T s into mowing for D s (default 3); KIND: {', '.join(FAULT_KINDS)}",
     )
     p.add_argument("--map", type=Path, help="skip teaching: mow with this map of the same yard")
-    p.add_argument("--out", type=Path, help="run directory (default: a new temporary one)")
+    p.add_argument("--out", type=output_dir, help="run directory (default: a new temporary one)")
     p.add_argument(
         "--record", type=Path, metavar="FILE.mcap", help="the daemon records the run (MCAP)"
     )
     p.add_argument(
         "--load",
-        type=int,
+        type=number(int, ge=0, le=64),
         default=0,
         metavar="N",
         help="N CPU hogs beside the daemon (a loaded or slow mower computer)",
     )
     p.add_argument(
         "--estimator-delay",
-        type=float,
+        type=number(float, ge=0, le=60000),
         default=150.0,
         metavar="MS",
         help="during an estimator-delay fault the estimation process is blocked this long "

@@ -13,6 +13,7 @@ from mowerhw.cli.common import (
     add_config_argument,
     add_plot_argument,
     load_config_or_exit,
+    number,
     print_json,
 )
 from mowerhw.config import EX_CONFIG, camera_rotation
@@ -56,7 +57,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="inner corners of the board per row and column, e.g. 9x6",
     )
     cal.add_argument(
-        "--square", required=True, type=float, metavar="METRES", help="side of one square (m)"
+        "--square",
+        required=True,
+        type=number(float, gt=0, le=10),
+        metavar="METRES",
+        help="side of one square (m)",
     )
     cal.add_argument(
         "-o",

@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from mowerhw.cli.common import print_json
+from mowerhw.cli.common import number, print_json
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -30,9 +30,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seeds", default="1-20", metavar="SEEDS", help="e.g. 1-20 or 1,4,9")
     p.add_argument("--level", default="bearing", choices=("bearing", "pixel"))
     p.add_argument(
-        "--mow-s", type=float, default=120.0, metavar="S", help="mowing time per run (0: none)"
+        "--mow-s",
+        type=number(float, ge=0, le=86400),
+        default=120.0,
+        metavar="S",
+        help="mowing time per run (0: none)",
     )
-    p.add_argument("--workers", type=int, default=0, help="local processes (default: CPUs)")
+    p.add_argument(
+        "--workers",
+        type=number(int, ge=0, le=1024),
+        default=0,
+        help="local processes (default: CPUs)",
+    )
     p.add_argument(
         "--scheduler",
         metavar="ADDRESS",

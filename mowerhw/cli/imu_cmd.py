@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from mowerhw.cli.common import add_plot_argument, print_json
+from mowerhw.cli.common import add_plot_argument, number, output_file, print_json, seed_number
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,10 +31,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="write a static recording of a simulated gyro grade (to try characterize on)",
     )
     st.add_argument("--grade", required=True, choices=("vn100", "bmi088", "mpu6050"))
-    st.add_argument("--duration", type=float, default=7200.0, help="seconds (default 7200)")
-    st.add_argument("--seed", type=int, default=0)
     st.add_argument(
-        "--out", type=Path, required=True, help="FILE.csv, or FILE.mcap (VN-100 binary bytes)"
+        "--duration",
+        type=number(float, gt=0, le=1e6),
+        default=7200.0,
+        help="seconds (default 7200)",
+    )
+    st.add_argument("--seed", type=seed_number, default=0)
+    st.add_argument(
+        "--out",
+        type=output_file,
+        required=True,
+        help="FILE.csv, or FILE.mcap (VN-100 binary bytes)",
     )
     st.set_defaults(handler=_simulate)
 

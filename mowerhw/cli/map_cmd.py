@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from shapely.geometry import Polygon
 
-from mowerhw.cli.common import print_json
+from mowerhw.cli.common import output_file, print_json
 from mowerhw.config import EX_CONFIG
 
 
@@ -27,7 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     show.set_defaults(handler=_show)
     plot = msub.add_parser("plot", help="draw a map to a PNG")
     plot.add_argument("map", type=Path)
-    plot.add_argument("-o", "--output", type=Path, help="PNG path (default: next to the map)")
+    plot.add_argument(
+        "-o", "--output", type=output_file, help="PNG path (default: next to the map)"
+    )
     plot.set_defaults(handler=_plot)
     add = msub.add_parser(
         "add-keepout", help="add a keep-out zone (no re-driving; the old map is kept as a backup)"

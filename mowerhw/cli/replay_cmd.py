@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from mowerhw.cli.common import load_config_or_exit, strict_json
+from mowerhw.cli.common import load_config_or_exit, number, output_dir, output_file, strict_json
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,9 +33,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--map", type=Path, help="mow: the map (default: the one in the recording)")
     p.add_argument("--config", type=Path, help="config (default: the one in the recording)")
     pace = p.add_mutually_exclusive_group()
-    pace.add_argument("--speed", type=float, default=1.0, help="× real time (default 1)")
+    pace.add_argument(
+        "--speed", type=number(float, gt=0, le=1000), default=1.0, help="× real time (default 1)"
+    )
     pace.add_argument("--fast", action="store_true", help="as fast as possible")
-    p.add_argument("--out", type=Path, help="output directory (default: next to the file)")
+    p.add_argument("--out", type=output_dir, help="output directory (default: next to the file)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(handler=cmd_replay)
 
@@ -44,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="figures of a recording: trajectory, map, containment, sensor rates and gaps",
     )
     q.add_argument("recording", type=Path, metavar="FILE.mcap")
-    q.add_argument("--out", type=Path, help="PNG path (default: FILE.png)")
+    q.add_argument("--out", type=output_file, help="PNG path (default: FILE.png)")
     q.set_defaults(handler=cmd_plot)
 
 

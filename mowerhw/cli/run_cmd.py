@@ -7,7 +7,13 @@ import logging
 import sys
 from pathlib import Path
 
-from mowerhw.cli.common import add_config_argument, load_config_or_exit, strict_json
+from mowerhw.cli.common import (
+    add_config_argument,
+    load_config_or_exit,
+    number,
+    output_file,
+    strict_json,
+)
 from mowerhw.config import EX_CONFIG, Config
 from mowerhw.runtime.control import COMMANDS
 
@@ -29,9 +35,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="start-up mode (default: runtime.mode of the config)",
     )
     p.add_argument(
-        "--record", type=Path, metavar="FILE.mcap", help="record every raw input and the estimates"
+        "--record",
+        type=output_file,
+        metavar="FILE.mcap",
+        help="record every raw input and the estimates",
     )
-    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--duration", type=number(float, gt=0), help="stop after this many seconds")
     p.set_defaults(handler=cmd_run)
 
     r = sub.add_parser(
@@ -45,8 +54,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     add_config_argument(r)
-    r.add_argument("--out", type=Path, required=True, metavar="FILE.mcap")
-    r.add_argument("--duration", type=float, help="stop after this many seconds")
+    r.add_argument("--out", type=output_file, required=True, metavar="FILE.mcap")
+    r.add_argument("--duration", type=number(float, gt=0), help="stop after this many seconds")
     r.set_defaults(handler=cmd_record)
 
     c = sub.add_parser(
@@ -58,7 +67,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("command", choices=[x for x in COMMANDS if x != "fault"] + ["fault"])
     c.add_argument("args", nargs="*", help="save-map: PATH; fault: nan|exception")
     c.add_argument("--socket", type=Path, help="control socket (default: from the config)")
-    c.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for a reply")
+    c.add_argument(
+        "--timeout",
+        type=number(float, gt=0, le=3600),
+        default=30.0,
+        help="seconds to wait for a reply",
+    )
     c.add_argument("--json", action="store_true", help="print the reply as JSON")
     c.set_defaults(handler=cmd_ctl)
 

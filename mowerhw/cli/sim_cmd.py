@@ -7,7 +7,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from mowerhw.cli.common import add_config_argument, load_config_or_exit, print_json, strict_json
+from mowerhw.cli.common import (
+    add_config_argument,
+    load_config_or_exit,
+    number,
+    output_dir,
+    print_json,
+    seed_number,
+    strict_json,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,7 +29,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the map, and print ONE JSON object of errors against the ground truth.",
     )
     _common(teach)
-    teach.add_argument("--landmarks", type=int, help="override the scenario's landmark count")
+    teach.add_argument(
+        "--landmarks",
+        type=number(int, ge=4, le=100000),
+        help="override the scenario's landmark count",
+    )
     teach.set_defaults(handler=_teach)
     mow = ssub.add_parser(
         "mow",
@@ -35,7 +47,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--map", type=Path, help="a map from `mowerhw sim teach` (default: teach one first)"
     )
     mow.add_argument(
-        "--duration", type=float, default=500.0, help="simulated seconds (default 500)"
+        "--duration",
+        type=number(float, gt=0, le=1e6),
+        default=500.0,
+        help="simulated seconds (default 500)",
     )
     mow.add_argument(
         "--vision-dropout",
@@ -44,7 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     mow.add_argument(
         "--latency",
-        type=float,
+        type=number(float, ge=0, le=10),
         default=None,
         help="camera frames arrive this late (s; default: the scenario's, 0.15 for paper)",
     )
@@ -59,7 +74,7 @@ def _common(p: argparse.ArgumentParser) -> None:
         choices=("paper", "large"),
         help="paper: 15 landmarks, ~60 s loop (§V); large: 160 m edge, 80 landmarks",
     )
-    p.add_argument("--seed", type=int, default=7, help="random seed (runs are repeatable)")
+    p.add_argument("--seed", type=seed_number, default=7, help="random seed (runs are repeatable)")
     p.add_argument(
         "--level",
         default="bearing",
@@ -68,7 +83,7 @@ def _common(p: argparse.ArgumentParser) -> None:
         "1540x1540 images through the front end (KLT tracking, re-identification)",
     )
     p.add_argument(
-        "--out", type=Path, help="output folder (default build/sim/<phase>-<scenario>-<seed>)"
+        "--out", type=output_dir, help="output folder (default build/sim/<phase>-<scenario>-<seed>)"
     )
     p.add_argument(
         "--plot", action="store_true", help="also write PNG figures to the output folder"

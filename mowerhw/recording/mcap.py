@@ -31,7 +31,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -362,48 +362,184 @@ class Recorder:
 # ------------------------------------------------------------------------------ reading
 
 
+#: an MCAP chunk record as the recorder writes it: opcode 0x06, then length, start and end
+#: time, uncompressed size and CRC (8 + 8 + 8 + 8 + 4 bytes), then the compression "zstd"
+_CHUNK_OPCODE = 0x06
+_ZSTD_FIELD = b"\x04\x00\x00\x00zstd"
+_ZSTD_FIELD_AT = 1 + 8 + 8 + 8 + 8 + 4
+#: no record of a recording is bigger (a corrupt length field must not allocate gigabytes)
+MAX_RECORD_BYTES = 256 << 20
+
+
+class RecordingError(ValueError):
+    """A file that is not a recording at all."""
+
+
 class RecordingRead:
-    """Messages of a recording in file order, tolerant of a cut-off end."""
+    """Messages of a recording in file order, tolerant of a cut-off end and of damage.
+
+    Chunk CRCs are checked; a damaged chunk (bad CRC, does not decompress, bad records in
+    it) is skipped, and damage to the file's structure is skipped to the next chunk that
+    reads; each is reported in :attr:`damage` with its byte offset, and summed up in
+    :attr:`warning`. A file that merely ends early (a crash or power loss) says so. A
+    message whose content is not the JSON the recorder writes is skipped and counted."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.warning = ""
+        self.damage: list[str] = []
+        self.skipped_messages = 0
         self.metadata: dict[str, dict[str, str]] = {}
         self.attachments: dict[str, bytes] = {}
         self.bytes_read = 0  # how far into the file the reader is (progress bars)
 
-    def messages(self):
-        """(topic, log_time_ns, decoded JSON) for every message; stops at a truncation with
-        :attr:`warning` set."""
-        from mcap.records import Attachment, Channel, Message, Metadata, Schema
+    def messages(self) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log_time_ns, decoded JSON) for every readable message; stops at a
+        truncation, skips damage, with :attr:`warning` set."""
+        from mcap.records import Chunk
         from mcap.stream_reader import StreamReader
 
-        channels: dict[int, str] = {}
-        n = 0
+        self._channels: dict[int, str] = {}
+        self._n = 0
+        size = self.path.stat().st_size
         with open(self.path, "rb") as fh:
-            reader = StreamReader(fh, skip_magic=False, emit_chunks=False)
-            try:
-                for rec in reader.records:
-                    if isinstance(rec, Schema):
-                        continue
-                    if isinstance(rec, Channel):
-                        channels[rec.id] = rec.topic
-                    elif isinstance(rec, Metadata):
-                        self.metadata[rec.name] = dict(rec.metadata)
-                    elif isinstance(rec, Attachment):
-                        self.attachments[rec.name] = bytes(rec.data)
-                    elif isinstance(rec, Message):
-                        n += 1
-                        if n % 256 == 0:
-                            self.bytes_read = fh.tell()
-                        yield channels[rec.channel_id], rec.log_time, json.loads(rec.data)
-            except Exception as exc:
-                self.warning = (
-                    f"{self.path}: the recording ends abruptly after {n} messages "
-                    f"({type(exc).__name__}{': ' + str(exc) if str(exc) else ''}; the "
-                    f"writer did not finish it: a crash or power loss); replayed up to the cut"
+            pos, first = 0, True
+            while pos < size:
+                fh.seek(pos)
+                good_end = pos
+                reader = StreamReader(
+                    fh,
+                    skip_magic=not first,
+                    emit_chunks=True,
+                    validate_crcs=True,
+                    record_size_limit=MAX_RECORD_BYTES,
                 )
-                log.warning(self.warning)
+                first = False
+                try:
+                    for rec in reader.records:
+                        start, good_end = good_end, fh.tell()
+                        self.bytes_read = good_end
+                        if isinstance(rec, Chunk):
+                            yield from self._chunk(rec, start)
+                        else:
+                            yield from self._record(rec)
+                    break  # the end of the file, read cleanly
+                except Exception as exc:
+                    why = f"{type(exc).__name__}{': ' + str(exc)[:120] if str(exc) else ''}"
+                    if good_end == 0:
+                        raise RecordingError(
+                            f"{self.path}: not an MCAP recording ({why})"
+                        ) from None
+                    nxt = self._next_chunk(fh, good_end + 1, size)
+                    if nxt is None and self._cut_off(fh, good_end, size):
+                        self.warning = (
+                            f"{self.path}: the recording ends abruptly after {self._n} messages "
+                            f"({why}; the writer did not finish it: a crash or power loss); "
+                            "replayed up to the cut"
+                        )
+                        break
+                    skipped = (nxt if nxt is not None else size) - good_end
+                    self.damage.append(f"byte {good_end}: {why}; skipped {skipped} bytes")
+                    if nxt is None:
+                        break
+                    pos = nxt
+        if self.damage:
+            self.warning = (
+                f"{self.path}: the recording is damaged ({len(self.damage)} place(s): "
+                + "; ".join(self.damage[:5])
+                + ("; ..." if len(self.damage) > 5 else "")
+                + f"); {self._n} messages read, the damaged parts skipped"
+                + (f"; {self.warning}" if self.warning else "")
+            )
+        if self.skipped_messages:
+            self.warning += (
+                f"{'; ' if self.warning else ''}{self.skipped_messages} message(s) with unreadable "
+                "content skipped"
+            )
+        if self.warning:
+            log.warning(self.warning)
+
+    def attachment(self, name: str) -> bytes | None:
+        """The attachment ``name`` wherever it is in the file (a map attached mid-run):
+        from the summary's index when the end is intact, else by reading the whole file."""
+        if name in self.attachments:
+            return self.attachments[name]
+        from mcap.reader import make_reader
+
+        try:
+            with open(self.path, "rb") as fh:
+                for att in make_reader(fh).iter_attachments():
+                    self.attachments.setdefault(att.name, bytes(att.data))
+        except Exception:  # no usable summary (a cut or damaged end): read it all
+            other = RecordingRead(self.path)
+            for _ in other.messages():
+                pass
+            for key, data in other.attachments.items():
+                self.attachments.setdefault(key, data)
+        return self.attachments.get(name)
+
+    def _chunk(self, chunk: Any, offset: int) -> Iterator[tuple[str, int, Any]]:
+        from mcap.stream_reader import breakup_chunk
+
+        try:
+            records = breakup_chunk(chunk, validate_crc=True)
+        except Exception as exc:
+            why = f"{type(exc).__name__}{': ' + str(exc)[:120] if str(exc) else ''}"
+            self.damage.append(f"chunk at byte {offset}: {why}; skipped")
+            return
+        for rec in records:
+            yield from self._record(rec)
+
+    def _record(self, rec: Any) -> Iterator[tuple[str, int, Any]]:
+        from mcap.records import Attachment, Channel, Message, Metadata
+
+        if isinstance(rec, Channel):
+            self._channels[rec.id] = rec.topic
+        elif isinstance(rec, Metadata):
+            self.metadata[rec.name] = dict(rec.metadata)
+        elif isinstance(rec, Attachment):
+            self.attachments[rec.name] = bytes(rec.data)
+        elif isinstance(rec, Message):
+            topic = self._channels.get(rec.channel_id)
+            try:
+                body = json.loads(rec.data)
+            except (ValueError, RecursionError):
+                body = None
+            if topic is None or not isinstance(body, dict):
+                self.skipped_messages += 1
+                return
+            self._n += 1
+            yield topic, rec.log_time, body
+
+    @staticmethod
+    def _next_chunk(fh: Any, start: int, size: int) -> int | None:
+        """The offset of the next chunk record at or after ``start``, by its "zstd" field."""
+        block = 1 << 20
+        at = start
+        while at < size:
+            fh.seek(at)
+            data = fh.read(block + len(_ZSTD_FIELD))
+            k = 0
+            while (k := data.find(_ZSTD_FIELD, k)) >= 0:
+                cand = at + k - _ZSTD_FIELD_AT
+                if cand >= start:
+                    fh.seek(cand)
+                    if fh.read(1) == bytes([_CHUNK_OPCODE]):
+                        return cand
+                k += 1
+            at += block
+        return None
+
+    @staticmethod
+    def _cut_off(fh: Any, good_end: int, size: int) -> bool:
+        """The failure at ``good_end`` is the file ending inside a record (a cut), not a
+        damaged middle: the record's own length reaches past the end of the file."""
+        fh.seek(good_end)
+        head = fh.read(9)
+        if len(head) < 9:
+            return True
+        length = int.from_bytes(head[1:9], "little")
+        return good_end + 9 + length > size
 
 
 def decode_jpeg(b64: str) -> np.ndarray:

@@ -29,13 +29,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from drivers.can.speed import SpeedReader
 from drivers.imu.vn100 import Vn100
 from mowerhw.camera import CameraModel
 from mowerhw.common.samples import ImuSample
-from mowerhw.config import Config, config_from_dict
+from mowerhw.config import Config, ConfigError, config_from_dict, parse_config_yaml
 from mowerhw.map import LawnMap
 from mowerhw.map import load as load_map
 from mowerhw.recording.mcap import RecordingRead, decode_jpeg
@@ -75,6 +73,7 @@ class Replay:
         self.reader = RecordingRead(self.path)
         self.counts: Counter[str] = Counter()
         self.halts: Counter[str] = Counter()
+        self.unreadable: Counter[str] = Counter()
         self.permit_samples = 0
         self.samples = 0
         self.t_first: float | None = None
@@ -111,7 +110,7 @@ class Replay:
     def _mow_map(self) -> LawnMap:
         if self.map_path is not None:
             return load_map(self.map_path)
-        data = self.reader.attachments.get("map.json")
+        data = self.reader.attachment("map.json")
         if data is None:
             raise ReplayError(f"{self.path}: no map in the recording; pass --map")
         path = self.out / "recorded-map.json"
@@ -186,7 +185,11 @@ class Replay:
                     ahead = (host * 1e-9 - t_first) / self.speed - (time.monotonic() - wall0)
                     if ahead > 0:
                         time.sleep(ahead)
-                self._message(topic, msg)
+                try:
+                    self._message(topic, msg)
+                except Exception as exc:  # content the recorder never writes: damage
+                    self.unreadable[f"{topic}: {type(exc).__name__}"] += 1
+                    continue
                 last_log_ns = log_ns
                 n += 1
                 if n % 256 == 0:
@@ -207,6 +210,8 @@ class Replay:
             "wall_s": round(wall, 2),
             "speed_x_real_time": round(span / wall, 2) if wall > 0 else None,
         }
+        if self.unreadable:
+            out["unreadable_messages"] = dict(self.unreadable)
         if self.reader.warning:
             out["warning"] = self.reader.warning
         pipe = self.core.pipeline
@@ -260,7 +265,12 @@ def _recorded_config(reader: RecordingRead, path: Path, out: Path) -> Config:
     meta = reader.metadata.get("config", {}).get("yaml")
     if not meta:
         raise ReplayError(f"{path}: no config in the recording; pass --config")
-    raw = yaml.safe_load(meta)
+    try:
+        raw = parse_config_yaml(meta, f"{path} (config)")
+    except ConfigError as exc:
+        raise ReplayError(f"the recorded config cannot be used: {exc}") from None
+    if not isinstance(raw, dict):
+        raise ReplayError(f"{path}: the recorded config is not a mapping of sections")
     cal = reader.attachments.get("calibration.yaml")
     if cal is not None:
         cal_path = out / "calibration.yaml"
