@@ -7,6 +7,8 @@ import io
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from mowerhw.recording.mcap import Recorder, RecordingRead
 
@@ -97,3 +99,76 @@ def test_disk_full_stops_recording_not_the_caller(caplog: pytest.LogCaptureFixtu
     assert any(
         "recording to" in r.getMessage() and "stopped" in r.getMessage() for r in caplog.records
     )
+
+
+def _long_recording(path, with_map_at: int = 1000) -> bytes:
+    rec = Recorder(path, "imu: {}\n", chunk_size=4096)
+    for k in range(2200):
+        if k == with_map_at:
+            rec.attach("map.json", b'{"format": "mowerhw-map"}')
+        rec.serial(k * 10_000_000, bytes(range(40)))
+    rec.close()
+    return path.read_bytes()
+
+
+def test_damage_is_skipped_and_reported_with_its_offset(tmp_path) -> None:
+    data = bytearray(_long_recording(tmp_path / "r.mcap"))
+    clean = RecordingRead(tmp_path / "r.mcap")
+    assert sum(1 for _ in clean.messages()) == 2200 and clean.warning == ""
+    data[len(data) // 3] ^= 0x10  # one bit flipped inside a chunk
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    rd = RecordingRead(bad)
+    n = sum(1 for _ in rd.messages())
+    assert 2000 < n < 2200  # one chunk lost, the rest read
+    assert rd.damage and rd.damage[0].startswith("chunk at byte ")  # CRC or zstd error
+    assert "the recording is damaged" in rd.warning and "crash or power loss" not in rd.warning
+
+
+def test_a_map_attached_mid_run_is_found(tmp_path) -> None:
+    data = _long_recording(tmp_path / "r.mcap", with_map_at=1500)
+    rd = RecordingRead(tmp_path / "r.mcap")
+    assert rd.attachment("map.json") == b'{"format": "mowerhw-map"}'
+    cut = tmp_path / "cut.mcap"  # no summary: found by reading the file
+    cut.write_bytes(data[: len(data) * 9 // 10])
+    assert RecordingRead(cut).attachment("map.json") == b'{"format": "mowerhw-map"}'
+
+
+def test_a_file_that_is_no_recording_is_refused(tmp_path) -> None:
+    from mowerhw.recording.mcap import RecordingError
+
+    path = tmp_path / "x.mcap"
+    path.write_bytes(np.random.default_rng(1).bytes(5000))
+    with pytest.raises(RecordingError, match="not an MCAP recording"):
+        list(RecordingRead(path).messages())
+
+
+@pytest.fixture(scope="module")
+def long_recording(tmp_path_factory) -> bytes:
+    return _long_recording(tmp_path_factory.mktemp("rec") / "r.mcap")
+
+
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    flips=st.lists(st.tuples(st.floats(0, 1), st.integers(0, 255)), min_size=1, max_size=8),
+    cut=st.floats(0.05, 1.0),
+)
+def test_fuzzed_damage_never_raises_anything_but_a_refusal(
+    long_recording: bytes, tmp_path_factory, flips, cut
+) -> None:
+    from mowerhw.recording.mcap import RecordingError
+
+    data = bytearray(long_recording[: max(16, int(len(long_recording) * cut))])
+    for where, value in flips:
+        data[min(len(data) - 1, int(where * len(data)))] = value
+    path = tmp_path_factory.mktemp("fz") / "f.mcap"
+    path.write_bytes(bytes(data))
+    rd = RecordingRead(path)
+    try:
+        n = sum(1 for _ in rd.messages())
+    except RecordingError as exc:
+        assert "not an MCAP recording" in str(exc)
+        return
+    assert 0 <= n <= 2200
+    if n < 2200:
+        assert rd.warning
