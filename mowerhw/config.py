@@ -19,6 +19,7 @@ import math
 import os
 import re
 import reprlib
+import stat
 import types
 import typing
 from dataclasses import dataclass, field
@@ -696,6 +697,12 @@ def _check_scalar(tp: Any, value: Any, key: str, meta: dict, base: Path | None) 
     elif tp is Path:
         if not isinstance(value, str | Path) or not str(value).strip():
             raise ValueError(f"{key}: {_fmt(value)} is not a path")
+        text = str(value)
+        if "\0" in text or len(text) > 4095 or any(len(part) > 255 for part in text.split("/")):
+            raise ValueError(
+                f"{key}: {_fmt(value)} is not a usable path (a NUL byte, or longer than the "
+                "system allows: 4095 in all, 255 per name)"
+            )
         value = Path(value).expanduser()
         if base is not None and not value.is_absolute():
             value = base / value
@@ -927,15 +934,25 @@ def _runtime_checks(cfg: Config) -> list[str]:
             problems.append(f"{name}: {path} is also {seen[key]}; each needs its own file")
         seen.setdefault(key, name)
     sock = rt.control_socket
-    if sock.exists() and not sock.is_socket():
-        kind = "a directory" if sock.is_dir() else "a file that is not a socket"
+    mode = _file_mode(sock)
+    if mode is not None and not stat.S_ISSOCK(mode):
+        kind = "a directory" if stat.S_ISDIR(mode) else "a file that is not a socket"
         problems.append(
             f"runtime.control_socket: {sock} is {kind}; the daemon would have to delete it"
         )
     for name, path in (("map.path", cfg.map.path), ("runtime.pose_file", rt.pose_file)):
-        if path.is_dir():
+        mode = _file_mode(path)
+        if mode is not None and stat.S_ISDIR(mode):
             problems.append(f"{name}: {path} is a directory, not a file")
     return problems
+
+
+def _file_mode(path: Path) -> int | None:
+    """``st_mode`` of ``path``, None if there is nothing there (or it cannot be seen)."""
+    try:
+        return os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
 
 
 def _cross_checks(cfg: Config) -> list[str]:
