@@ -107,6 +107,29 @@ def test_too_many_clients_are_told_so_and_idle_ones_are_closed(tmp_path: Path) -
     assert status["refused_clients"] == 2
 
 
+def test_idle_connections_make_room_for_a_client_with_a_request(tmp_path: Path) -> None:
+    path = tmp_path / "c.sock"
+
+    async def main() -> tuple[dict[str, Any], dict[str, int]]:
+        server = ControlServer(path, _echo, policy=ControlPolicy(max_clients=2, idle_s=60))
+        await server.start()
+        idle = [await asyncio.open_unix_connection(str(path)) for _ in range(2)]
+        await asyncio.sleep(1.2)  # idle for longer than a second: they may be evicted
+        reader, writer = await asyncio.open_unix_connection(str(path))
+        writer.write(b"status\n")
+        reply = await _readline(reader)
+        writer.close()
+        status = server.status()
+        for _, w in idle:
+            w.close()
+        await server.close()
+        return reply, status
+
+    reply, status = asyncio.run(main())
+    assert reply == {"ok": True, "cmd": "status"}
+    assert status["evicted_clients"] == 1 and status["refused_clients"] == 0
+
+
 @pytest.mark.parametrize(
     ("line", "error"),
     [

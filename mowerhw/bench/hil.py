@@ -50,6 +50,7 @@ import yaml
 
 from drivers.can.isobus import open_bus
 from drivers.can.switches import Switches
+from mowerhw.bench.notify import NotifyListener
 from mowerhw.evaluation.scoring import score_halts
 from mowerhw.runtime.control import request
 
@@ -151,6 +152,7 @@ class Bench:
         self.restarts = 0
         self.timeline: list[tuple] = []  # (s, state, reason, x, y, heading, detail) at 5 Hz
         self.rss_samples: list[tuple[float, float, float]] = []  # (s into mowing, RSS MB, CPU s)
+        self.notify = NotifyListener(self.out / "notify.sock")
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -189,7 +191,7 @@ class Bench:
                 )
             )
             cmd += ["--record", str(path)]
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", **self.notify.env()}
         with open(self.daemon_log, "ab") as logf:
             self.proc = subprocess.Popen(
                 cmd, stdout=subprocess.DEVNULL, stderr=logf, env=env, start_new_session=True
@@ -299,6 +301,7 @@ class Bench:
                 with contextlib.suppress(Exception):
                     dev.stop()
             bus.shutdown()
+            self.notify.close()
         if self.load:
             metrics["load_processes"] = self.load
         metrics["wall_s"] = round(time.monotonic() - t_wall0, 1)
@@ -457,6 +460,7 @@ class Bench:
         self.peak_rss_mb = max(self.peak_rss_mb, rss)
         mow_s = time.monotonic() - t_mow0
         metrics = self._score_mow(world, t_mow0, windows, latencies, mow_s)
+        metrics["watchdog"] = self.notify.gaps(t_mow0, time.monotonic())
         sup = st.get("supervisor")
         if sup:  # the permit supervisor's own figures (the process that sends the frames)
             metrics["supervisor"] = {

@@ -9,8 +9,10 @@ The control plane must never hurt the control loop, whoever is at the other end:
 * a client gets one request per turn of the event loop and at most ``requests_per_s`` a second
   (all clients together at most ``4 × requests_per_s``): a pipelined flood is answered slowly,
   never all at once;
-* at most ``max_clients`` connections (more are told so and closed at once), each closed after
-  ``idle_s`` without a complete request; replies to a client that does not read time out;
+* at most ``max_clients`` connections, each closed after ``idle_s`` without a complete
+  request; with every place taken, the connection idle longest (over a second) makes room for
+  a new one, else the new one is told so and closed; replies to a client that does not read
+  time out;
 * a request is at most :data:`MAX_REQUEST_BYTES`, nested at most :data:`MAX_DEPTH` deep, with no
   duplicate keys and only strings, numbers, booleans, null or lists of those as arguments;
 * accept errors (out of file descriptors) back off and are logged once per change;
@@ -51,6 +53,8 @@ MAX_REQUEST_BYTES = 4096
 MAX_DEPTH = 2
 #: a reply the client does not take within this long ends the connection (s)
 REPLY_TIMEOUT_S = 5.0
+#: with every place taken, a connection this long without a request makes room (s)
+EVICT_IDLE_S = 1.0
 
 Handler = Callable[[str, dict[str, Any]], Awaitable[dict[str, Any]]]
 
@@ -218,11 +222,13 @@ class ControlServer:
         self.requests = 0
         self.malformed = 0
         self.refused_clients = 0
+        self.evicted_clients = 0
         self.unauthorized = 0
         self.accept_errors = 0
         self._sock: socket.socket | None = None
         self._accepting: asyncio.Task[None] | None = None
-        self._clients: set[asyncio.Task[None]] = set()
+        #: each client's task and since when it has been idle (0: answering a request)
+        self._clients: dict[asyncio.Task[None], float] = {}
         self._next_slot = 0.0
 
     async def start(self) -> None:
@@ -259,6 +265,7 @@ class ControlServer:
             "requests": self.requests,
             "malformed": self.malformed,
             "refused_clients": self.refused_clients,
+            "evicted_clients": self.evicted_clients,
             "unauthorized": self.unauthorized,
             "accept_errors": self.accept_errors,
         }
@@ -290,6 +297,8 @@ class ControlServer:
                 )
                 failing_since, backoff = None, 0.05
             if len(self._clients) >= self.policy.max_clients:
+                self._evict_idle()
+            if len(self._clients) >= self.policy.max_clients:
                 self.refused_clients += 1
                 with contextlib.suppress(OSError):
                     conn.setblocking(False)
@@ -305,8 +314,23 @@ class ControlServer:
                 conn.close()
                 continue
             task = asyncio.create_task(self._serve(conn), name="control-client")
-            self._clients.add(task)
-            task.add_done_callback(self._clients.discard)
+            self._clients[task] = time.monotonic()
+            task.add_done_callback(self._forget)
+
+    def _forget(self, task: asyncio.Task[None]) -> None:
+        self._clients.pop(task, None)
+
+    def _evict_idle(self) -> None:
+        """All places taken: close the connection idle longest (over :data:`EVICT_IDLE_S`
+        without a request), so idle connections cannot lock out a client with a request."""
+        now = time.monotonic()
+        idle = [(since, task) for task, since in self._clients.items() if since > 0]
+        if idle:
+            since, task = min(idle, key=lambda x: x[0])
+            if now - since >= EVICT_IDLE_S:
+                self.evicted_clients += 1
+                task.cancel()
+                self._clients.pop(task, None)
 
     # ----------------------------------------------------------------------------- serve
 
@@ -337,7 +361,12 @@ class ControlServer:
                     continue
                 line = bytes(buf[:nl])
                 del buf[: nl + 1]
+                me = asyncio.current_task()
+                if me is not None and me in self._clients:
+                    self._clients[me] = 0.0  # busy: never evicted mid-request
                 await self._reply(conn, await self._answer(line, peer))
+                if me is not None and me in self._clients:
+                    self._clients[me] = time.monotonic()
                 # one request per loop turn, and a bounded rate per client and for all clients
                 client_next = await self._pace(client_next)
         except (OSError, TimeoutError, ConnectionError):

@@ -412,6 +412,7 @@ class Daemon:
             **core_status(self.core, now),
             "map": str(self.cfg.map.path),
             "loop_lag_ms_over_5": self.loop_lag.lags_ms[-50:],
+            "loop_lag_times": self.loop_lag.lag_times[-50:],
             "control": self.control.status() if self.control else {},
             **device_status(self.imu_dev, self.can, self.recorder),
         }

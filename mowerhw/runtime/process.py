@@ -41,12 +41,15 @@ class LoopLag:
     def __init__(self, keep: int = 200) -> None:
         self.keep = keep
         self.lags_ms: list[float] = []
+        self.lag_times: list[float] = []  # time.monotonic() of each
 
     def woke(self, due: float, now: float) -> None:
         lag = (now - due) * 1e3
         if lag > 5.0:
             self.lags_ms.append(round(lag, 1))
+            self.lag_times.append(round(now, 3))
             del self.lags_ms[: -self.keep]
+            del self.lag_times[: -self.keep]
             if lag > 50.0:
                 log.warning("event loop was blocked for %.0f ms", lag)
 
