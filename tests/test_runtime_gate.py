@@ -134,7 +134,7 @@ def test_sd_notify_speaks_the_protocol(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("WATCHDOG_USEC", "2000000")
     monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
     n = Notifier()
-    assert n.enabled and n.watchdog_period_s == 1.0
+    assert n.enabled and n.watchdog_period_s == 0.5
     assert n.ready("mow: INSIDE, mowing permitted")
     assert rx.recv(4096) == b"READY=1\nSTATUS=mow: INSIDE, mowing permitted"
     assert n.watchdog()

@@ -150,7 +150,10 @@ class Attack:
 
 
 def _drain(s: socket.socket, stop: threading.Event) -> None:
-    s.settimeout(0.5)
+    try:
+        s.settimeout(0.5)
+    except OSError:  # closed already
+        return
     while not stop.is_set():
         try:
             if not s.recv(65536):

@@ -7,14 +7,15 @@ import asyncio
 import contextlib
 import json
 import logging
-import multiprocessing
 import os
+import pickle
 import shutil
 import stat
+import subprocess
+import sys
 import tempfile
 import time
 from concurrent.futures import Executor
-from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +23,6 @@ import numpy as np
 
 from mowerhw.common.fileio import write_atomic
 from mowerhw.map import MAX_MAP_BYTES, LawnMap, MapError
-from mowerhw.map import load as load_map
 from mowerhw.runtime.pipelines import StartPose, TeachPipeline
 
 log = logging.getLogger("mowerhw.daemon")
@@ -99,7 +99,7 @@ class MapFile:
 
 
 def load_map_isolated(path: Path, max_bytes: int, timeout_s: float) -> LawnMap:
-    """:func:`load_checked_map` in a child process (blocking: call it from a worker thread),
+    """:func:`mowerhw.map.load` in a child interpreter (blocking: call it from a worker thread),
     so a huge, hostile or endless file costs that process, not the daemon's event loop;
     :class:`MapError` for every failure."""
     path = Path(path)
@@ -115,49 +115,28 @@ def load_map_isolated(path: Path, max_bytes: int, timeout_s: float) -> LawnMap:
         raise MapError(f"{path}: not a regular file (a map is a JSON file)")
     if st.st_size > max_bytes:
         raise MapError(f"{path}: {st.st_size} bytes; a map is at most {max_bytes} bytes")
-    ctx = multiprocessing.get_context("spawn")
-    receive, send = ctx.Pipe(duplex=False)
-    child = ctx.Process(
-        target=_load_in_child, args=(str(path), max_bytes, send), name="map-loader", daemon=True
-    )
-    child.start()
-    send.close()
+    # a child interpreter (not multiprocessing: the estimation process is a daemonic child
+    # of the supervisor, which may not have children of its own)
+    cmd = [sys.executable, "-m", "mowerhw.runtime.maploader", str(path), str(max_bytes)]
+    child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
-        if not receive.poll(timeout_s):
-            raise MapError(f"{path}: loading took over {timeout_s:g} s (map.load_timeout_s)")
-        kind, body = receive.recv()
-    except (EOFError, OSError):
-        child.join(1.0)
-        raise MapError(f"{path}: the map loader died (exit code {child.exitcode})") from None
-    finally:
-        receive.close()
-        if child.is_alive():
-            child.kill()
-        child.join(5.0)
+        out, err = child.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.communicate()
+        raise MapError(f"{path}: loading took over {timeout_s:g} s (map.load_timeout_s)") from None
+    try:
+        kind, body = pickle.loads(out)  # written by our own child (runtime/maploader.py)
+    except Exception:
+        tail = err.decode(errors="replace").strip().splitlines()[-1:] or ["no output"]
+        raise MapError(
+            f"{path}: the map loader failed (exit code {child.returncode}: {tail[0][:200]})"
+        ) from None
     if kind != "ok":
         raise MapError(str(body))
-    assert isinstance(body, LawnMap)
+    if not isinstance(body, LawnMap):
+        raise MapError(f"{path}: the map loader returned {type(body).__name__}")
     return body
-
-
-def _load_in_child(path: str, max_bytes: int, conn: Connection) -> None:
-    try:
-        conn.send(("ok", load_checked_map(Path(path), max_bytes)))
-    except MapError as exc:
-        conn.send(("error", str(exc)))
-    except BaseException as exc:  # MemoryError, RecursionError, a bug: say so, do not hang
-        conn.send(("error", f"{path}: cannot load the map ({type(exc).__name__}: {exc})"[:500]))
-    finally:
-        conn.close()
-
-
-def load_checked_map(path: Path, max_bytes: int = MAX_MAP_BYTES) -> LawnMap:
-    """The map at ``path``, or :class:`MapError` naming every problem it has."""
-    lawn_map = load_map(path, max_bytes)
-    problems = lawn_map.problems()
-    if problems:
-        raise MapError(f"{path}: " + "; ".join(problems))
-    return lawn_map
 
 
 def save_map(lawn_map: LawnMap, path: Path) -> None:

@@ -25,8 +25,9 @@ class Notifier:
         usec = os.environ.get("WATCHDOG_USEC", "")
         pid = os.environ.get("WATCHDOG_PID", "")
         ours = not pid or pid == str(os.getpid())
-        #: how often to ping (half systemd's WatchdogSec), or None when there is no watchdog
-        self.watchdog_period_s = int(usec) / 2e6 if usec.isdigit() and ours else None
+        #: how often to ping (a quarter of systemd's WatchdogSec: a late ping still has most
+        #: of the time left), or None when there is no watchdog
+        self.watchdog_period_s = int(usec) / 4e6 if usec.isdigit() and ours else None
 
     @property
     def enabled(self) -> bool:
