@@ -63,6 +63,11 @@ FAULT_KINDS = (
     "nan",
     "exception",
     "corrupt-map",
+    "map-nested",
+    "map-bigint",
+    "map-devzero",
+    "map-fifo",
+    "map-huge",
     "sigterm",
     "sigkill",
     "estimator-stall",
@@ -587,6 +592,10 @@ class Bench:
                 fh.seek(len(self.map_bytes) // 2)
                 fh.write(b"\x00garbage\x00" * 8)
             clear = lambda: _restore(path, self.map_bytes)  # noqa: E731
+        elif spec.kind.startswith("map-"):
+            path = Path(self.cfg_path.parent / "lawn.json")
+            _hostile_map(spec.kind, path, self.map_bytes)
+            clear = lambda: _restore(path, self.map_bytes)  # noqa: E731
         elif spec.kind == "estimator-stall":  # the estimation process frozen (SIGSTOP)
             pid = int((self._status(timeout=1.0) or {}).get("pid") or 0)
             if pid and pid != self.proc.pid:  # type: ignore[union-attr]
@@ -726,7 +735,43 @@ def _proc_status_mb(proc: Any, key: str) -> float:
 def _restore(path: Path, data: bytes) -> None:
     from mowerhw.common.fileio import write_atomic
 
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        path.unlink()  # write_atomic renames over it either way; a FIFO/symlink goes first
     write_atomic(path, data)
+
+
+def _hostile_map(kind: str, path: Path, good: bytes) -> None:
+    """Put a hostile "map" where the daemon reads its map (the attacks of issue 16):
+    deeply nested JSON, a 5000-digit integer, ``/dev/zero``, a FIFO nobody writes, and a
+    valid map padded beyond the size limit (300 MB)."""
+    from mowerhw.common.fileio import write_atomic
+
+    tmp = path.with_name(path.name + ".hostile")
+    with contextlib.suppress(FileNotFoundError):
+        tmp.unlink()
+    if kind == "map-nested":
+        write_atomic(path, b"[" * 200_000)
+    elif kind == "map-bigint":
+        write_atomic(path, b'{"format": "mowerhw-map", "version": 1' + b"0" * 5000 + b"}")
+    elif kind == "map-devzero":
+        tmp.symlink_to("/dev/zero")
+        os.replace(tmp, path)
+    elif kind == "map-fifo":
+        os.mkfifo(tmp)
+        os.replace(tmp, path)
+    elif kind == "map-huge":  # valid JSON, whitespace after the document: 300 MB
+        with open(tmp, "wb") as fh:
+            fh.write(good)
+            fh.truncate(300 << 20)
+        data_end = len(good)
+        with open(tmp, "r+b") as fh:  # spaces, not NUL bytes (NULs would not be JSON)
+            fh.seek(data_end)
+            block = b" " * (8 << 20)
+            left = (300 << 20) - data_end
+            while left > 0:
+                fh.write(block[: min(left, len(block))])
+                left -= len(block)
+        os.replace(tmp, path)
 
 
 def _stop_after(ctl: Any, n_events: int, t0: float) -> Any:

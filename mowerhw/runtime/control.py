@@ -364,22 +364,30 @@ class ControlServer:
                 me = asyncio.current_task()
                 if me is not None and me in self._clients:
                     self._clients[me] = 0.0  # busy: never evicted mid-request
+                await self._take_slot()  # all clients: one request at a time, spaced
                 await self._reply(conn, await self._answer(line, peer))
                 if me is not None and me in self._clients:
                     self._clients[me] = time.monotonic()
-                # one request per loop turn, and a bounded rate per client and for all clients
                 client_next = await self._pace(client_next)
         except (OSError, TimeoutError, ConnectionError):
             return
         finally:
             conn.close()
 
-    async def _pace(self, client_next: float) -> float:
+    async def _take_slot(self) -> None:
+        """Wait for the next of the slots all clients share (``4 × requests_per_s`` a
+        second): however many clients are ready at once, the loop answers one request per
+        slot, so requests never pile up into one long turn of the loop."""
         now = time.monotonic()
-        rate = self.policy.requests_per_s
-        client_next = max(now, client_next) + 1.0 / rate
-        self._next_slot = max(now, self._next_slot) + 0.25 / rate
-        await asyncio.sleep(max(client_next, self._next_slot) - now)
+        at = max(now, self._next_slot)
+        self._next_slot = at + 0.25 / self.policy.requests_per_s
+        await asyncio.sleep(at - now)  # 0 s: still a turn of the loop between requests
+
+    async def _pace(self, client_next: float) -> float:
+        """A client's own rate: the next request no sooner than ``1 / requests_per_s``."""
+        now = time.monotonic()
+        client_next = max(now, client_next) + 1.0 / self.policy.requests_per_s
+        await asyncio.sleep(client_next - now)
         return client_next
 
     async def _answer(self, line: bytes, peer: Peer) -> dict[str, Any]:
