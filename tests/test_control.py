@@ -16,16 +16,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mowerhw.runtime import control
+from mowerhw.runtime import control_protocol as control
 from mowerhw.runtime.commands import map_save_path
-from mowerhw.runtime.control import (
+from mowerhw.runtime.control import ControlServer
+from mowerhw.runtime.control_access import (
     ControlPolicy,
-    ControlServer,
     ControlSocketBusy,
     Peer,
     claim_control_socket,
-    parse_request,
 )
+from mowerhw.runtime.control_protocol import parse_request
 
 
 async def _echo(cmd: str, args: dict[str, Any]) -> dict[str, Any]:

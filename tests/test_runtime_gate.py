@@ -10,7 +10,8 @@ import pytest
 
 from mowerhw.mow.containment import ContainmentResult
 from mowerhw.mow.gate import PermitGate
-from mowerhw.runtime.control import ControlServer, parse_request, request
+from mowerhw.runtime.control import ControlServer
+from mowerhw.runtime.control_protocol import parse_request, request
 
 LIMITS = {"imu": 0.1, "speed": 0.3, "camera": 1.0}
 FRESH = {"imu": 10.0, "speed": 10.0, "camera": 10.0}

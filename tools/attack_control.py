@@ -214,7 +214,7 @@ def main() -> None:
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline:
         with contextlib.suppress(Exception):
-            from mowerhw.runtime.control import request
+            from mowerhw.runtime.control_protocol import request
 
             if request(sock, "status", timeout=2.0).get("mode") == "mow":
                 break

@@ -36,7 +36,8 @@ from mowerhw.config import ConfigError, config_from_dict
 from mowerhw.map import Landmark, LawnMap, MapError, _digest, from_document, load
 from mowerhw.recording.mcap import Recorder, RecordingError, RecordingRead
 from mowerhw.runtime.commands import map_save_path
-from mowerhw.runtime.control import ControlPolicy, ControlServer, Peer
+from mowerhw.runtime.control import ControlServer
+from mowerhw.runtime.control_access import ControlPolicy, Peer
 
 WEIRD: list[Any] = [
     None,

@@ -52,7 +52,7 @@ from drivers.can.isobus import open_bus
 from drivers.can.switches import Switches
 from mowerhw.bench.notify import NotifyListener
 from mowerhw.evaluation.scoring import score_halts
-from mowerhw.runtime.control import request
+from mowerhw.runtime.control_protocol import request
 
 log = logging.getLogger("mowerhw.bench")
 

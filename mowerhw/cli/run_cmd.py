@@ -15,7 +15,7 @@ from mowerhw.cli.common import (
     strict_json,
 )
 from mowerhw.config import EX_CONFIG, Config
-from mowerhw.runtime.control import COMMANDS
+from mowerhw.runtime.control_protocol import COMMANDS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -80,7 +80,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _claim_socket_or_exit(cfg: Config) -> int:
     """The control socket's lock (kept for the process's life), or exit 78: two daemons on
     one socket would take each other's commands."""
-    from mowerhw.runtime.control import ControlSocketBusy, claim_control_socket
+    from mowerhw.runtime.control_access import ControlSocketBusy, claim_control_socket
 
     try:
         return claim_control_socket(cfg.runtime.control_socket)
@@ -119,7 +119,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:
-    from mowerhw.runtime.control import request
+    from mowerhw.runtime.control_protocol import request
 
     sock = args.socket
     if sock is None:

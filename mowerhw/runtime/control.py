@@ -1,56 +1,39 @@
-"""The control socket: one JSON object per line over a Unix stream socket (docs/design.md §8).
-
-Request: ``{"cmd": "status"}`` (or just the word ``status``), optional arguments as keys;
-reply: ``{"ok": true, ...}`` or ``{"ok": false, "error": "..."}``. Commands: status, idle,
-teach, mow, finish-teach, save-map [path], and (only with ``runtime.fault_injection``) fault.
+"""The control socket's server (docs/design.md §8): the protocol is in
+:mod:`.control_protocol`, who may do what in :mod:`.control_access`.
 
 The control plane must never hurt the control loop, whoever is at the other end:
 
-* a client gets one request per turn of the event loop and at most ``requests_per_s`` a second
-  (all clients together at most ``4 × requests_per_s``): a pipelined flood is answered slowly,
-  never all at once;
+* all clients share request slots (``4 × requests_per_s`` a second): however many are ready,
+  one request is answered per slot, and each client at most ``requests_per_s`` a second; a
+  pipelined flood is answered slowly, never all at once;
 * at most ``max_clients`` connections, each closed after ``idle_s`` without a complete
   request; with every place taken, the connection idle longest (over a second) makes room for
   a new one, else the new one is told so and closed; replies to a client that does not read
   time out;
-* a request is at most :data:`MAX_REQUEST_BYTES`, nested at most :data:`MAX_DEPTH` deep, with no
-  duplicate keys and only strings, numbers, booleans, null or lists of those as arguments;
 * accept errors (out of file descriptors) back off and are logged once per change;
-* who may do what comes from the peer's credentials (SO_PEERCRED): ``status`` for anyone who
-  can open the socket (its mode and group), everything else only for the service's own user,
-  root, or members of ``runtime.control_group``.
-
-Only one daemon serves a control socket: :func:`claim_control_socket` takes a lock beside it.
+* the commands that change the mower are refused to peers without the right.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import fcntl
-import grp
 import json
 import logging
 import os
-import pwd
 import socket
 import stat
-import struct
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from mowerhw.config import Config
+from mowerhw.runtime.control_access import ControlPolicy, Peer
+from mowerhw.runtime.control_protocol import MAX_REQUEST_BYTES, READ_ONLY, parse_request
+
 log = logging.getLogger("mowerhw.control")
 
-COMMANDS = ("status", "idle", "teach", "mow", "finish-teach", "save-map", "fault")
-#: commands anyone allowed to open the socket may send; the rest change the mower or files
-READ_ONLY = frozenset({"status"})
-#: the longest request line (bytes); requests are a command and a path at most
-MAX_REQUEST_BYTES = 4096
-#: deepest nesting of a request (the object, a list in it)
-MAX_DEPTH = 2
 #: a reply the client does not take within this long ends the connection (s)
 REPLY_TIMEOUT_S = 5.0
 #: with every place taken, a connection this long without a request makes room (s)
@@ -59,150 +42,13 @@ EVICT_IDLE_S = 1.0
 Handler = Callable[[str, dict[str, Any]], Awaitable[dict[str, Any]]]
 
 
-class ControlSocketBusy(RuntimeError):
-    """Another daemon serves this control socket."""
-
-
-@dataclass(frozen=True)
-class Peer:
-    """Who is at the other end of a connection (SO_PEERCRED)."""
-
-    pid: int
-    uid: int
-    gid: int
-
-    @classmethod
-    def of(cls, conn: socket.socket) -> Peer:
-        raw = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-        pid, uid, gid = struct.unpack("3i", raw)
-        return cls(pid, uid, gid)
-
-
-@dataclass(frozen=True)
-class ControlPolicy:
-    """Limits and authorization of the control socket (``runtime.control_*`` keys)."""
-
-    max_clients: int = 8
-    idle_s: float = 60.0
-    requests_per_s: float = 20.0
-    group: str | None = None
-
-    def may_change(self, peer: Peer) -> bool:
-        """Commands that change the mode or write files: the service user, root, or a member
-        (primary or supplementary, from the user database) of ``group``."""
-        if peer.uid in (0, os.geteuid()):
-            return True
-        if self.group is None:
-            return False
-        try:
-            gid = grp.getgrnam(self.group).gr_gid
-            user = pwd.getpwuid(peer.uid).pw_name
-            return gid == peer.gid or gid in os.getgrouplist(user, peer.gid)
-        except (KeyError, OSError):
-            return False
-
-    def refusal(self, cmd: str, peer: Peer) -> str:
-        who = f"uid {peer.uid}"
-        allowed = "the service's user, root" + (
-            f" or members of group {self.group!r}" if self.group else ""
-        )
-        return f"{cmd}: not allowed for {who}; commands that change the mower need {allowed}"
-
-
-def parse_request(line: bytes) -> tuple[str, dict[str, Any]]:
-    """(command, arguments) of one request line; ValueError with a message if malformed."""
-    if len(line) > MAX_REQUEST_BYTES:
-        raise ValueError(f"request of {len(line)} bytes; at most {MAX_REQUEST_BYTES} allowed")
-    text = line.decode("utf-8", errors="strict").strip()
-    if not text:
-        raise ValueError("empty request")
-    if text[0] in '{["':
-        depth = nesting_depth(text)
-        if depth > MAX_DEPTH:
-            raise ValueError(f"request nested {depth} deep; at most {MAX_DEPTH} allowed")
-        try:
-            req = json.loads(text, object_pairs_hook=_refuse_duplicate_keys)
-        except json.JSONDecodeError as exc:
-            raise ValueError(
-                f"request is not valid JSON ({exc.msg} at column {exc.colno})"
-            ) from None
-        if not isinstance(req, dict):
-            raise ValueError("request must be a JSON object")
-        cmd = req.pop("cmd", None)
-        if not isinstance(cmd, str):
-            raise ValueError('request needs "cmd": one of ' + ", ".join(COMMANDS))
-        args = req
-        for key, value in args.items():
-            if not _plain(value):
-                raise ValueError(
-                    f"argument {key!r}: must be a string, number, true/false, null or a list "
-                    "of those"
-                )
-        if "args" in args and not isinstance(args["args"], list):
-            raise ValueError('argument "args" must be a list')
-    else:
-        words = text.split()
-        cmd, args = words[0], ({"args": words[1:]} if len(words) > 1 else {})
-    if cmd not in COMMANDS:
-        raise ValueError(f"unknown command {cmd[:40]!r}; allowed: {', '.join(COMMANDS)}")
-    return cmd, args
-
-
-def nesting_depth(text: str) -> int:
-    """How deep ``[`` and ``{`` nest in JSON text (outside strings), without parsing it."""
-    depth = deepest = 0
-    in_string = escaped = False
-    for ch in text:
-        if in_string:
-            if escaped:
-                escaped = False
-            elif ch == "\\":
-                escaped = True
-            elif ch == '"':
-                in_string = False
-        elif ch == '"':
-            in_string = True
-        elif ch in "[{":
-            depth += 1
-            deepest = max(deepest, depth)
-        elif ch in "]}":
-            depth -= 1
-    return deepest
-
-
-def _refuse_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in pairs:
-        if key in out:
-            raise ValueError(f"duplicate key {key[:40]!r} in the request")
-        out[key] = value
-    return out
-
-
-def _plain(value: Any) -> bool:
-    if isinstance(value, list):
-        return all(isinstance(v, str | int | float | bool) or v is None for v in value)
-    return isinstance(value, str | int | float | bool) or value is None
-
-
-def claim_control_socket(path: str | Path) -> int:
-    """Lock ``<socket>.lock`` for this process's life (the descriptor is returned and must be
-    kept open); :class:`ControlSocketBusy` naming the holder if another daemon has it."""
-    lock = Path(str(path) + ".lock")
-    lock.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-        os.close(fd)
-        raise ControlSocketBusy(
-            f"another mowerhw daemon (pid {holder}) serves the control socket {path}; stop it "
-            "first, or give this one its own runtime.control_socket"
-        ) from None
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-    return fd
+def control_server(cfg: Config, handler: Handler) -> ControlServer:
+    """The control socket server the config describes (``runtime.control_*``)."""
+    rt = cfg.runtime
+    policy = ControlPolicy(
+        rt.control_max_clients, rt.control_idle_s, rt.control_requests_per_s, rt.control_group
+    )
+    return ControlServer(rt.control_socket, handler, rt.socket_mode, policy)
 
 
 class ControlServer:
@@ -425,21 +271,3 @@ def _jsonable(v: Any) -> Any:
     if hasattr(v, "tolist"):
         return v.tolist()
     return str(v)
-
-
-def request(path: str | Path, cmd: str, timeout: float = 5.0, **args: Any) -> dict[str, Any]:
-    """Send one command, return the reply (blocking; for the CLI and the bench)."""
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
-        s.settimeout(timeout)
-        s.connect(str(path))
-        s.sendall((json.dumps({"cmd": cmd, **args}) + "\n").encode())
-        buf = b""
-        while not buf.endswith(b"\n"):
-            chunk = s.recv(65536)
-            if not chunk:
-                break
-            buf += chunk
-    if not buf:
-        raise ConnectionError(f"{path}: the daemon closed the connection without a reply")
-    reply: dict[str, Any] = json.loads(buf)
-    return reply

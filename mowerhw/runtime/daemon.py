@@ -35,7 +35,7 @@ from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.mow.gate import Decision
 from mowerhw.recording.mcap import Recorder
 from mowerhw.runtime.commands import core_status, handle_command
-from mowerhw.runtime.control import ControlPolicy, ControlServer
+from mowerhw.runtime.control import ControlServer, control_server
 from mowerhw.runtime.core import MODES, RuntimeCore
 from mowerhw.runtime.devices import (
     DecisionOutput,
@@ -47,12 +47,7 @@ from mowerhw.runtime.devices import (
     open_recorder,
     record_estimate,
 )
-from mowerhw.runtime.mapfiles import (
-    MapFile,
-    PoseFile,
-    save_map,
-    teach_to_map_file,
-)
+from mowerhw.runtime.mapfiles import MapFile, PoseFile, save_map, teach_to_map_file
 from mowerhw.runtime.pipelines import BuildRequest, build_pipeline
 from mowerhw.runtime.process import LoopLag
 from mowerhw.runtime.sdnotify import Notifier
@@ -119,20 +114,8 @@ class Daemon:
         for sig in (signal.SIGTERM, signal.SIGINT):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, self.request_stop, sig.name)
-        rt = self.cfg.runtime
-        control = ControlServer(
-            rt.control_socket,
-            self.handle_command,
-            rt.socket_mode,
-            ControlPolicy(
-                rt.control_max_clients,
-                rt.control_idle_s,
-                rt.control_requests_per_s,
-                rt.control_group,
-            ),
-        )
+        self.control = control = control_server(self.cfg, self.handle_command)
         await control.start()
-        self.control = control
         if self.record_path is not None:
             self.recorder = open_recorder(self.cfg, self.record_path)
             self.core.journal = RecorderJournal(self.recorder)
@@ -148,12 +131,7 @@ class Daemon:
         await self.set_mode(self.start_mode)
         tasks = [self._spawn(self._ticker(), "ticker"), self._spawn(self._frame_task(), "frontend")]
         self.notifier.ready(self.core.status_line())
-        log.info(
-            "running: mode %s, control socket %s, pid %d",
-            self.core.mode,
-            rt.control_socket,
-            os.getpid(),
-        )
+        log.info("running: mode %s, control socket %s", self.core.mode, control.path)
         try:
             await self._stop_event.wait()
         finally:
@@ -331,11 +309,8 @@ class Daemon:
             got = await self.map_file.load(self._work_pool)
             if isinstance(got, str):
                 self.core.map_invalid(got)
-            elif self.core.mode == "mow":
-                try:
-                    self.core.map_reloaded(got)
-                except Exception as exc:  # geometry the checks let through: still no mowing
-                    self.core.map_invalid(f"{self.map_file.path}: unusable ({exc!r})")
+            elif self.core.mode == "mow":  # a chain that cannot be built: MAP_INVALID
+                self.core.map_reloaded(got)
 
         self._spawn(reload(), "map reload")
 
