@@ -54,6 +54,7 @@ from shapely.validation import explain_validity
 
 from mowerhw import __version__
 from mowerhw.common.fileio import write_atomic
+from mowerhw.common.strictjson import JsonLimitError, bounded_int, no_constant, unique_keys
 
 FloatArray = NDArray[np.float64]
 
@@ -453,28 +454,45 @@ def _from_document(doc: Any, source: str) -> LawnMap:
     return lawn
 
 
+def check_map_file(path: str | Path, max_bytes: int = MAX_MAP_BYTES) -> None:
+    """The refusals that need no reading: the file is missing or unreadable, is no regular
+    file (a FIFO or device could block or never end), or is over ``max_bytes``."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise _unreadable(Path(path), exc) from None
+    _check_stat(Path(path), st, max_bytes)
+
+
+def _unreadable(path: Path, exc: OSError) -> MapError:
+    if isinstance(exc, FileNotFoundError):
+        return MapError(
+            f"{path}: map file not found (teach a map first: `mowerhw run --mode teach`)"
+        )
+    return MapError(f"{path}: cannot read the map file ({exc.strerror})")
+
+
+def _check_stat(path: Path, st: os.stat_result, max_bytes: int) -> None:
+    if not stat.S_ISREG(st.st_mode):
+        raise MapError(f"{path}: not a regular file (a map is a JSON file)")
+    if st.st_size > max_bytes:
+        raise MapError(f"{path}: {st.st_size} bytes; a map is at most {max_bytes} bytes")
+
+
 def read_map_bytes(path: str | Path, max_bytes: int = MAX_MAP_BYTES) -> bytes:
-    """The bytes of a map file: a regular file (not a FIFO, device or directory, which could
-    block or never end) of at most ``max_bytes``; :class:`MapError` otherwise."""
+    """The bytes of a map file that passes :func:`check_map_file` (checked on the open file,
+    so it cannot be swapped in between); :class:`MapError` otherwise."""
     path = Path(path)
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
-    except FileNotFoundError:
-        raise MapError(
-            f"{path}: map file not found (teach a map first: `mowerhw run --mode teach`)"
-        ) from None
     except OSError as exc:
-        raise MapError(f"{path}: cannot read the map file ({exc.strerror})") from None
+        raise _unreadable(path, exc) from None
     try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise MapError(f"{path}: not a regular file (a map is a JSON file)")
-        if st.st_size > max_bytes:
-            raise MapError(f"{path}: {st.st_size} bytes; a map is at most {max_bytes} bytes")
+        _check_stat(path, os.fstat(fd), max_bytes)
         with os.fdopen(fd, "rb", closefd=False) as f:
             data = f.read(max_bytes + 1)
     except OSError as exc:
-        raise MapError(f"{path}: cannot read the map file ({exc.strerror})") from None
+        raise _unreadable(path, exc) from None
     finally:
         os.close(fd)
     if len(data) > max_bytes:
@@ -491,9 +509,9 @@ def parse_map_json(data: bytes, source: str) -> Any:
     try:
         return json.loads(
             data,
-            parse_int=_bounded_int,
-            parse_constant=_no_constant,
-            object_pairs_hook=_unique_keys,
+            parse_int=bounded_int,
+            parse_constant=no_constant,
+            object_pairs_hook=unique_keys,
         )
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         where = (
@@ -504,33 +522,10 @@ def parse_map_json(data: bytes, source: str) -> Any:
         raise MapError(
             f"{source}: not valid JSON{where}: the file is truncated or corrupt"
         ) from None
-    except _JsonLimit as exc:
+    except JsonLimitError as exc:
         raise MapError(f"{source}: {exc}") from None
     except RecursionError:
         raise MapError(f"{source}: JSON nested too deeply") from None
-
-
-class _JsonLimit(ValueError):
-    pass
-
-
-def _bounded_int(text: str) -> int:
-    if len(text.lstrip("-")) > 19:
-        raise _JsonLimit(f"an integer of {len(text)} digits; at most 19 (64-bit) allowed")
-    return int(text)
-
-
-def _no_constant(text: str) -> Any:
-    raise _JsonLimit(f"{text} is not a number a map may hold")
-
-
-def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in pairs:
-        if key in out:
-            raise _JsonLimit(f"the key {key[:40]!r} appears twice in one object")
-        out[key] = value
-    return out
 
 
 def load(path: str | Path, max_bytes: int = MAX_MAP_BYTES) -> LawnMap:

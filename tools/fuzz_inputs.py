@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import copy
+import functools
 import json
 import os
 import random
@@ -76,6 +77,22 @@ WEIRD: list[Any] = [
 
 def _result() -> Counter[str]:
     return Counter(tried=0, rejected_cleanly=0, accepted=0, tracebacks=0, accepted_dangerous=0)
+
+
+def _tally(res: Counter[str], attempt: Any, refusal: type[Exception], dangerous: Any) -> None:
+    """Try one input: refused by name, accepted (dangerous or not), or a traceback."""
+    res["tried"] += 1
+    try:
+        got = attempt()
+    except refusal:
+        res["rejected_cleanly"] += 1
+        return
+    except Exception:
+        res["tracebacks"] += 1
+        print(traceback.format_exc(limit=3)[-600:], file=sys.stderr)
+        return
+    res["accepted"] += 1
+    res["accepted_dangerous"] += int(dangerous(got))
 
 
 def _mutate(value: Any, rng: random.Random, depth: int = 0) -> Any:
@@ -221,26 +238,15 @@ def fuzz_configs(n: int, rng: random.Random, folder: Path) -> dict[str, int]:
     ]
     from mowerhw.config import load_config
 
+    def one_config(k: int) -> Any:
+        if k < len(texts) or rng.random() < 0.1:
+            path = folder / "c.yaml"
+            path.write_text(texts[k] if k < len(texts) else rng.randbytes(200).decode("latin-1"))
+            return load_config(path)
+        return config_from_dict(_mutate(base, rng))
+
     for k in range(n):
-        res["tried"] += 1
-        try:
-            if k < len(texts) or rng.random() < 0.1:
-                path = folder / "c.yaml"
-                path.write_text(
-                    texts[k] if k < len(texts) else rng.randbytes(200).decode("latin-1")
-                )
-                cfg = load_config(path)
-            else:
-                cfg = config_from_dict(_mutate(base, rng))
-        except ConfigError:
-            res["rejected_cleanly"] += 1
-            continue
-        except Exception:
-            res["tracebacks"] += 1
-            print(traceback.format_exc(limit=3)[-600:], file=sys.stderr)
-            continue
-        res["accepted"] += 1
-        res["accepted_dangerous"] += int(_config_dangerous(cfg))
+        _tally(res, functools.partial(one_config, k), ConfigError, _config_dangerous)
     return dict(res)
 
 
@@ -279,35 +285,26 @@ def fuzz_maps(n: int, rng: random.Random, folder: Path) -> dict[str, int]:
     files = [b"[" * 100_000, b'{"a": 1' + b"0" * 5000 + b"}", b"", b'{"a":1,"a":2}']
     fifo = folder / "fifo.json"
     os.mkfifo(fifo)
+
+    def one_map(k: int) -> LawnMap:
+        path = folder / "m.json"
+        if k < len(files):
+            path.write_bytes(files[k])
+            return load(path)
+        if k == len(files):
+            return load(fifo)
+        if k == len(files) + 1:
+            return load("/dev/zero")
+        if rng.random() < 0.2:  # bytes damaged
+            data = bytearray(good_bytes)
+            for _ in range(rng.randrange(1, 6)):
+                data[rng.randrange(len(data))] = rng.randrange(256)
+            path.write_bytes(bytes(data))
+            return load(path)
+        return from_document(_signed(_mutate(good, rng)))
+
     for k in range(n):
-        res["tried"] += 1
-        try:
-            if k < len(files):
-                path = folder / "m.json"
-                path.write_bytes(files[k])
-                got = load(path)
-            elif k == len(files):
-                got = load(fifo)
-            elif k == len(files) + 1:
-                got = load("/dev/zero")
-            elif rng.random() < 0.2:  # bytes damaged
-                data = bytearray(good_bytes)
-                for _ in range(rng.randrange(1, 6)):
-                    data[rng.randrange(len(data))] = rng.randrange(256)
-                path = folder / "m.json"
-                path.write_bytes(bytes(data))
-                got = load(path)
-            else:
-                got = from_document(_signed(_mutate(good, rng)))
-        except MapError:
-            res["rejected_cleanly"] += 1
-            continue
-        except Exception:
-            res["tracebacks"] += 1
-            print(traceback.format_exc(limit=3)[-600:], file=sys.stderr)
-            continue
-        res["accepted"] += 1
-        res["accepted_dangerous"] += int(_map_dangerous(got))
+        _tally(res, functools.partial(one_map, k), MapError, _map_dangerous)
     return dict(res)
 
 

@@ -15,6 +15,8 @@ import socket
 from pathlib import Path
 from typing import Any
 
+from mowerhw.common.strictjson import unique_keys
+
 COMMANDS = ("status", "idle", "teach", "mow", "finish-teach", "save-map", "fault")
 #: commands anyone allowed to open the socket may send; the rest change the mower or files
 READ_ONLY = frozenset({"status"})
@@ -36,7 +38,7 @@ def parse_request(line: bytes) -> tuple[str, dict[str, Any]]:
         if depth > MAX_DEPTH:
             raise ValueError(f"request nested {depth} deep; at most {MAX_DEPTH} allowed")
         try:
-            req = json.loads(text, object_pairs_hook=_refuse_duplicate_keys)
+            req = json.loads(text, object_pairs_hook=unique_keys)
         except json.JSONDecodeError as exc:
             raise ValueError(
                 f"request is not valid JSON ({exc.msg} at column {exc.colno})"
@@ -83,15 +85,6 @@ def nesting_depth(text: str) -> int:
         elif ch in "]}":
             depth -= 1
     return deepest
-
-
-def _refuse_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in pairs:
-        if key in out:
-            raise ValueError(f"duplicate key {key[:40]!r} in the request")
-        out[key] = value
-    return out
 
 
 def _plain(value: Any) -> bool:

@@ -10,7 +10,6 @@ import logging
 import os
 import pickle
 import shutil
-import stat
 import subprocess
 import sys
 import tempfile
@@ -22,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from mowerhw.common.fileio import write_atomic
-from mowerhw.map import MAX_MAP_BYTES, LawnMap, MapError
+from mowerhw.map import MAX_MAP_BYTES, LawnMap, MapError, check_map_file
 from mowerhw.runtime.pipelines import StartPose, TeachPipeline
 
 log = logging.getLogger("mowerhw.daemon")
@@ -103,18 +102,7 @@ def load_map_isolated(path: Path, max_bytes: int, timeout_s: float) -> LawnMap:
     so a huge, hostile or endless file costs that process, not the daemon's event loop;
     :class:`MapError` for every failure."""
     path = Path(path)
-    try:  # cheap refusals first, without a process
-        st = os.stat(path)
-    except FileNotFoundError:
-        raise MapError(
-            f"{path}: map file not found (teach a map first: `mowerhw run --mode teach`)"
-        ) from None
-    except OSError as exc:
-        raise MapError(f"{path}: cannot read the map file ({exc.strerror})") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise MapError(f"{path}: not a regular file (a map is a JSON file)")
-    if st.st_size > max_bytes:
-        raise MapError(f"{path}: {st.st_size} bytes; a map is at most {max_bytes} bytes")
+    check_map_file(path, max_bytes)  # the cheap refusals first, without a process
     # a child interpreter (not multiprocessing: the estimation process is a daemonic child
     # of the supervisor, which may not have children of its own)
     cmd = [sys.executable, "-m", "mowerhw.runtime.maploader", str(path), str(max_bytes)]
