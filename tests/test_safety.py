@@ -6,7 +6,7 @@ import math
 
 from mowerhw.config import SafetyConfig
 from mowerhw.mow.containment import Reason
-from mowerhw.supervisor.safety import G, SafetyMonitor
+from mowerhw.estimation.safety import G, SafetyMonitor
 
 
 def _feed(m: SafetyMonitor, t0: float, t1: float, accel: tuple[float, float, float]) -> float:

@@ -63,7 +63,25 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="camera frames arrive this late (s; default: the scenario's, 0.15 for paper)",
     )
+    mow.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        type=_handling_event,
+        metavar="KIND@T[:D]",
+        help="the mower is handled T s into mowing for D s: lift (default 2 s), tilt (3 s), "
+        "bump (0.2 s); repeatable",
+    )
     mow.set_defaults(handler=_mow)
+
+
+def _handling_event(text: str) -> Any:
+    from mowerhw.sim.handling import HandlingEvent
+
+    try:
+        return HandlingEvent.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -231,6 +249,7 @@ def _mow(args: argparse.Namespace) -> int:
         vision_dropout=dropout,
         frame_latency_s=args.latency,
         level=args.level,
+        handling=args.fault,
     )
     metrics = {**outcome.metrics, "map": str(map_path)}
     if args.plot:

@@ -12,7 +12,11 @@ and decides containment. The truth is used only to score:
   0.10 m outside the lawn edge or more than 0.10 m inside a keep-out zone;
 * ``false_halt_fraction``: share of the samples with the mower truly more than 1 m inside where
   the deck was halted (after the start-up calibration);
-* ``time_outside_s``: time the mower truly spent outside the mowable area.
+* ``time_outside_s``: time the mower truly spent outside the mowable area;
+* ``handling``: per lift / tilt / bump event (``handling=``), when the deck halted and why,
+  permits while the safety function held (goal 0), and when the deck ran again. The safety
+  functions (:class:`mowerhw.estimation.safety.SafetyMonitor`) see the plant's specific force
+  and the mower's switches every IMU period, as the supervisor does on the mower.
 
 The true lawn edge is the path the operator drove when teaching (the simulated lawn outline);
 keep-out zones are the map's (they exist only as the user drew them).
@@ -29,7 +33,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mowerhw.common.geometry import yaw_to_quat
-from mowerhw.config import Config, FrontendConfig
+from mowerhw.common.reasons import Reason
+from mowerhw.config import Config, FrontendConfig, SafetyConfig
+from mowerhw.estimation.safety import SafetyMonitor
 from mowerhw.evaluation.pixel import frontend_figures, sees_point
 from mowerhw.evaluation.scoring import score_halts
 from mowerhw.map import LawnMap
@@ -37,6 +43,7 @@ from mowerhw.mow import LawnGeometry, Localizer
 from mowerhw.mow.gate import PermitGate
 from mowerhw.sim import make_world
 from mowerhw.sim.controller import BangBangMower
+from mowerhw.sim.handling import HandlingEvent, handled
 from mowerhw.sim.plant import MowerPlant
 from mowerhw.sim.render import OmniRenderer
 from mowerhw.sim.sensors import mower_speed_scale
@@ -73,6 +80,7 @@ def run_mow(
     frame_latency_s: float | None = None,
     mow_seed: int | None = None,
     level: str = "bearing",
+    handling: list[HandlingEvent] | None = None,
 ) -> MowOutcome:
     """Mow a simulated yard (the world of ``scenario``/``seed``) with the given map.
 
@@ -120,19 +128,28 @@ def run_mow(
     prev_permit = False
     wall0 = time.perf_counter()
     gate = PermitGate.from_config(config if isinstance(config, Config) else None, False)
+    safety = SafetyMonitor(config.safety if isinstance(config, Config) else SafetyConfig())
+    events = handling or []
+    safety_reason = np.empty(n + 1, dtype=object)
     for k in range(n + 1):
         cont = loc.containment()
         arrivals = {"imu": loc.t_imu, "speed": loc.t_speed, "camera": loc.t_camera}
         res = gate.decide(plant.t, "mow", arrivals, cont)
+        force, switches = handled(events, plant.t, plant.specific_force())
+        safety.imu(plant.t, force)
+        safety.switches(plant.t, *switches)
+        stop = safety.halt(plant.t)
+        safety_reason[k] = stop[0] if stop else ""
+        deck, why = (False, stop[0]) if stop else (res.permit, res.reason)
         x, q = loc.ekf.x, loc.ekf.q
         yaw = float(np.arctan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2)))
         t_arr[k], true_xy[k], true_yaw[k] = plant.t, plant.xy, plant.yaw
         est[k, :3], est[k, 3:] = x, q
-        permit[k], state[k], sigma[k] = res.permit, STATE_CODE[res.state], cont.sigma_m
-        reason[k] = res.reason
-        if prev_permit and not res.permit:
-            reasons[res.reason] += 1
-        prev_permit = res.permit
+        permit[k], state[k], sigma[k] = deck, STATE_CODE[res.state], cont.sigma_m
+        reason[k] = why
+        if prev_permit and not deck:
+            reasons[why] += 1
+        prev_permit = deck
         if k == n:
             break
         v, w = controller.command(plant.t, float(x[0]), float(x[1]), yaw, str(res.state))
@@ -160,6 +177,9 @@ def run_mow(
     if vision_dropout is not None:  # halting without vision is intended, not a false halt
         d0, d1 = vision_dropout
         excluded = (t_arr >= d0) & (t_arr < d0 + d1 + 2.0)
+    for e in events:  # nor is halting while the mower is handled (and latched after)
+        held = (t_arr >= e.at_s) & (t_arr < e.at_s + e.duration_s + safety.cfg.clear_s + 1.0)
+        excluded = held if excluded is None else excluded | held
     dt = 1.0 / plant.rates.imu_hz
     halts = score_halts(t_arr, permit, s_true, controller.start_after_s, dt, excluded)
     metrics = {
@@ -178,6 +198,8 @@ def run_mow(
     }
     if vision_dropout is not None:
         metrics["vision_dropout"] = _dropout_timeline(vision_dropout, t_arr, permit, reason, sigma)
+    if events:
+        metrics["handling"] = [_handling_result(e, t_arr, permit, safety_reason) for e in events]
     if vision is not None:
         metrics.update(
             level="pixel",
@@ -231,6 +253,38 @@ def _judge(vision: Any, plant: MowerPlant, frame: Any, truth: dict[int, FloatArr
         verdict = sees_point(xy_w, yaw_w, bearings[k], truth.get(lid, nan))
         if verdict is not None:
             out.append(verdict)
+    return out
+
+
+#: the halt reason each kind of handling must give
+HANDLING_REASON = {"lift": Reason.LIFTED, "tilt": Reason.TILTED, "bump": Reason.COLLISION}
+
+
+def _handling_result(
+    e: HandlingEvent, t: FloatArray, permit: NDArray[np.bool_], safety_reason: NDArray[Any]
+) -> dict[str, Any]:
+    """When the deck halted for one event and why, permits while the safety function held
+    (goal 0), and when the deck ran again after the event ended."""
+    k0 = int(np.searchsorted(t, e.at_s))
+    end = e.at_s + e.duration_s
+    out: dict[str, Any] = {
+        "kind": e.kind,
+        "at_s": e.at_s,
+        "duration_s": e.duration_s,
+        "deck_running": bool(permit[k0 - 1]) if k0 > 0 else False,
+    }
+    want = HANDLING_REASON[e.kind].value
+    held = np.flatnonzero(safety_reason[k0:] == want)
+    halted = np.flatnonzero(~permit[k0:])
+    if held.size:
+        out["detected_after_ms"] = round(float(t[k0 + held[0]] - e.at_s) * 1e3, 1)
+        out["reason"] = want
+    if halted.size:
+        out["halted_after_ms"] = round(float(t[k0 + halted[0]] - e.at_s) * 1e3, 1)
+    latched = np.asarray(safety_reason != "", dtype=bool)
+    out["permits_while_held"] = int(np.sum(permit & latched))
+    again = np.flatnonzero((t >= end) & permit)
+    out["deck_again_after_end_s"] = round(float(t[again[0]] - end), 2) if again.size else None
     return out
 
 

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from mowerhw.common.samples import BearingObservation
+from mowerhw.common.units import GRAVITY_MPS2
 from mowerhw.sim.motion import MapFrame, camera_xy_world, pose_on_ground, start_frame
 from mowerhw.sim.sensors import CameraTiming, Gyro, SensorSuite, Speedometer, observe_at
 from mowerhw.sim.world import World
@@ -101,7 +102,7 @@ class MowerPlant:
         start_map = self.frame.world_to_map(np.array([[start_xy[0], start_xy[1], 0.0]]))[0]
         self.map_xy = start_map[:2].copy()
         self.map_heading = float(start_yaw) + self.frame.yaw
-        self.v = 0.0
+        self.v = self._v_prev = 0.0
         self.w = 0.0
         self.vision_dropout = vision_dropout
         self._pending: list[tuple[float, Any]] = []  # (delivery time, frame), taken in order
@@ -169,7 +170,7 @@ class MowerPlant:
         self.map_heading = psi + w_cmd * dt
         rot_prev = self.rot
         self._update_pose()
-        self.v = v_cmd
+        self._v_prev, self.v = self.v, v_cmd
         self.t = round(self.t + dt, 9)
         self.k += 1
         rate = Rotation.from_matrix(rot_prev.T @ self.rot).as_rotvec() / dt
@@ -185,6 +186,17 @@ class MowerPlant:
             self._pending = [(when, f) for when, f in self._pending if when > self.t + 1e-9]
             out.frames = sorted(due, key=lambda f: f.t)
         return out
+
+    def specific_force(self) -> tuple[float, float, float]:
+        """What the accelerometer reads now (body frame, z up, m/s²): gravity through the
+        attitude on the ground, the along-track acceleration and the centripetal one."""
+        g_body = self.rot.T @ np.array([0.0, 0.0, GRAVITY_MPS2])
+        along = (self.v - self._v_prev) / self.dt
+        return (
+            float(g_body[0] + along),
+            float(g_body[1] + self.v * self.w),
+            float(g_body[2]),
+        )
 
     def in_flight(self) -> list[Any]:
         """Frames taken but not delivered yet, in time order."""

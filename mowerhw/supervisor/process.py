@@ -32,11 +32,11 @@ from drivers.can.speed import SpeedReader
 from drivers.can.switches import decode_switches
 from mowerhw.common.reasons import Reason
 from mowerhw.config import Config
+from mowerhw.estimation.safety import SafetyMonitor
 from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
 from mowerhw.supervisor.canport import CanPort
 from mowerhw.supervisor.lease import Lease, SupervisorGate
-from mowerhw.supervisor.safety import SafetyMonitor
 
 log = logging.getLogger("mowerhw.supervisor")
 

@@ -19,9 +19,10 @@ import math
 from dataclasses import dataclass
 
 from mowerhw.common.reasons import Reason
+from mowerhw.common.units import GRAVITY_MPS2
 from mowerhw.config import SafetyConfig
 
-G = 9.80665
+G = GRAVITY_MPS2
 
 
 @dataclass
