@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 
 
@@ -25,6 +26,12 @@ class ThreadedDevice:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=self.join_timeout_s)
+
+    def set_nice(self, nice: int) -> None:
+        """The device thread's niceness (Linux: per thread); OSError without the right."""
+        if self._thread is None or self._thread.native_id is None:
+            raise RuntimeError("the device is not running")
+        os.setpriority(os.PRIO_PROCESS, self._thread.native_id, nice)
 
     def _run(self) -> None:
         raise NotImplementedError

@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 
 from mowerhw.config import SafetyConfig
-from mowerhw.mow.containment import Reason
 from mowerhw.estimation.safety import G, SafetyMonitor
+from mowerhw.mow.containment import Reason
 
 
 def _feed(m: SafetyMonitor, t0: float, t1: float, accel: tuple[float, float, float]) -> float:

@@ -37,3 +37,34 @@ def test_keepout_zone_is_respected(lawn_map):
     assert o.metrics["missed_halts"] == 0
     inside_zone = (np.abs(o.true_xy[:, 0] - c.x) < 0.9) & (np.abs(o.true_xy[:, 1] - c.y) < 0.9)
     assert not np.any(o.permit & inside_zone)
+
+
+def test_a_lifted_tilted_and_bumped_mower_halts_in_the_simulator(lawn_map):
+    """The simulator's handling events reach the same safety functions as on the mower: each
+    halts with its own reason, nothing is permitted while one holds, the deck runs again
+    after the clear time."""
+    from mowerhw.sim.handling import HandlingEvent
+
+    events = [HandlingEvent.parse(x) for x in ("lift@20:2", "tilt@40:3", "bump@60")]
+    o = run_mow(lawn_map, "paper", 9, duration_s=75.0, handling=events)
+    got = {h["kind"]: h for h in o.metrics["handling"]}
+    assert got["lift"]["reason"] == "LIFTED" and got["lift"]["halted_after_ms"] <= 100.0
+    assert got["bump"]["reason"] == "COLLISION" and got["bump"]["halted_after_ms"] <= 100.0
+    # tilt: the 1 s debounce plus the 0.3 s gravity filter, then at once
+    assert got["tilt"]["reason"] == "TILTED" and 1000.0 <= got["tilt"]["halted_after_ms"] <= 1600.0
+    for h in got.values():
+        assert h["deck_running"] and h["permits_while_held"] == 0
+        assert h["deck_again_after_end_s"] is not None and h["deck_again_after_end_s"] >= 2.0
+    assert o.metrics["missed_halts"] == 0
+    assert o.metrics["halts_by_reason"].keys() >= {"LIFTED", "TILTED", "COLLISION"}
+
+
+def test_handling_events_are_parsed_or_refused_by_name():
+    import pytest
+
+    from mowerhw.sim.handling import HandlingEvent
+
+    assert HandlingEvent.parse("tilt@5") == HandlingEvent("tilt", 5.0, 3.0)
+    for bad in ("fly@3", "lift@x", "lift@-1", "lift@3:0"):
+        with pytest.raises(ValueError, match=r"KIND@T|T must be"):
+            HandlingEvent.parse(bad)

@@ -154,7 +154,6 @@ class Bench:
         self.pose_samples: list[tuple[float, float, float, bool, float]] = []
         self.cpu_s_total = 0.0  # CPU seconds of daemons that have exited (restarts)
         self.peak_rss_mb = 0.0
-        self.bench_nice = 0
         self.restarts = 0
         self.timeline: list[tuple] = []  # (s, state, reason, x, y, heading, detail) at 5 Hz
         self.rss_samples: list[tuple[float, float, float]] = []  # (s into mowing, RSS MB, CPU s)
@@ -200,7 +199,7 @@ class Bench:
         env = {**os.environ, "PYTHONUNBUFFERED": "1", **self.notify.env()}
         with open(self.daemon_log, "ab") as logf:
             self.proc = subprocess.Popen(
-                self._unniced(cmd),
+                cmd,
                 stdout=subprocess.DEVNULL,
                 stderr=logf,
                 env=env,
@@ -246,29 +245,24 @@ class Bench:
 
     # -------------------------------------------------------------------------------- run
 
-    #: the bench's own niceness under --load: its mock devices stand for hardware, which a
-    #: loaded computer cannot slow down (so a late sample is the daemon's doing, not theirs)
-    HARDWARE_NICE = -15
+    #: under --load, the niceness of the mock sensors' threads (VN-100, speed sensor, mower
+    #: controller, the mower's motion): they stand for hardware, which a loaded computer
+    #: cannot slow down. The camera's renderer is not among them (it costs CPU a real
+    #: camera does not; at high priority it would take it from the daemon).
+    SENSOR_NICE = -15
 
-    def _hardware_priority(self) -> None:
-        """Under ``--load``: this process (every thread it starts after) at
-        :attr:`HARDWARE_NICE`; the daemon and the hogs are started back at 0 (``_unniced``)."""
-        self.bench_nice = 0
+    def _sensor_priority(self, devices: list[Any]) -> None:
         if not self.load:
             return
         try:
-            os.setpriority(os.PRIO_PROCESS, 0, self.HARDWARE_NICE)
-            self.bench_nice = self.HARDWARE_NICE
+            for dev in devices:
+                dev.set_nice(self.SENSOR_NICE)
         except OSError as exc:
             log.warning(
-                "bench: mock devices at normal priority (%s): under --load they may "
+                "bench: mock sensors at normal priority (%s): under --load they may "
                 "be late themselves",
                 exc,
             )
-
-    def _unniced(self, cmd: list[str]) -> list[str]:
-        """``cmd`` started at niceness 0 however nice the bench runs."""
-        return ["nice", "-n", str(-self.bench_nice), *cmd] if self.bench_nice else cmd
 
     def run(self) -> dict[str, Any]:
 
@@ -283,7 +277,6 @@ class Bench:
         from mowerhw.sim.render import OmniRenderer
 
         t_wall0 = time.monotonic()
-        self._hardware_priority()
         self.cfg_path = self._write_config()
         cfg = load_config(self.cfg_path)
         self.sock = cfg.runtime.control_socket
@@ -313,10 +306,10 @@ class Bench:
             camera,
         )
         started = [mower.start(), vn.start(), speed.start(), controller.start(), camera.start()]
+        self._sensor_priority([mower, vn, speed, controller])
         metrics: dict[str, Any] = {}
         hogs = [
-            subprocess.Popen(self._unniced([sys.executable, "-c", "while True: pass"]))
-            for _ in range(self.load)
+            subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(self.load)
         ]
         try:
             if self.given_map is None:

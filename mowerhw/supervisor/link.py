@@ -39,6 +39,7 @@ class SupervisorLink:
         self.supervisor_status: dict[str, Any] = {}
         self.leases_sent = 0
         self._newest: Lease | None = None
+        self._given_key: tuple[bool, str] | None = None
         self._permit = False
         self._wake = threading.Condition()
         self._send_lock = threading.Lock()
@@ -78,9 +79,12 @@ class SupervisorLink:
         now: float,
         accel: tuple[float, float, float] | None = None,
     ) -> bool:
+        key = (bool(d.permit), d.reason)
         with self._wake:
             self._newest = Lease.of(d, pose_xyh, now, accel or (math.nan, math.nan, math.nan))
-            self._wake.notify()
+            if key != self._given_key:  # a change goes at once; a renewal when it is due
+                self._given_key = key
+                self._wake.notify()
         was, self._permit = self._permit, bool(d.permit)
         return was and not d.permit
 
@@ -117,9 +121,9 @@ class SupervisorLink:
             self._lost(f"cannot write to the supervisor ({exc})")
 
     def _write(self) -> None:
-        """Send the newest lease: at once when the decision changed, else at most every
-        ``RENEW_S`` (leases last 80 ms; renewing at every 100 Hz decision would only cost the
-        supervisor CPU)."""
+        """Send the newest lease: at once when the decision changed (the only time this
+        thread is woken), else at most every ``RENEW_S`` (leases last 80 ms; renewing at every
+        100 Hz decision would only cost CPU in both processes)."""
         last_key: tuple[bool, str] | None = None
         last_sent = 0.0
         while True:
@@ -131,8 +135,8 @@ class SupervisorLink:
                         if (lease.permit, lease.reason) != last_key or wait <= 0:
                             break
                         self._wake.wait(wait)
-                    else:
-                        self._wake.wait()
+                    else:  # renewals are not notified: look again when one is due
+                        self._wake.wait(RENEW_S)
                 if self._closed:
                     return
                 lease, self._newest = self._newest, None
