@@ -58,6 +58,22 @@ def set_priority(nice: int, who: str) -> None:
         )
 
 
+def set_session_priority(nice: int) -> None:
+    """With the kernel's autogroup scheduling (``kernel.sched_autogroup_enabled``: the
+    processes of one session share one CPU share, outside systemd), a nice value acts only
+    among the session's own processes: give the session the same nice, so other work on the
+    computer does not take the daemon's share. Under systemd the unit's ``CPUWeight=`` does
+    this; nothing happens where there is no autogroup."""
+    path = Path("/proc/self/autogroup")
+    try:
+        if path.exists():
+            path.write_text(str(nice))
+    except PermissionError:  # a service user: its cgroup's CPUWeight= is what counts
+        log.debug("the daemon's session keeps its nice (no CAP_SYS_NICE)")
+    except OSError as exc:
+        log.warning("cannot give the daemon's session nice %d (%s)", nice, exc)
+
+
 def set_realtime(priority: int) -> None:
     """SCHED_FIFO at ``priority`` (Linux), reset on fork: the estimation process it starts
     runs normally. Said once if not allowed."""
@@ -245,6 +261,7 @@ class Supervisor:
 
     def _run(self) -> int:
         set_priority(self.cfg.supervisor.nice, "the permit supervisor")
+        set_session_priority(self.cfg.supervisor.nice)
         set_realtime(self.cfg.supervisor.realtime_priority)
         self.port.ensure(time.monotonic())
         self._rx = threading.Thread(target=self._receive, name="can-rx", daemon=True)
