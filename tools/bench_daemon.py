@@ -68,10 +68,24 @@ def main() -> None:
         "missed_halts": r["missed_halts"],
         "false_halt_fraction": r["false_halt_fraction"],
         "supervisor": r.get("supervisor"),
+        "watchdog": r.get("watchdog"),
+        "mock_imu": r.get("mock_imu"),
+        "daemon_imu_silent_halts": _imu_silent_halts(bench.daemon_log),
         "load_processes": args.load,
         "position_rmse_m": r["position_rmse_m"],
     }
     print(json.dumps(out, indent=1))
+
+
+def _imu_silent_halts(log_path: Path) -> int:
+    """Halts the estimation side gave because no IMU sample had arrived for its limit."""
+    try:
+        text = log_path.read_text(errors="replace")
+    except OSError:
+        return -1
+    return sum(
+        1 for line in text.splitlines() if "mowerhw.permit: HALT SENSOR_STALE: imu silent" in line
+    )
 
 
 if __name__ == "__main__":

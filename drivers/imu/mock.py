@@ -81,6 +81,9 @@ class MockStats:
     commands: int = 0
     errors_sent: int = 0
     vanished: int = 0
+    #: output gaps not asked for (the sensor process was late: a loaded bench), wall time
+    late_gaps_over_50ms: int = 0
+    max_output_gap_s: float = 0.0
 
 
 class MockVn100(ThreadedDevice):
@@ -104,6 +107,7 @@ class MockVn100(ThreadedDevice):
         self.power_cycle_on_vanish = power_cycle_on_vanish  # USB powers it: unplugging resets
         self.rng = random.Random(seed)
         self.stats = MockStats()
+        self._last_emit: float | None = None
         self._factory_baud = baudrate
         self.baud = baudrate
         self.async_on = True
@@ -215,9 +219,20 @@ class MockVn100(ThreadedDevice):
             if now >= next_out:
                 rate = self._output_rate()
                 if rate > 0 and self.async_on and not self._stalled(now - self._t0):
+                    self._note_gap(now)
                     self._emit(now - self._t0)
                 period = 1.0 / rate if rate > 0 else 0.05
                 next_out = now + period if now - next_out > 0.1 else next_out + period
+
+    def _note_gap(self, now: float) -> None:
+        last = self._last_emit
+        self._last_emit = now
+        if last is None or now - last > 1.0:  # a fault or a reconnect, not lateness
+            return
+        gap = now - last
+        self.stats.max_output_gap_s = max(self.stats.max_output_gap_s, gap)
+        if gap > 0.05:
+            self.stats.late_gaps_over_50ms += 1
 
     def _stalled(self, t: float) -> bool:
         return any(a <= t < a + d for a, d in self.faults.stalls)

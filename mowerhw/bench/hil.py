@@ -490,6 +490,11 @@ class Bench:
         mow_s = time.monotonic() - t_mow0
         metrics = self._score_mow(world, t_mow0, windows, latencies, mow_s)
         metrics["watchdog"] = self.notify.gaps(t_mow0, time.monotonic())
+        vs = self.vn.stats  # the mock sensor's own lateness (a loaded bench, not the daemon)
+        metrics["mock_imu"] = {
+            "late_gaps_over_50ms": vs.late_gaps_over_50ms,
+            "max_output_gap_ms": round(vs.max_output_gap_s * 1e3, 1),
+        }
         sup = st.get("supervisor")
         if sup:  # the permit supervisor's own figures (the process that sends the frames)
             metrics["supervisor"] = {
