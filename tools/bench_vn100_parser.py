@@ -64,8 +64,16 @@ def run(stream: bytes, chunk: int, repeat: int) -> dict[str, float]:
         "packets_per_s": round(stats.packets_ok / best),
         "us_per_packet": round(best / max(stats.packets_ok, 1) * 1e6, 2),
         "headroom_over_921600_baud": round(len(stream) / best / WIRE_BYTES_PER_S, 1),
-        "counts": {k: v for k, v in asdict(stats).items() if v} | {"rejected": stats.rejected},
+        "counts": _str_keys({k: v for k, v in asdict(stats).items() if v})
+        | {"rejected": _str_keys(stats.rejected)},
     }
+
+
+def _str_keys(value: object) -> object:
+    """JSON objects take string keys only (the stats count some by (group, field) tuples)."""
+    if isinstance(value, dict):
+        return {str(k): _str_keys(v) for k, v in value.items()}
+    return value
 
 
 def main() -> None:
