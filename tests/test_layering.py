@@ -23,7 +23,14 @@ ROOT = Path(__file__).resolve().parent.parent
 
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("mowerhw.common",),
-    ("mowerhw.config", "mowerhw.camera", "mowerhw.map", "mowerhw.imu.grades", "mowerhw.imu"),
+    (
+        "mowerhw.config",
+        "mowerhw.camera",
+        "mowerhw.map",
+        "mowerhw.zones",
+        "mowerhw.imu.grades",
+        "mowerhw.imu",
+    ),
     (
         "mowerhw.estimation",
         "mowerhw.teach",

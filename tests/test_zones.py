@@ -1,0 +1,80 @@
+"""Zones from other tools (issue 17): outlines cleaned with each repair said, unusable ones
+refused by name, the real OpenMower garden read, and containment over it against an
+independent even-odd reference (the full grid: tools/check_garden_containment.py)."""
+
+import numpy as np
+import pytest
+from _tools import load_tool
+
+from mowerhw.zones import ZoneError, clean_outline, read_openmower
+
+garden = load_tool("check_garden_containment")
+needs_garden = pytest.mark.skipif(
+    not garden.DATA.exists(), reason=f"the OpenMower garden map is not present ({garden.DATA})"
+)
+
+
+def test_outlines_are_repaired_and_each_repair_is_said() -> None:
+    cw_closed_dup = [[0, 0], [0, 0], [0, 4], [3, 4], [3, 0], [0, 0]]
+    ring, repairs = clean_outline(cw_closed_dup, "bed")
+    assert ring.tolist() == [[3, 0], [3, 4], [0, 4], [0, 0]]  # counter-clockwise, open
+    assert repairs == [
+        "bed: 1 repeated vertex(es) removed",
+        "bed: the closing vertex (a repeat of the first) removed",
+        "bed: clockwise outline made counter-clockwise",
+    ]
+    ring, repairs = clean_outline([[0, 0], [3, 0], [3, 4]], "ok")
+    assert repairs == [] and ring.shape == (3, 2)
+
+
+@pytest.mark.parametrize(
+    ("points", "message"),
+    [
+        ([[0, 0], [2, 2], [2, 0], [0, 2]], "not a simple polygon (Self-intersection"),
+        ([[0, 0], [1, 1], [0, 0]], "fewer than 3 distinct vertices"),
+        ([[0, 0], [1, float("nan")], [0, 1]], "not finite"),
+        ([[0, 0], [1e9, 0], [0, 1]], "beyond ±10000 m"),
+        ([[0, 0], [1, 0], [2, 0]], "not a simple polygon"),  # collinear: no area
+        ("abc", "not a list of [x, y]"),
+    ],
+)
+def test_unusable_outlines_are_refused_by_name(points, message) -> None:
+    with pytest.raises(ZoneError) as err:
+        clean_outline(points, "pond")
+    assert str(err.value).startswith("pond: ") and message in str(err.value)
+
+
+@needs_garden
+def test_the_real_openmower_garden_is_read_with_its_quirks_repaired() -> None:
+    g = read_openmower(garden.DATA)
+    kinds = [z.kind for z in g.zones]
+    assert (kinds.count("mow"), kinds.count("keepout"), kinds.count("nav")) == (9, 22, 1)
+    assert all(z.area_m2() > 0 for z in g.zones)
+    assert any("clockwise outline made counter-clockwise" in r for r in g.repairs)
+    assert any("repeated vertex" in r for r in g.repairs)
+    assert any("closing vertex" in r for r in g.repairs)
+    assert g.dock_xy is not None and np.isfinite(g.dock_xy).all()
+
+
+@needs_garden
+def test_containment_over_the_garden_agrees_with_even_odd() -> None:
+    r = garden.check(step=0.25)
+    assert r["disagreements"] == 0 and r["compared"] > 30_000
+    assert r["states"]["INSIDE"] > 0 and r["states"]["TRANSIT"] > 0
+
+
+def test_the_even_odd_reference_can_disagree() -> None:
+    square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    pts = np.array([[0.5, 0.5], [1.5, 0.5], [0.5, -0.2]])
+    assert garden.even_odd(square, pts).tolist() == [True, False, False]
+    assert garden.even_odd(square + 1.0, pts).tolist() == [False, False, False]
+
+
+def test_a_broken_backup_is_refused(tmp_path) -> None:
+    path = tmp_path / "m.json"
+    path.write_text('{"areas": [{"properties": {"type": "lawn"}, "outline": []}]}')
+    with pytest.raises(ZoneError, match="unknown type"):
+        read_openmower(path)
+    path.write_text("[" * 100_000)
+    with pytest.raises(ZoneError, match="not an OpenMower map backup"):
+        read_openmower(path)
