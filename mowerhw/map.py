@@ -68,6 +68,9 @@ FRAME_DESCRIPTION = (
 MIN_AREA_M2 = 4.0
 MIN_LANDMARKS = 4
 DESCRIPTOR_BYTES = 32  # one ORB descriptor (mowerhw.frontend.descriptors)
+#: the dock (where teach started and mowing starts) lies on the taught edge: further out
+#: than this (m), the map and its dock do not belong together
+MAX_DOCK_OUTSIDE_M = 2.0
 #: a map file is at most this big (bytes): ~60,000 landmarks with a few views each
 MAX_MAP_BYTES = 64 << 20
 #: every coordinate lies within this many metres of the map's origin (the teach start)
@@ -141,12 +144,17 @@ class LawnMap:
             out.append(f"boundary: not a simple polygon ({explain_validity(outline)})")
         elif outline.area < MIN_AREA_M2:
             out.append(f"boundary: encloses {outline.area:.1f} m², less than {MIN_AREA_M2} m²")
-        names = set()
+        names: set[str] = set()
+        shapes: dict[bytes, str] = {}
         for zone in self.keepouts:
             poly = Polygon(zone.polygon)
             if zone.name in names:
                 out.append(f"keep-out {zone.name!r}: the name is used twice")
             names.add(zone.name)
+            shape = orient(poly.normalize(), 1.0).wkb if poly.is_valid else b""
+            if shape and shape in shapes:
+                out.append(f"keep-out {zone.name!r}: the same zone as {shapes[shape]!r}")
+            shapes.setdefault(shape, zone.name)
             if not poly.is_valid:
                 out.append(
                     f"keep-out {zone.name!r}: not a simple polygon ({explain_validity(poly)})"
@@ -163,6 +171,14 @@ class LawnMap:
             if left < MIN_AREA_M2:
                 out.append(
                     f"keep-outs: they leave {left:.1f} m² to mow, less than {MIN_AREA_M2} m²"
+                )
+        if outline.is_valid:
+            dock = shapely.Point(float(self.dock_position[0]), float(self.dock_position[1]))
+            off = float(outline.exterior.distance(dock)) if not outline.covers(dock) else 0.0
+            if off > MAX_DOCK_OUTSIDE_M:
+                out.append(
+                    f"dock: {off:.1f} m outside the lawn (at most {MAX_DOCK_OUTSIDE_M} m: "
+                    "mowing starts there)"
                 )
         if len(self.landmarks) < MIN_LANDMARKS:
             out.append(
@@ -340,10 +356,12 @@ def _int_id(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_ID
 
 
-def from_document(doc: Any, source: str = "map") -> LawnMap:
-    """Validate a parsed map document; raise :class:`MapError` on anything wrong."""
+def from_document(doc: Any, source: str = "map", strict: bool = True) -> LawnMap:
+    """Validate a parsed map document; raise :class:`MapError` on anything wrong.
+    ``strict=False``: a map whose content is readable but unfit for mowing (its
+    :meth:`LawnMap.problems`) is returned anyway, to be shown with its problems."""
     try:
-        return _from_document(doc, source)
+        return _from_document(doc, source, strict)
     except MapError:
         raise
     except (TypeError, ValueError, AttributeError, KeyError, IndexError, OverflowError) as exc:
@@ -353,7 +371,7 @@ def from_document(doc: Any, source: str = "map") -> LawnMap:
         ) from None
 
 
-def _from_document(doc: Any, source: str) -> LawnMap:
+def _from_document(doc: Any, source: str, strict: bool) -> LawnMap:
     if not isinstance(doc, dict):
         raise MapError(f"{source}: not a mowerhw map (the top level is not an object)")
     if doc.get("format") != FORMAT:
@@ -449,7 +467,7 @@ def _from_document(doc: Any, source: str) -> LawnMap:
         checksum=checksum,
     )
     problems = lawn.problems()
-    if problems:
+    if problems and strict:
         raise MapError(f"{source}: " + "; ".join(problems))
     return lawn
 
@@ -528,10 +546,11 @@ def parse_map_json(data: bytes, source: str) -> Any:
         raise MapError(f"{source}: JSON nested too deeply") from None
 
 
-def load(path: str | Path, max_bytes: int = MAX_MAP_BYTES) -> LawnMap:
-    """Load and fully validate a map file (see the module doc for what is refused)."""
+def load(path: str | Path, max_bytes: int = MAX_MAP_BYTES, strict: bool = True) -> LawnMap:
+    """Load and fully validate a map file (see the module doc for what is refused);
+    ``strict=False`` returns a readable map unfit for mowing too (see :func:`from_document`)."""
     doc = parse_map_json(read_map_bytes(path, max_bytes), str(path))
-    return from_document(doc, str(path))
+    return from_document(doc, str(path), strict)
 
 
 def polygon_area(points: FloatArray) -> float:

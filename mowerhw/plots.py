@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -102,8 +103,11 @@ def teach_figures(outcome: TeachOutcome, out_dir: str | Path) -> list[Path]:
     return files
 
 
-def map_figure(lawn_map: Any, path: str | Path, title: str = "") -> Path:
-    """Plot a lawn map: outline, keep-out zones, landmarks, dock."""
+def map_figure(
+    lawn_map: Any, path: str | Path, title: str = "", problems: list[str] | None = None
+) -> Path:
+    """Plot a lawn map: outline, keep-out zones, landmarks, dock; ``problems`` (what makes
+    it unfit for mowing) in red over the plot."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.0, 5.4))
     b = np.vstack([lawn_map.boundary, lawn_map.boundary[:1]])
@@ -124,6 +128,18 @@ def map_figure(lawn_map: Any, path: str | Path, title: str = "") -> Path:
     ax.set_ylabel("y (m)")
     ax.legend(fontsize=8, loc="best")
     ax.set_title(title or "Lawn map", fontsize=10)
+    if problems:
+        text = "UNFIT FOR MOWING:\n" + "\n".join(textwrap.shorten(p, 70) for p in problems[:8])
+        ax.text(
+            0.02,
+            0.98,
+            text,
+            transform=ax.transAxes,
+            va="top",
+            fontsize=7,
+            color="#b00000",
+            bbox={"facecolor": "white", "alpha": 0.85, "edgecolor": "#b00000"},
+        )
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -83,3 +83,37 @@ def test_parse_polygon():
     assert parse_polygon("0,0 1,0;1,1").shape == (3, 2)
     with pytest.raises(ValueError, match="corner 2"):
         parse_polygon("0,0 1 1,1")
+
+
+def _resigned(path, edit):
+    doc = json.loads(path.read_text())
+    edit(doc)
+    doc.pop("checksum")
+    doc["checksum"] = "sha256:" + lawnmap._digest(doc)
+    path.write_text(json.dumps(doc))
+
+
+def test_an_unfit_map_is_shown_and_drawn_with_its_problems(map_file, tmp_path, capsys):
+    """A duplicate keep-out and a dock far off: `map check` refuses (78); `show` and
+    `plot` still show the map, with the problems marked, and exit 78."""
+    zone = {"name": "bed", "polygon": [[0, 0], [1, 0], [1, 1], [0, 1]]}
+    twin = {"name": "bed2", "polygon": [[1, 1], [0, 1], [0, 0], [1, 0]]}  # same, other order
+
+    def edit(doc):
+        doc["keepout_zones"] = [zone, twin]
+        doc["dock"]["position"] = [18.0, 0.0, 0.0]
+
+    _resigned(map_file, edit)
+    with pytest.raises(SystemExit) as info:
+        main(["map", "check", str(map_file)])
+    assert info.value.code == 78
+    err = capsys.readouterr().err
+    assert "keep-out 'bed2': the same zone as 'bed'" in err
+    assert "dock: 12.0 m outside the lawn (at most 2.0 m" in err
+    assert main(["map", "show", str(map_file)]) == 78
+    out = capsys.readouterr()
+    assert "PROBLEM      keep-out 'bed2': the same zone as 'bed'" in out.out
+    assert "unfit for mowing (2 problem(s)" in out.err
+    png = tmp_path / "unfit.png"
+    assert main(["map", "plot", str(map_file), "-o", str(png)]) == 78
+    assert png.stat().st_size > 1000

@@ -46,14 +46,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     rem.set_defaults(handler=_remove)
 
 
-def _load(path: Path):
+def _load(path: Path, strict: bool = True):
+    """The map; ``strict=False``: also one unfit for mowing (shown with its problems)."""
     from mowerhw.map import MapError, load
 
     try:
-        return load(path)
+        return load(path, strict=strict)
     except MapError as exc:
         print(f"mowerhw: {exc}", file=sys.stderr)
         raise SystemExit(EX_CONFIG) from None
+
+
+def _report_problems(m, path: Path) -> int:
+    """Say what makes the map unfit (after showing it): exit status 78 if anything."""
+    problems = m.problems()
+    if problems:
+        print(
+            f"mowerhw: {path}: unfit for mowing ({len(problems)} problem(s), shown above)",
+            file=sys.stderr,
+        )
+    return EX_CONFIG if problems else 0
+
+
+def _mowable_m2(m) -> float | None:
+    try:
+        return round(float(m.lawn_polygon().area), 2)
+    except Exception:  # an outline that is no polygon: no area to speak of
+        return None
 
 
 def _summary(m, path: Path) -> dict:
@@ -66,7 +85,8 @@ def _summary(m, path: Path) -> dict:
         "boundary_points": m.boundary.shape[0],
         "perimeter_m": round(outline.length, 2),
         "area_m2": round(outline.area, 2),
-        "mowable_area_m2": round(m.lawn_polygon().area, 2),
+        "mowable_area_m2": _mowable_m2(m),
+        "problems": m.problems(),
         "keepout_zones": [
             {"name": z.name, "points": len(z.polygon), "area_m2": round(Polygon(z.polygon).area, 2)}
             for z in m.keepouts
@@ -93,11 +113,11 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _show(args: argparse.Namespace) -> int:
-    m = _load(args.map)
+    m = _load(args.map, strict=False)
     s = _summary(m, args.map)
     if args.json:
         print_json(s)
-        return 0
+        return _report_problems(m, args.map)
     print(f"map          {s['map']}  (version {s['version']}, created {s['created_utc']})")
     print(
         f"outline      {s['boundary_points']} points, perimeter {s['perimeter_m']} m, "
@@ -108,17 +128,23 @@ def _show(args: argparse.Namespace) -> int:
     print(f"landmarks    {s['landmarks']} (median σ {s['landmark_sigma_median_m']} m)")
     print(f"dock         {s['dock_position']}")
     print(f"checksum     {s['checksum']}")
-    return 0
+    for problem in s["problems"]:
+        print(f"PROBLEM      {problem}")
+    return _report_problems(m, args.map)
 
 
 def _plot(args: argparse.Namespace) -> int:
     from mowerhw.plots import map_figure
 
-    m = _load(args.map)
+    m = _load(args.map, strict=False)
     out = args.output or args.map.with_suffix(".png")
-    map_figure(m, out, title=f"{args.map.name}: {len(m.landmarks)} landmarks")
+    title = f"{args.map.name}: {len(m.landmarks)} landmarks"
+    problems = m.problems()
+    map_figure(m, out, title=title, problems=problems)
     print(out)
-    return 0
+    for problem in problems:
+        print(f"PROBLEM      {problem}")
+    return _report_problems(m, args.map)
 
 
 def parse_polygon(text: str) -> np.ndarray:
