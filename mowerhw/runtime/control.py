@@ -77,7 +77,9 @@ class ControlServer:
         self._clients: dict[asyncio.Task[None], float] = {}
         self._next_slot = 0.0
 
-    async def start(self) -> None:
+    async def start(self) -> asyncio.Task[None]:
+        """Bind and listen; the task accepting connections (it ends only when the server
+        closes: the daemon watches it like its other tasks)."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with contextlib.suppress(FileNotFoundError):
             if not stat.S_ISSOCK(self.path.lstat().st_mode):
@@ -94,6 +96,7 @@ class ControlServer:
             raise
         self._sock = sock
         self._accepting = asyncio.create_task(self._accept_loop(), name="control-accept")
+        return self._accepting
 
     async def close(self) -> None:
         if self._accepting is not None:

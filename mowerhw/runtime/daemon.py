@@ -78,9 +78,7 @@ class Daemon:
         self.core = RuntimeCore(config, on_build=self._on_build)
         self.notifier = Notifier()
         self.pose_file = PoseFile(Path(config.runtime.pose_file))
-        self.map_file = MapFile(
-            Path(config.map.path), config.map.max_bytes, config.map.load_timeout_s
-        )
+        self.map_file = MapFile.of(config)
         self.loop: asyncio.AbstractEventLoop | None = None
         #: where decisions go: the supervisor's pipe (``link``), else CAN in this process
         self.link = link
@@ -98,8 +96,7 @@ class Daemon:
         self._pose_pool = ThreadPoolExecutor(1, thread_name_prefix="pose-writer")
         self._pose_future: Future[None] | None = None
         self._builds: dict[int, asyncio.Future[Any]] = {}
-        self._tasks: set[asyncio.Future[Any]] = set()
-        self._names: dict[asyncio.Future[Any], str] = {}
+        self._names: dict[asyncio.Future[Any], str] = {}  # running tasks (kept referenced)
         self.exit_status = 0
         self._next_map_check = 0.0
         self._next_record = 0.0
@@ -115,7 +112,7 @@ class Daemon:
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, self.request_stop, sig.name)
         self.control = control = control_server(self.cfg, self.handle_command)
-        await control.start()
+        self._watch(await control.start(), "control socket")
         if self.record_path is not None:
             self.recorder = open_recorder(self.cfg, self.record_path)
             self.core.journal = RecorderJournal(self.recorder)
@@ -181,15 +178,15 @@ class Daemon:
         return call
 
     def _spawn(self, coro: Awaitable[Any], name: str) -> asyncio.Future[Any]:
-        task = asyncio.ensure_future(coro)
+        return self._watch(asyncio.ensure_future(coro), name)
+
+    def _watch(self, task: asyncio.Future[Any], name: str) -> asyncio.Future[Any]:
         self._names[task] = name
-        self._tasks.add(task)
         task.add_done_callback(self._task_done)
         return task
 
     def _task_done(self, task: asyncio.Future[Any]) -> None:
         """Crash-only: a task that dies halts the deck and ends the process (exit 1)."""
-        self._tasks.discard(task)
         name = self._names.pop(task, "?")
         if not task.cancelled() and (exc := task.exception()) is not None:
             log.error("the %s task died (%r): halting and ending the process", name, exc)

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from mowerhw.common.fileio import write_atomic
+from mowerhw.config import Config
 from mowerhw.map import MAX_MAP_BYTES, LawnMap, MapError, check_map_file
 from mowerhw.runtime.pipelines import StartPose, TeachPipeline
 
@@ -62,6 +63,11 @@ class MapFile:
         self._stamp: FileStamp | None = None
         self._loading = False
         self._failed_at: float | None = None
+
+    @classmethod
+    def of(cls, cfg: Config) -> MapFile:
+        """The map file the config names, with its limits (``map.*``)."""
+        return cls(Path(cfg.map.path), cfg.map.max_bytes, cfg.map.load_timeout_s)
 
     def changed(self) -> bool:
         """The file is not the one last loaded, or the last load failed :attr:`RETRY_S` ago
