@@ -55,6 +55,7 @@ from shapely.validation import explain_validity
 from mowerhw import __version__
 from mowerhw.common.fileio import write_atomic
 from mowerhw.common.strictjson import JsonLimitError, bounded_int, no_constant, unique_keys
+from mowerhw.zones import Garden, Zone
 
 FloatArray = NDArray[np.float64]
 
@@ -205,6 +206,35 @@ class LawnMap:
             raise MapError("; ".join(problems))
         return new
 
+    def garden(self) -> Garden:
+        """The map's zones (the outline as the one mowing area ``lawn``, the keep-outs) and
+        its dock, as :mod:`mowerhw.zones` holds them (GeoJSON, other tools)."""
+        q = self.dock_quaternion
+        heading = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
+        zones = [Zone("lawn", "mow", _ccw(self.boundary))]
+        zones += [Zone(z.name, "keepout", _ccw(z.polygon)) for z in self.keepouts]
+        return Garden(zones, np.asarray(self.dock_position[:2], float), float(heading))
+
+    def with_zones(self, garden: Garden) -> LawnMap:
+        """This map (landmarks, dock, frame) with the outline and keep-outs of ``garden``:
+        exactly one mowing area, keep-outs inside it; :class:`MapError` otherwise (several
+        areas and navigation areas need a map format this version does not have)."""
+        mow = garden.of_kind("mow")
+        if len(mow) != 1 or garden.of_kind("nav"):
+            raise MapError(
+                f"{len(mow)} mowing and {len(garden.of_kind('nav'))} navigation area(s): this "
+                f"map format (version {VERSION}) holds one mowing area and keep-outs"
+            )
+        new = replace(
+            self,
+            boundary=mow[0].polygon.copy(),
+            keepouts=[KeepOut(z.name, z.polygon.copy()) for z in garden.of_kind("keepout")],
+        )
+        problems = new.problems()
+        if problems:
+            raise MapError("; ".join(problems))
+        return new
+
     def without_keepout(self, name: str) -> LawnMap:
         if not any(z.name == name for z in self.keepouts):
             known = ", ".join(repr(z.name) for z in self.keepouts) or "none"
@@ -296,6 +326,10 @@ class LawnMap:
 
 def _utc_now() -> str:
     return _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def _ccw(points: FloatArray) -> FloatArray:
+    return np.asarray(orient(Polygon(points), 1.0).exterior.coords)[:-1]
 
 
 def _rows(a: Any) -> Any:

@@ -1,6 +1,8 @@
 """Zones of a garden as other tools draw them: mowing areas, navigation (transit) areas and
 keep-outs, each a named polygon in local metres, cleaned the way a map must be before
-containment may trust it (issue 17).
+containment may trust it (issue 17). Read from an OpenMower map backup or from GeoJSON
+(:func:`read_geojson`; :func:`to_geojson` writes one, so a map can be edited in QGIS or any
+GeoJSON editor).
 
 Other tools' outlines come with quirks (the real OpenMower garden in
 ``shared/data/real/openmower-garden-map`` has all of them): either winding, the first vertex
@@ -137,4 +139,91 @@ def read_openmower(path: str | Path) -> Garden:
             raise ZoneError(f"{path.name}: the docking station needs a position x, y") from None
         if not (np.all(np.isfinite(dock_xy)) and math.isfinite(heading)):
             raise ZoneError(f"{path.name}: the docking station's position is not finite")
+    return Garden(zones, dock_xy, heading, repairs)
+
+
+#: GeoJSON as mowerhw writes it: local metres, not longitude/latitude (RFC 7946 has no
+#: "crs"; the foreign member ``mowerhw`` says so)
+GEOJSON_FRAME = "local metres of the mowerhw map (x forward, y left at the teach start)"
+
+
+def to_geojson(garden: Garden, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A GeoJSON FeatureCollection: one Polygon feature per zone (``properties``: ``kind``
+    mow | nav | keepout, ``name``; closed counter-clockwise rings), the dock as a Point
+    with its heading."""
+    features: list[dict[str, Any]] = []
+    for z in garden.zones:
+        ring = np.vstack([z.polygon, z.polygon[:1]]).round(6).tolist()
+        features.append(
+            {
+                "type": "Feature",
+                "properties": {"kind": z.kind, "name": z.name},
+                "geometry": {"type": "Polygon", "coordinates": [ring]},
+            }
+        )
+    if garden.dock_xy is not None:
+        features.append(
+            {
+                "type": "Feature",
+                "properties": {"kind": "dock", "heading_rad": garden.dock_heading_rad or 0.0},
+                "geometry": {"type": "Point", "coordinates": np.round(garden.dock_xy, 6).tolist()},
+            }
+        )
+    return {
+        "type": "FeatureCollection",
+        "mowerhw": {"frame": GEOJSON_FRAME, **(extra or {})},
+        "features": features,
+    }
+
+
+def read_geojson(path: str | Path) -> Garden:
+    """Zones from a GeoJSON FeatureCollection as :func:`to_geojson` writes it (an editor may
+    have changed, added or removed features); :class:`ZoneError` naming the first feature
+    that cannot be used. Polygons with holes are refused (a hole is a keep-out feature)."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise ZoneError(f"{path}: not GeoJSON ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("type") != "FeatureCollection":
+        raise ZoneError(f"{path}: not a GeoJSON FeatureCollection")
+    features = doc.get("features")
+    if not isinstance(features, list):
+        raise ZoneError(f"{path}: the FeatureCollection has no list of features")
+    zones, repairs = [], []
+    dock_xy, heading = None, None
+    for k, f in enumerate(features):
+        props = f.get("properties") if isinstance(f, dict) else None
+        geom = f.get("geometry") if isinstance(f, dict) else None
+        if not isinstance(props, dict) or not isinstance(geom, dict):
+            raise ZoneError(f"{path.name}: feature {k} needs properties and a geometry")
+        kind = props.get("kind")
+        name = str(props.get("name") or f"{kind}-{k + 1}")
+        where = f"{path.name}: {kind} {name!r}"
+        if kind == "dock" and geom.get("type") == "Point":
+            try:
+                dock_xy = np.array([float(v) for v in geom["coordinates"][:2]])
+                heading = float(props.get("heading_rad", 0.0))
+            except (TypeError, KeyError, ValueError, IndexError):
+                raise ZoneError(f"{where}: the dock needs coordinates [x, y]") from None
+            continue
+        if kind not in KINDS:
+            raise ZoneError(f"{where}: kind must be one of {', '.join(KINDS)} or dock")
+        rings = geom.get("coordinates")
+        if geom.get("type") != "Polygon" or not isinstance(rings, list) or not rings:
+            raise ZoneError(f"{where}: a zone is a Polygon")
+        if len(rings) > 1:
+            raise ZoneError(f"{where}: holes are not allowed (draw a keep-out feature instead)")
+        outer = rings[0]
+        if isinstance(outer, list) and len(outer) > 3 and outer[0] == outer[-1]:
+            outer = outer[:-1]  # GeoJSON closes every ring: not a repair
+        ring, fixed = clean_outline(outer, where)
+        zones.append(Zone(name, str(kind), ring))
+        repairs += fixed
+    names = [(z.kind, z.name) for z in zones]
+    dup = next((n for n in names if names.count(n) > 1), None)
+    if dup is not None:
+        raise ZoneError(f"{path.name}: two {dup[0]} zones named {dup[1]!r}")
+    if dock_xy is not None and not (np.all(np.isfinite(dock_xy)) and math.isfinite(heading or 0.0)):
+        raise ZoneError(f"{path.name}: the dock's position is not finite")
     return Garden(zones, dock_xy, heading, repairs)

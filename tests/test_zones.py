@@ -78,3 +78,91 @@ def test_a_broken_backup_is_refused(tmp_path) -> None:
     path.write_text("[" * 100_000)
     with pytest.raises(ZoneError, match="not an OpenMower map backup"):
         read_openmower(path)
+
+
+def _map(tmp_path):
+    from mowerhw.map import Landmark, LawnMap
+
+    a = np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    m = LawnMap(
+        boundary=np.column_stack([6 * np.cos(a), 4 * np.sin(a)]),
+        landmarks=[
+            Landmark(i, np.array([8.0 * np.cos(i), 8.0 * np.sin(i), 1.0]), np.eye(3) * 1e-4)
+            for i in range(6)
+        ],
+    )
+    path = tmp_path / "lawn.json"
+    m.save(path)
+    return path
+
+
+def test_geojson_round_trip_and_an_edit_come_back_into_the_map(tmp_path, capsys) -> None:
+    import json
+
+    from mowerhw.cli import main
+    from mowerhw.map import load
+    from mowerhw.zones import read_geojson
+
+    path = _map(tmp_path)
+    assert main(["map", "export-geojson", str(path)]) == 0
+    gj = path.with_suffix(".geojson")
+    doc = json.loads(gj.read_text())
+    assert doc["type"] == "FeatureCollection" and "local metres" in doc["mowerhw"]["frame"]
+    back = read_geojson(gj)
+    assert [z.kind for z in back.zones] == ["mow"] and back.repairs == []
+    assert np.allclose(back.zones[0].polygon, load(path).garden().zones[0].polygon, atol=1e-6)
+    # an editor adds a clockwise keep-out with the ring closed
+    doc["features"].append(
+        {
+            "type": "Feature",
+            "properties": {"kind": "keepout", "name": "sandpit"},
+            "geometry": {
+                "type": "Polygon",
+                "coordinates": [[[1, 1], [1, 2], [2, 2], [2, 1], [1, 1]]],
+            },
+        }
+    )
+    gj.write_text(json.dumps(doc))
+    assert main(["map", "import-geojson", str(path), str(gj)]) == 0
+    out = capsys.readouterr().out
+    assert "sandpit': clockwise outline made counter-clockwise" in out
+    m = load(path)
+    assert [z.name for z in m.keepouts] == ["sandpit"] and len(m.landmarks) == 6
+    assert list(tmp_path.glob("lawn.json.*.bak"))
+
+
+@pytest.mark.parametrize(
+    ("feature", "message"),
+    [
+        ({"kind": "nav", "name": "path"}, "this map format (version 1) holds one mowing area"),
+        ({"kind": "lawn", "name": "x"}, "kind must be one of mow, nav, keepout or dock"),
+        ({"kind": "keepout", "name": "hole", "hole": True}, "holes are not allowed"),
+    ],
+)
+def test_geojson_that_the_map_cannot_take_is_refused(tmp_path, capsys, feature, message) -> None:
+    import json
+
+    from mowerhw.cli import main
+
+    path = _map(tmp_path)
+    main(["map", "export-geojson", str(path)])
+    gj = path.with_suffix(".geojson")
+    doc = json.loads(gj.read_text())
+    ring = [[10, 10], [11, 10], [11, 11], [10, 11], [10, 10]]
+    rings = (
+        [ring, [[10.2, 10.2], [10.4, 10.2], [10.4, 10.4], [10.2, 10.2]]]
+        if feature.pop("hole", False)
+        else [ring]
+    )
+    doc["features"].append(
+        {
+            "type": "Feature",
+            "properties": feature,
+            "geometry": {"type": "Polygon", "coordinates": rings},
+        }
+    )
+    gj.write_text(json.dumps(doc))
+    before = path.read_bytes()
+    assert main(["map", "import-geojson", str(path), str(gj)]) == 78
+    assert message in capsys.readouterr().err
+    assert path.read_bytes() == before

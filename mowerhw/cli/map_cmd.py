@@ -40,6 +40,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add.add_argument("--name", help="a name for the zone (default: keepout-N)")
     add.set_defaults(handler=_add)
+    exp = msub.add_parser(
+        "export-geojson",
+        help="the outline, keep-outs and dock as GeoJSON (local metres), to edit in QGIS",
+    )
+    exp.add_argument("map", type=Path)
+    exp.add_argument("-o", "--output", type=output_file, help="default: next to the map")
+    exp.set_defaults(handler=_export_geojson)
+    imp = msub.add_parser(
+        "import-geojson",
+        help="take the outline and keep-outs from an edited GeoJSON (landmarks kept; backup)",
+    )
+    imp.add_argument("map", type=Path)
+    imp.add_argument("geojson", type=Path)
+    imp.set_defaults(handler=_import_geojson)
     rem = msub.add_parser("remove-keepout", help="remove a keep-out zone by name (with a backup)")
     rem.add_argument("map", type=Path)
     rem.add_argument("--name", required=True)
@@ -209,4 +223,40 @@ def _remove(args: argparse.Namespace) -> int:
     backup = _backup(args.map)
     new.save(args.map)
     print(f"{args.map}: removed keep-out {args.name!r}; previous map kept as {backup}")
+    return 0
+
+
+def _export_geojson(args: argparse.Namespace) -> int:
+    import json
+
+    from mowerhw.common.fileio import write_atomic
+    from mowerhw.zones import to_geojson
+
+    m = _load(args.map, strict=False)
+    out = args.output or args.map.with_suffix(".geojson")
+    doc = to_geojson(m.garden(), {"map": str(args.map), "map_checksum": m.checksum})
+    write_atomic(out, (json.dumps(doc, indent=1) + "\n").encode())
+    print(out)
+    return _report_problems(m, args.map)
+
+
+def _import_geojson(args: argparse.Namespace) -> int:
+    from mowerhw.map import MapError
+    from mowerhw.zones import ZoneError, read_geojson
+
+    m = _load(args.map, strict=False)
+    try:
+        garden = read_geojson(args.geojson)
+        new = m.with_zones(garden)
+    except (ZoneError, MapError) as exc:
+        print(f"mowerhw: {exc}", file=sys.stderr)
+        return EX_CONFIG
+    for repair in garden.repairs:
+        print(f"repaired     {repair}")
+    backup = _backup(args.map)
+    new.save(args.map)
+    print(
+        f"{args.map}: outline and {len(new.keepouts)} keep-out(s) from {args.geojson} "
+        f"({new.lawn_polygon().area:.1f} m² to mow); previous map kept as {backup}"
+    )
     return 0
