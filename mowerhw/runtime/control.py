@@ -161,6 +161,7 @@ class ControlServer:
                         )
                     )
                 conn.close()
+                await asyncio.sleep(0)  # a connection storm still yields every turn
                 continue
             task = asyncio.create_task(self._serve(conn), name="control-client")
             self._clients[task] = time.monotonic()
