@@ -112,7 +112,9 @@ def load_map_isolated(path: Path, max_bytes: int, timeout_s: float) -> LawnMap:
     # a child interpreter (not multiprocessing: the estimation process is a daemonic child
     # of the supervisor, which may not have children of its own)
     cmd = [sys.executable, "-m", "mowerhw.runtime.maploader", str(path), str(max_bytes)]
-    child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    child = subprocess.Popen(
+        cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
     try:
         out, err = child.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
