@@ -69,6 +69,9 @@ FRAME_DESCRIPTION = (
 MIN_AREA_M2 = 4.0
 MIN_LANDMARKS = 4
 DESCRIPTOR_BYTES = 32  # one ORB descriptor (mowerhw.frontend.descriptors)
+#: a keep-out may reach this far past the lawn's edge (m): a zone clipped to the edge
+#: lies on it up to rounding
+EDGE_TOLERANCE_M = 1e-3
 #: the dock (where teach started and mowing starts) lies on the taught edge: further out
 #: than this (m), the map and its dock do not belong together
 MAX_DOCK_OUTSIDE_M = 2.0
@@ -160,7 +163,7 @@ class LawnMap:
                 out.append(
                     f"keep-out {zone.name!r}: not a simple polygon ({explain_validity(poly)})"
                 )
-            elif outline.is_valid and not outline.contains(poly):
+            elif outline.is_valid and not outline.buffer(EDGE_TOLERANCE_M).contains(poly):
                 out.append(f"keep-out {zone.name!r}: not inside the lawn boundary")
             elif poly.area <= 0.0:
                 out.append(f"keep-out {zone.name!r}: has no area")

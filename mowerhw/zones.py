@@ -60,6 +60,74 @@ class Garden:
     def of_kind(self, kind: str) -> list[Zone]:
         return [z for z in self.zones if z.kind == kind]
 
+    def moved(self, rotation_rad: float, translation: Any) -> Garden:
+        """The garden turned by ``rotation_rad`` about the origin, then shifted."""
+        c, s = math.cos(rotation_rad), math.sin(rotation_rad)
+        rot = np.array([[c, -s], [s, c]])
+        t = np.asarray(translation, dtype=np.float64)
+        zones = [Zone(z.name, z.kind, z.polygon @ rot.T + t) for z in self.zones]
+        dock = None if self.dock_xy is None else rot @ self.dock_xy + t
+        heading = None if self.dock_heading_rad is None else self.dock_heading_rad + rotation_rad
+        return Garden(zones, dock, heading, list(self.repairs))
+
+
+def align_by_dock(garden: Garden, dock_xy: Any, dock_heading_rad: float) -> Garden:
+    """``garden`` moved so its dock lands on ``dock_xy`` facing ``dock_heading_rad`` (the dock
+    pose both maps have); :class:`ZoneError` if it has no dock."""
+    if garden.dock_xy is None or garden.dock_heading_rad is None:
+        raise ZoneError("the imported map has no dock to align by; give reference points")
+    turn = float(dock_heading_rad) - garden.dock_heading_rad
+    c, s = math.cos(turn), math.sin(turn)
+    turned = np.array([[c, -s], [s, c]]) @ garden.dock_xy
+    return garden.moved(turn, np.asarray(dock_xy, dtype=np.float64) - turned)
+
+
+def align_by_points(garden: Garden, source: Any, target: Any) -> tuple[Garden, float]:
+    """``garden`` moved by the rigid motion (rotation + shift) that best takes the
+    ``source`` points onto the ``target`` points (least squares, two or more pairs), and the
+    RMS residual (m); :class:`ZoneError` for fewer than two distinct points."""
+    src = np.asarray(source, dtype=np.float64).reshape(-1, 2)
+    dst = np.asarray(target, dtype=np.float64).reshape(-1, 2)
+    if len(src) < 2 or len(src) != len(dst) or np.ptp(src, axis=0).max() < 1e-3:
+        raise ZoneError("alignment needs two or more distinct pairs of reference points")
+    sc, dc = src.mean(axis=0), dst.mean(axis=0)
+    h = (src - sc).T @ (dst - dc)
+    turn = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+    c, s = math.cos(turn), math.sin(turn)
+    rot = np.array([[c, -s], [s, c]])
+    shift = dc - rot @ sc
+    rms = float(np.sqrt(np.mean(np.sum((src @ rot.T + shift - dst) ** 2, axis=1))))
+    return garden.moved(turn, shift), rms
+
+
+def one_area(garden: Garden, name: str) -> Garden:
+    """The mowing area ``name`` with the keep-outs that reach into it, clipped to it (a
+    map of format 1 holds one area, its keep-outs inside it); each clip is a repair."""
+    areas = {z.name: z for z in garden.of_kind("mow")}
+    if name not in areas:
+        raise ZoneError(f"no mowing area {name!r}; the areas are: {', '.join(areas) or 'none'}")
+    area = areas[name]
+    outline = Polygon(area.polygon)
+    keepouts, repairs = [], []
+    for z in garden.of_kind("keepout"):
+        zone = Polygon(z.polygon)
+        if not zone.intersects(outline) or zone.touches(outline):
+            continue
+        if outline.contains(zone):
+            keepouts.append(z)
+            continue
+        part = zone.intersection(outline)
+        pieces = [part] if part.geom_type == "Polygon" else list(getattr(part, "geoms", []))
+        pieces = [q for q in pieces if q.geom_type == "Polygon" and q.area > 1e-4]
+        for k, piece in enumerate(pieces):
+            ring = np.asarray(piece.exterior.coords)[:-1]
+            label = z.name if len(pieces) == 1 else f"{z.name}-{k + 1}"
+            keepouts.append(Zone(label, "keepout", ring))
+        repairs.append(f"keep-out {z.name!r}: clipped to the area {name!r} (it crossed its edge)")
+    kept = {area.name} | {z.name for z in keepouts}
+    said = [r for r in garden.repairs if any(f"{n!r}:" in r for n in kept)]
+    return Garden([area, *keepouts], garden.dock_xy, garden.dock_heading_rad, said + repairs)
+
 
 def clean_outline(points: Any, where: str) -> tuple[FloatArray, list[str]]:
     """``points`` as a counter-clockwise open ring without repeated vertices, and the

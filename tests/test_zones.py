@@ -166,3 +166,88 @@ def test_geojson_that_the_map_cannot_take_is_refused(tmp_path, capsys, feature, 
     assert main(["map", "import-geojson", str(path), str(gj)]) == 78
     assert message in capsys.readouterr().err
     assert path.read_bytes() == before
+
+
+def _openmower_file(tmp_path, dock=(1.0, 1.0), heading=0.0):
+    import json
+
+    def outline(pts):
+        return [{"x": x, "y": y} for x, y in pts]
+
+    doc = {
+        "areas": [
+            {
+                "id": "front",
+                "properties": {"type": "mow"},
+                "outline": outline([[0, 0], [0, 8], [10, 8], [10, 0]]),
+            },
+            {
+                "id": "back",
+                "properties": {"type": "mow"},
+                "outline": outline([[20, 0], [30, 0], [30, 5], [20, 5]]),
+            },
+            {
+                "id": "bed",
+                "properties": {"type": "obstacle"},
+                "outline": outline([[8, 3], [12, 3], [12, 5], [8, 5], [8, 3]]),
+            },
+            {
+                "id": "path",
+                "properties": {"type": "nav"},
+                "outline": outline([[10, 3], [20, 3], [20, 4], [10, 4]]),
+            },
+        ],
+        "docking_stations": [{"position": {"x": dock[0], "y": dock[1]}, "heading": heading}],
+    }
+    path = tmp_path / "openmower.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_an_openmower_area_is_imported_by_the_dock_with_its_obstacle_clipped(
+    tmp_path, capsys
+) -> None:
+    from mowerhw.cli import main
+    from mowerhw.map import load
+
+    m = _map(tmp_path)
+    om = _openmower_file(tmp_path, dock=(1.0, 1.0), heading=0.5)
+    assert main(["map", "import-openmower", str(om), "--into", str(m)]) == 2  # lists the areas
+    assert "mowing area  'front'" in capsys.readouterr().out
+    assert main(["map", "import-openmower", str(om), "--into", str(m), "--area", "front"]) == 0
+    out = capsys.readouterr().out
+    assert "keep-out 'bed': clipped to the area 'front' (it crossed its edge)" in out
+    assert "clockwise outline made counter-clockwise" in out
+    lawn = load(m)
+    # aligned: the OpenMower dock (1, 1, heading 0.5) lands on the map's dock (0, 0, heading 0)
+    c, s = np.cos(-0.5), np.sin(-0.5)
+    corner = np.array([[c, -s], [s, c]]) @ (np.array([10.0, 8.0]) - [1.0, 1.0])
+    assert np.min(np.linalg.norm(lawn.boundary - corner, axis=1)) < 1e-6
+    assert [z.name for z in lawn.keepouts] == ["bed"] and len(lawn.landmarks) == 6
+    assert lawn.keepouts[0].polygon.shape[0] == 4  # the half inside the area
+
+
+def test_an_area_the_map_format_cannot_hold_is_refused_by_name(tmp_path, capsys) -> None:
+    from mowerhw.cli import main
+
+    m = _map(tmp_path)
+    om = _openmower_file(tmp_path)
+    before = m.read_bytes()
+    assert main(["map", "import-openmower", str(om), "--into", str(m), "--area", "back"]) == 78
+    assert "dock: " in capsys.readouterr().err and m.read_bytes() == before  # dock far off
+    assert main(["map", "import-openmower", str(om), "--into", str(m), "--area", "nope"]) == 78
+    assert "no mowing area 'nope'; the areas are: front, back" in capsys.readouterr().err
+
+
+def test_alignment_by_reference_points_finds_the_rigid_motion() -> None:
+    from mowerhw.zones import Garden, Zone, align_by_points
+
+    square = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 3.0], [0.0, 3.0]])
+    g = Garden([Zone("a", "mow", square)])
+    c, s = np.cos(0.3), np.sin(0.3)
+    rot = np.array([[c, -s], [s, c]])
+    target = square @ rot.T + [5.0, -2.0]
+    moved, rms = align_by_points(g, square[:3], target[:3])
+    assert rms < 1e-9 and np.allclose(moved.zones[0].polygon, target)
+    with pytest.raises(ZoneError, match="two or more distinct pairs"):
+        align_by_points(g, square[:1], target[:1])

@@ -54,6 +54,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     imp.add_argument("map", type=Path)
     imp.add_argument("geojson", type=Path)
     imp.set_defaults(handler=_import_geojson)
+    om = msub.add_parser(
+        "import-openmower",
+        help="one mowing area of an OpenMower map, with its obstacles, into a taught map",
+        description="Read an OpenMower map backup (its outlines repaired and each repair "
+        "said), align it to the taught map by the dock both have (or by --points), and put "
+        "the mowing area --area with the obstacles reaching into it (clipped to it) into "
+        "MAP; the landmarks stay, the old map is kept as a backup.",
+    )
+    om.add_argument("file", type=Path, help="the OpenMower map backup (JSON)")
+    om.add_argument("--into", type=Path, required=True, metavar="MAP")
+    om.add_argument("--area", help="the mowing area (name or id); without it: list them")
+    om.add_argument(
+        "--points",
+        help='reference points instead of the dock: "ox,oy:mx,my ..." (OpenMower → map, 2+)',
+    )
+    om.set_defaults(handler=_import_openmower)
     rem = msub.add_parser("remove-keepout", help="remove a keep-out zone by name (with a backup)")
     rem.add_argument("map", type=Path)
     rem.add_argument("--name", required=True)
@@ -257,6 +273,47 @@ def _import_geojson(args: argparse.Namespace) -> int:
     new.save(args.map)
     print(
         f"{args.map}: outline and {len(new.keepouts)} keep-out(s) from {args.geojson} "
+        f"({new.lawn_polygon().area:.1f} m² to mow); previous map kept as {backup}"
+    )
+    return 0
+
+
+def _import_openmower(args: argparse.Namespace) -> int:
+    import math
+
+    from mowerhw.map import MapError
+    from mowerhw.zones import ZoneError, align_by_dock, align_by_points, one_area, read_openmower
+
+    m = _load(args.into, strict=False)
+    try:
+        garden = read_openmower(args.file)
+        if args.points:
+            pairs = [tok.split(":") for tok in args.points.split()]
+            src = [[float(v) for v in a.split(",")] for a, _ in pairs]
+            dst = [[float(v) for v in b.split(",")] for _, b in pairs]
+            garden, rms = align_by_points(garden, src, dst)
+            print(f"aligned      by {len(src)} reference points (RMS {rms:.3f} m)")
+        else:
+            q = m.dock_quaternion
+            yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
+            garden = align_by_dock(garden, m.dock_position[:2], yaw)
+            print("aligned      by the dock")
+        if not args.area:
+            for z in garden.of_kind("mow"):
+                print(f"mowing area  {z.name!r}: {len(z.polygon)} points, {z.area_m2():.1f} m²")
+            print("mowerhw: choose one with --area NAME", file=sys.stderr)
+            return 2
+        chosen = one_area(garden, args.area)
+        new = m.with_zones(chosen)
+    except (ZoneError, MapError, ValueError) as exc:
+        print(f"mowerhw: {exc}", file=sys.stderr)
+        return EX_CONFIG
+    for repair in chosen.repairs:
+        print(f"repaired     {repair}")
+    backup = _backup(args.into)
+    new.save(args.into)
+    print(
+        f"{args.into}: mowing area {args.area!r} with {len(new.keepouts)} keep-out(s) "
         f"({new.lawn_polygon().area:.1f} m² to mow); previous map kept as {backup}"
     )
     return 0
