@@ -209,14 +209,17 @@ class LawnMap:
             raise MapError("; ".join(problems))
         return new
 
+    def dock_heading(self) -> float:
+        """The dock's heading (rad, yaw of its quaternion)."""
+        q = self.dock_quaternion
+        return math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
+
     def garden(self) -> Garden:
         """The map's zones (the outline as the one mowing area ``lawn``, the keep-outs) and
         its dock, as :mod:`mowerhw.zones` holds them (GeoJSON, other tools)."""
-        q = self.dock_quaternion
-        heading = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
         zones = [Zone("lawn", "mow", _ccw(self.boundary))]
         zones += [Zone(z.name, "keepout", _ccw(z.polygon)) for z in self.keepouts]
-        return Garden(zones, np.asarray(self.dock_position[:2], float), float(heading))
+        return Garden(zones, np.asarray(self.dock_position[:2], float), self.dock_heading())
 
     def with_zones(self, garden: Garden) -> LawnMap:
         """This map (landmarks, dock, frame) with the outline and keep-outs of ``garden``:

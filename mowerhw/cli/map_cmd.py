@@ -242,6 +242,20 @@ def _remove(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replace(path: Path, new, repairs: list[str], what: str) -> int:
+    """Save ``new`` over the map at ``path`` (the old one kept as a backup), saying each
+    repair made to what came in and what the map holds now."""
+    for repair in repairs:
+        print(f"repaired     {repair}")
+    backup = _backup(path)
+    new.save(path)
+    print(
+        f"{path}: {what}, {len(new.keepouts)} keep-out(s) ({new.lawn_polygon().area:.1f} m² to "
+        f"mow); previous map kept as {backup}"
+    )
+    return 0
+
+
 def _export_geojson(args: argparse.Namespace) -> int:
     import json
 
@@ -267,20 +281,10 @@ def _import_geojson(args: argparse.Namespace) -> int:
     except (ZoneError, MapError) as exc:
         print(f"mowerhw: {exc}", file=sys.stderr)
         return EX_CONFIG
-    for repair in garden.repairs:
-        print(f"repaired     {repair}")
-    backup = _backup(args.map)
-    new.save(args.map)
-    print(
-        f"{args.map}: outline and {len(new.keepouts)} keep-out(s) from {args.geojson} "
-        f"({new.lawn_polygon().area:.1f} m² to mow); previous map kept as {backup}"
-    )
-    return 0
+    return _replace(args.map, new, garden.repairs, f"outline and keep-outs from {args.geojson}")
 
 
 def _import_openmower(args: argparse.Namespace) -> int:
-    import math
-
     from mowerhw.map import MapError
     from mowerhw.zones import ZoneError, align_by_dock, align_by_points, one_area, read_openmower
 
@@ -294,9 +298,7 @@ def _import_openmower(args: argparse.Namespace) -> int:
             garden, rms = align_by_points(garden, src, dst)
             print(f"aligned      by {len(src)} reference points (RMS {rms:.3f} m)")
         else:
-            q = m.dock_quaternion
-            yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
-            garden = align_by_dock(garden, m.dock_position[:2], yaw)
+            garden = align_by_dock(garden, m.dock_position[:2], m.dock_heading())
             print("aligned      by the dock")
         if not args.area:
             for z in garden.of_kind("mow"):
@@ -308,12 +310,4 @@ def _import_openmower(args: argparse.Namespace) -> int:
     except (ZoneError, MapError, ValueError) as exc:
         print(f"mowerhw: {exc}", file=sys.stderr)
         return EX_CONFIG
-    for repair in chosen.repairs:
-        print(f"repaired     {repair}")
-    backup = _backup(args.into)
-    new.save(args.into)
-    print(
-        f"{args.into}: mowing area {args.area!r} with {len(new.keepouts)} keep-out(s) "
-        f"({new.lawn_polygon().area:.1f} m² to mow); previous map kept as {backup}"
-    )
-    return 0
+    return _replace(args.into, new, chosen.repairs, f"mowing area {args.area!r}")
