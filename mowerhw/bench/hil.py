@@ -7,7 +7,8 @@ What runs (docs/design.md §9, level 3):
 * a CAN bus shared between processes (python-can ``udp_multicast`` on the loopback, a random
   group per run) carrying the mock speed sensor's GBSD frames and the daemon's ISB /
   heartbeat / status frames, which the mock mower controller reads;
-* the camera: frames rendered from the true pose (:class:`mowerhw.sim.render.OmniRenderer`)
+* the camera: frames rendered from the true pose (:class:`mowerhw.sim.render.OmniRenderer`,
+  in a process of its own: :mod:`mowerhw.bench.render_process`)
   and served on a Unix socket (:mod:`drivers.camera.stream`);
 * the daemon itself, ``mowerhw run`` in its own process, configured like the real mower
   except for device paths.
@@ -270,11 +271,11 @@ class Bench:
         from drivers.can.mock_mower import MockMowerController
         from drivers.can.mock_speed import MockSpeedSensor
         from drivers.imu.mock import MockVn100
+        from mowerhw.bench.render_process import RenderProcess
         from mowerhw.bench.world import RealTimeMower
         from mowerhw.config import load_config
         from mowerhw.sim import make_world
         from mowerhw.sim.motion import teach_loop
-        from mowerhw.sim.render import OmniRenderer
 
         t_wall0 = time.monotonic()
         self.cfg_path = self._write_config()
@@ -284,7 +285,7 @@ class Bench:
         sc = world.scenario
         truth = teach_loop(world.lawn, sc.speed_mps, sc.camera_height_m, standstill_s=1.0)
         mower = RealTimeMower(world, truth, self.seed, q_bi=cfg.imu.q_bi)
-        renderer = OmniRenderer(world, self.seed)
+        renderer = RenderProcess(self.scenario, self.seed)  # its own GIL (render_process.py)
         bus = open_bus("udp_multicast", self.can_channel, udp_port=self.can_port)
         vn = MockVn100(self.out / "vn100", source=mower.imu_source, seed=self.seed)
         speed = MockSpeedSensor(bus, mower.speed_source)
@@ -330,6 +331,7 @@ class Bench:
                 with contextlib.suppress(Exception):
                     dev.stop()
             bus.shutdown()
+            renderer.close()
             self.notify.close()
         if self.load:
             metrics["load_processes"] = self.load
@@ -657,8 +659,10 @@ class Bench:
             )
 
         def note_reason() -> None:
+            """The daemon's first halt reason while the fault lasts (asked a few times: a
+            map fault is seen after the next map check and the loader's start)."""
             st = self._status(timeout=1.0)
-            if st:
+            if st and not res.daemon_reason and not st.get("permit") and st.get("reason"):
                 res.daemon_reason = f"{st.get('reason', '')}: {st.get('detail', '')}".strip(": ")
 
         def cleared() -> None:
@@ -666,7 +670,8 @@ class Bench:
             if clear is not None:
                 clear()
 
-        self._actions.append((t0 + min(0.5, max(duration, 0.1) * 0.5), note_reason))
+        for share in (0.25, 0.5, 0.9):
+            self._actions.append((t0 + max(duration, 0.1) * share, note_reason))
         self._actions.append((t0 + duration, cleared))
         return res
 
