@@ -16,8 +16,12 @@ import numpy as np
 
 
 def _serve(scenario: str, seed: int, conn: Connection) -> None:
+    import cv2
+
     from mowerhw.sim import make_world
     from mowerhw.sim.render import OmniRenderer
+
+    cv2.setNumThreads(1)  # a camera's worth of work, not every core (OpenCV's pool spins)
 
     renderer = OmniRenderer(make_world(scenario, seed), seed)
     conn.send(("ready", tuple(renderer.table.shape)))
