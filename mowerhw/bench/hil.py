@@ -7,8 +7,7 @@ What runs (docs/design.md §9, level 3):
 * a CAN bus shared between processes (python-can ``udp_multicast`` on the loopback, a random
   group per run) carrying the mock speed sensor's GBSD frames and the daemon's ISB /
   heartbeat / status frames, which the mock mower controller reads;
-* the camera: frames rendered from the true pose (:class:`mowerhw.sim.render.OmniRenderer`,
-  in a process of its own: :mod:`mowerhw.bench.render_process`)
+* the camera: frames rendered from the true pose (:class:`mowerhw.sim.render.OmniRenderer`)
   and served on a Unix socket (:mod:`drivers.camera.stream`);
 * the daemon itself, ``mowerhw run`` in its own process, configured like the real mower
   except for device paths.
@@ -271,11 +270,11 @@ class Bench:
         from drivers.can.mock_mower import MockMowerController
         from drivers.can.mock_speed import MockSpeedSensor
         from drivers.imu.mock import MockVn100
-        from mowerhw.bench.render_process import RenderProcess
         from mowerhw.bench.world import RealTimeMower
         from mowerhw.config import load_config
         from mowerhw.sim import make_world
         from mowerhw.sim.motion import teach_loop
+        from mowerhw.sim.render import OmniRenderer
 
         t_wall0 = time.monotonic()
         self.cfg_path = self._write_config()
@@ -285,7 +284,7 @@ class Bench:
         sc = world.scenario
         truth = teach_loop(world.lawn, sc.speed_mps, sc.camera_height_m, standstill_s=1.0)
         mower = RealTimeMower(world, truth, self.seed, q_bi=cfg.imu.q_bi)
-        renderer = RenderProcess(self.scenario, self.seed)  # its own GIL (render_process.py)
+        renderer = OmniRenderer(world, self.seed)
         bus = open_bus("udp_multicast", self.can_channel, udp_port=self.can_port)
         vn = MockVn100(self.out / "vn100", source=mower.imu_source, seed=self.seed)
         speed = MockSpeedSensor(bus, mower.speed_source)
@@ -331,7 +330,6 @@ class Bench:
                 with contextlib.suppress(Exception):
                     dev.stop()
             bus.shutdown()
-            renderer.close()
             self.notify.close()
         if self.load:
             metrics["load_processes"] = self.load
