@@ -8,22 +8,6 @@ import pytest
 from mowerhw import map as lawnmap
 from mowerhw.cli import main
 from mowerhw.cli.map_cmd import parse_polygon
-from mowerhw.map import Landmark, LawnMap
-
-
-@pytest.fixture
-def map_file(tmp_path):
-    a = np.linspace(0, 2 * np.pi, 80, endpoint=False)
-    m = LawnMap(
-        boundary=np.column_stack([6 * np.cos(a), 4 * np.sin(a)]),
-        landmarks=[
-            Landmark(i, np.array([8.0 * np.cos(i), 8.0 * np.sin(i), 1.0]), np.eye(3) * 1e-4)
-            for i in range(6)
-        ],
-    )
-    path = tmp_path / "lawn.json"
-    m.save(path)
-    return path
 
 
 def test_check_and_show(map_file, capsys):

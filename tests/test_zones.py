@@ -80,30 +80,14 @@ def test_a_broken_backup_is_refused(tmp_path) -> None:
         read_openmower(path)
 
 
-def _map(tmp_path):
-    from mowerhw.map import Landmark, LawnMap
-
-    a = np.linspace(0, 2 * np.pi, 60, endpoint=False)
-    m = LawnMap(
-        boundary=np.column_stack([6 * np.cos(a), 4 * np.sin(a)]),
-        landmarks=[
-            Landmark(i, np.array([8.0 * np.cos(i), 8.0 * np.sin(i), 1.0]), np.eye(3) * 1e-4)
-            for i in range(6)
-        ],
-    )
-    path = tmp_path / "lawn.json"
-    m.save(path)
-    return path
-
-
-def test_geojson_round_trip_and_an_edit_come_back_into_the_map(tmp_path, capsys) -> None:
+def test_geojson_round_trip_and_an_edit_come_back_into_the_map(map_file, tmp_path, capsys) -> None:
     import json
 
     from mowerhw.cli import main
     from mowerhw.map import load
     from mowerhw.zones import read_geojson
 
-    path = _map(tmp_path)
+    path = map_file
     assert main(["map", "export-geojson", str(path)]) == 0
     gj = path.with_suffix(".geojson")
     doc = json.loads(gj.read_text())
@@ -139,12 +123,12 @@ def test_geojson_round_trip_and_an_edit_come_back_into_the_map(tmp_path, capsys)
         ({"kind": "keepout", "name": "hole", "hole": True}, "holes are not allowed"),
     ],
 )
-def test_geojson_that_the_map_cannot_take_is_refused(tmp_path, capsys, feature, message) -> None:
+def test_geojson_that_the_map_cannot_take_is_refused(map_file, capsys, feature, message) -> None:
     import json
 
     from mowerhw.cli import main
 
-    path = _map(tmp_path)
+    path = map_file
     main(["map", "export-geojson", str(path)])
     gj = path.with_suffix(".geojson")
     doc = json.loads(gj.read_text())
@@ -205,12 +189,12 @@ def _openmower_file(tmp_path, dock=(1.0, 1.0), heading=0.0):
 
 
 def test_an_openmower_area_is_imported_by_the_dock_with_its_obstacle_clipped(
-    tmp_path, capsys
+    map_file, tmp_path, capsys
 ) -> None:
     from mowerhw.cli import main
     from mowerhw.map import load
 
-    m = _map(tmp_path)
+    m = map_file
     om = _openmower_file(tmp_path, dock=(1.0, 1.0), heading=0.5)
     assert main(["map", "import-openmower", str(om), "--into", str(m)]) == 2  # lists the areas
     assert "mowing area  'front'" in capsys.readouterr().out
@@ -227,10 +211,10 @@ def test_an_openmower_area_is_imported_by_the_dock_with_its_obstacle_clipped(
     assert lawn.keepouts[0].polygon.shape[0] == 4  # the half inside the area
 
 
-def test_an_area_the_map_format_cannot_hold_is_refused_by_name(tmp_path, capsys) -> None:
+def test_an_area_the_map_format_cannot_hold_is_refused_by_name(map_file, tmp_path, capsys) -> None:
     from mowerhw.cli import main
 
-    m = _map(tmp_path)
+    m = map_file
     om = _openmower_file(tmp_path)
     before = m.read_bytes()
     assert main(["map", "import-openmower", str(om), "--into", str(m), "--area", "back"]) == 78
