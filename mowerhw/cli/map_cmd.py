@@ -87,9 +87,8 @@ def _load(path: Path, strict: bool = True):
         raise SystemExit(EX_CONFIG) from None
 
 
-def _report_problems(m, path: Path) -> int:
-    """Say what makes the map unfit (after showing it): exit status 78 if anything."""
-    problems = m.problems()
+def _report_problems(problems: list[str], path: Path) -> int:
+    """Say that the map is unfit (its problems shown already): exit status 78 if so."""
     if problems:
         print(
             f"mowerhw: {path}: unfit for mowing ({len(problems)} problem(s), shown above)",
@@ -147,7 +146,7 @@ def _show(args: argparse.Namespace) -> int:
     s = _summary(m, args.map)
     if args.json:
         print_json(s)
-        return _report_problems(m, args.map)
+        return _report_problems(s["problems"], args.map)
     print(f"map          {s['map']}  (version {s['version']}, created {s['created_utc']})")
     print(
         f"outline      {s['boundary_points']} points, perimeter {s['perimeter_m']} m, "
@@ -160,7 +159,7 @@ def _show(args: argparse.Namespace) -> int:
     print(f"checksum     {s['checksum']}")
     for problem in s["problems"]:
         print(f"PROBLEM      {problem}")
-    return _report_problems(m, args.map)
+    return _report_problems(s["problems"], args.map)
 
 
 def _plot(args: argparse.Namespace) -> int:
@@ -174,7 +173,7 @@ def _plot(args: argparse.Namespace) -> int:
     print(out)
     for problem in problems:
         print(f"PROBLEM      {problem}")
-    return _report_problems(m, args.map)
+    return _report_problems(problems, args.map)
 
 
 def parse_polygon(text: str) -> np.ndarray:
@@ -267,7 +266,10 @@ def _export_geojson(args: argparse.Namespace) -> int:
     doc = to_geojson(m.garden(), {"map": str(args.map), "map_checksum": m.checksum})
     write_atomic(out, (json.dumps(doc, indent=1) + "\n").encode())
     print(out)
-    return _report_problems(m, args.map)
+    problems = m.problems()
+    for problem in problems:
+        print(f"PROBLEM      {problem}")
+    return _report_problems(problems, args.map)
 
 
 def _import_geojson(args: argparse.Namespace) -> int:
