@@ -792,14 +792,10 @@ def _hostile_map(kind: str, path: Path, good: bytes) -> None:
         os.mkfifo(tmp)
         os.replace(tmp, path)
     elif kind == "map-huge":  # valid JSON, whitespace after the document: 300 MB
+        block = b" " * (8 << 20)  # spaces, not NUL bytes (NULs would not be JSON)
         with open(tmp, "wb") as fh:
             fh.write(good)
-            fh.truncate(300 << 20)
-        data_end = len(good)
-        with open(tmp, "r+b") as fh:  # spaces, not NUL bytes (NULs would not be JSON)
-            fh.seek(data_end)
-            block = b" " * (8 << 20)
-            left = (300 << 20) - data_end
+            left = (300 << 20) - len(good)
             while left > 0:
                 fh.write(block[: min(left, len(block))])
                 left -= len(block)
