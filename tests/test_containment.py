@@ -123,6 +123,21 @@ def test_signed_distances_vectorised_match():
     assert np.allclose(g.signed_distances(pts), one)
 
 
+def test_signed_distance_along_a_path_keeps_the_right_side():
+    """Per sample the inside test is skipped while the point cannot have crossed an edge
+    (closer to the last tested point than its distance): a path wandering in and out of
+    the lawn and a keep-out, in small and large steps, against shapely's answer each time."""
+    pond = np.array([[4, 4], [6, 4], [6, 6], [4, 6]], float)
+    g = LawnGeometry(SQUARE, [("pond", pond)])
+    rng = np.random.default_rng(3)
+    steps = rng.normal(0.0, 0.05, size=(4000, 2)) * rng.choice([0.1, 1.0, 20.0], size=(4000, 1))
+    path = np.clip(np.cumsum(steps, axis=0) + 5.0, -2.0, 12.0)
+    path[::97] = [4.0, 5.0]  # exactly on the keep-out's edge now and then
+    one = np.array([g.signed_distance(x, y) for x, y in path])
+    assert np.allclose(g.signed_distances(path), one, atol=1e-12)
+    assert (one < 0).any() and (one > 0).any()
+
+
 def test_a_decision_before_the_first_sample_does_not_freeze_the_counters():
     """The daemon asks for a decision before any IMU sample (time NaN); the soft-margin and
     release counters must still count afterwards (found on the bench: a latched OUTSIDE

@@ -1,7 +1,8 @@
 """Where the daemon's CPU goes: a bench run, and py-spy sampling both of the daemon's
 processes (the permit supervisor and the estimation process, every thread) while it mows;
 each sample is put in the part of the runtime it belongs to. Prints one JSON object: per
-process, the share of one core per part (samples / (rate × seconds)).
+process, the share of one core per part (samples / (rate × seconds)) and per thread (/proc: user and
+system time, so what py-spy cannot see — system calls, native waits — is counted too).
 
     .venv/bin/python tools/profile_daemon.py --map MAP --duration 60 --spy 30
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import tempfile
@@ -75,6 +77,53 @@ def children(pid: int) -> list[int]:
     return out
 
 
+def thread_times(pid: int) -> dict[int, tuple[float, float]]:
+    """User and system CPU seconds of every thread of ``pid`` (/proc/PID/task/TID/stat)."""
+    tick = float(os.sysconf("SC_CLK_TCK"))
+    out = {}
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            fields = (task / "stat").read_text().rpartition(")")[2].split()
+        except OSError:
+            continue
+        out[int(task.name)] = (int(fields[11]) / tick, int(fields[12]) / tick)
+    return out
+
+
+def thread_names(pid: int) -> dict[int, str]:
+    """Native thread id → Python thread name (``py-spy dump --json``)."""
+    try:
+        raw = subprocess.run(
+            ["py-spy", "dump", "--json", "--nonblocking", "-p", str(pid)],
+            capture_output=True,
+            timeout=20,
+            check=True,
+        ).stdout
+        return {int(t["os_thread_id"]): str(t["thread_name"]) for t in json.loads(raw)}
+    except (subprocess.SubprocessError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def per_thread(
+    before: dict[int, tuple[float, float]],
+    after: dict[int, tuple[float, float]],
+    names: dict[int, str],
+    seconds: float,
+) -> dict[str, dict[str, float]]:
+    """Share of one core per thread over the window, user and system apart."""
+    out: dict[str, dict[str, float]] = {}
+    for tid, (user, system) in after.items():
+        u0, s0 = before.get(tid, (0.0, 0.0))
+        user_pct, sys_pct = 100 * (user - u0) / seconds, 100 * (system - s0) / seconds
+        if user_pct + sys_pct < 0.05:
+            continue
+        out[f"{names.get(tid, 'thread')} ({tid})"] = {
+            "user": round(user_pct, 1),
+            "system": round(sys_pct, 1),
+        }
+    return dict(sorted(out.items(), key=lambda kv: -(kv[1]["user"] + kv[1]["system"])))
+
+
 def spy(pid: int, seconds: float, rate: int, path: Path) -> subprocess.Popen[bytes]:
     cmd = ["py-spy", "record", "--format", "raw", "-o", str(path), "-d", str(int(seconds))]
     cmd += ["-r", str(rate), "-p", str(pid), "--nonblocking"]
@@ -115,6 +164,7 @@ def main() -> None:
     out = Path(tempfile.mkdtemp(prefix="mowerhw-profile-"))
     bench = Bench(duration_s=args.duration, seed=args.seed, out_dir=out, map_path=args.map)
     found: dict[str, Path] = {}
+    threads: dict[str, dict[str, dict[str, float]]] = {}
 
     def sample() -> None:
         while bench.proc is None:
@@ -125,12 +175,18 @@ def main() -> None:
         for kid in children(sup):  # not the multiprocessing resource tracker
             if b"spawn_main" in Path(f"/proc/{kid}/cmdline").read_bytes():
                 procs["estimation"] = kid
+        names = {pid: thread_names(pid) for pid in procs.values()}
+        before = {pid: thread_times(pid) for pid in procs.values()}
+        t0 = time.monotonic()
         spies = []
         for name, pid in procs.items():
             found[name] = out / f"{name}.txt"
             spies.append(spy(pid, args.spy, args.rate, found[name]))
         for s in spies:
             s.wait()
+        seconds = time.monotonic() - t0
+        for name, pid in procs.items():
+            threads[name] = per_thread(before[pid], thread_times(pid), names[pid], seconds)
 
     t = threading.Thread(target=sample, daemon=True)
     t.start()
@@ -144,6 +200,7 @@ def main() -> None:
     for name, path in found.items():
         if path.exists():
             result[name] = summarise(path, args.spy, args.rate)
+            result[name]["threads_percent_of_one_core"] = threads.get(name, {})
     print(json.dumps(result, indent=1))
 
 

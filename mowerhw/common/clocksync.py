@@ -50,6 +50,7 @@ class ClockSync:
         reset_threshold_s: float = 1.0,
         min_rate_span_s: float = 2.0,
         block_s: float = 0.25,
+        refit_every_s: float = 1.0,
     ) -> None:
         self.device_unit_s = device_unit_s
         self.window_s = window_s
@@ -57,6 +58,9 @@ class ClockSync:
         self.reset_threshold_s = reset_threshold_s
         self.min_rate_span_s = min_rate_span_s
         self.block_s = block_s
+        # the refit (a hull over the window) every 10 samples and at most once a device
+        # second: the rate moves by ppm, and an early arrival lowers the offset at once anyway
+        self.refit_every_s = refit_every_s
         # host seconds per device second, for a device clock ± max_drift off the host
         self._rate_min = 1.0 / (1.0 + self.max_drift)
         self._rate_max = 1.0 / (1.0 - self.max_drift)
@@ -66,6 +70,7 @@ class ClockSync:
         self._rate = 1.0  # host seconds per device second
         self._offset = 0.0  # host = offset + rate · (device − dev0)
         self._since_fit = 0
+        self._fit_x = 0.0  # window device time (s) of the last refit
 
     @property
     def synced(self) -> bool:
@@ -85,6 +90,7 @@ class ClockSync:
         self._rate = 1.0
         self._offset = host_s
         self._since_fit = 0
+        self._fit_x = 0.0
 
     def update(self, device_ticks: float, host_s: float) -> float:
         """Add one (device time, host arrival) pair; return the sample's host time."""
@@ -107,7 +113,7 @@ class ClockSync:
         if host_s < self._offset + self._rate * x:
             self._offset = host_s - self._rate * x
         self._since_fit += 1
-        if self._since_fit >= 10:
+        if self._since_fit >= 10 and x - self._fit_x >= self.refit_every_s:
             self._fit()
         self.stats.samples += 1
         mapped = self._offset + self._rate * x
@@ -128,6 +134,7 @@ class ClockSync:
         self._since_fit = 0
         arr = np.asarray(self._pairs, dtype=np.float64)
         x, h = arr[:, 0], arr[:, 1]
+        self._fit_x = float(x[-1])
         if x[-1] - x[0] >= self.min_rate_span_s:
             block = np.floor((x - x[0]) / self.block_s).astype(np.int64)
             order = np.lexsort((h - x, block))  # by block, least delayed first

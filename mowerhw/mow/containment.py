@@ -78,11 +78,30 @@ class LawnGeometry:
         shapely.prepare(self.edges)
         inner = area.buffer(-self.INWARD_BAND_M)
         self._inner = inner if not inner.is_empty else None
+        self._seg_a, self._seg_d, self._seg_len2 = _segments(self.edges)
+        self._sign_at: tuple[float, float, float] | None = None  # (x, y, s) of the last test
 
     def signed_distance(self, x: float, y: float) -> float:
-        """Distance to the nearest edge (outline or keep-out), positive inside the mowable area."""
-        d = float(shapely.distance(self.edges, shapely.Point(x, y)))
-        return d if shapely.contains_xy(self.area, x, y) else -d
+        """Distance to the nearest edge (outline or keep-out), positive inside the mowable area.
+
+        Called on every IMU sample, so without shapely's per-call cost: the distance over
+        all edge segments at once in numpy, and the inside test only when the point may have
+        crossed an edge — a point within ``|s|`` of the last tested point (whose signed
+        distance was ``s``) cannot have, so it keeps that point's side."""
+        rel_x = x - self._seg_a[:, 0]
+        rel_y = y - self._seg_a[:, 1]
+        along = (rel_x * self._seg_d[:, 0] + rel_y * self._seg_d[:, 1]) / self._seg_len2
+        np.clip(along, 0.0, 1.0, out=along)
+        dx = rel_x - along * self._seg_d[:, 0]
+        dy = rel_y - along * self._seg_d[:, 1]
+        d = math.sqrt(float(np.min(dx * dx + dy * dy)))
+        last = self._sign_at
+        if last is not None and math.hypot(x - last[0], y - last[1]) < abs(last[2]):
+            inside = last[2] > 0.0
+        else:
+            inside = bool(shapely.contains_xy(self.area, x, y))
+            self._sign_at = (x, y, d if inside else -d)
+        return d if inside else -d
 
     def signed_distances(self, xy: FloatArray) -> FloatArray:
         pts = shapely.points(xy)
@@ -118,6 +137,21 @@ class LawnGeometry:
             n = float(np.linalg.norm(v))
         inside = shapely.contains_xy(self.area, x, y)
         return v / n if inside else -v / n
+
+
+def _segments(edges: shapely.Geometry) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Every edge segment of ``edges`` (rings or lines) as start points, direction vectors and
+    squared lengths (zero-length segments given length 1, which leaves their distance the
+    distance to their point)."""
+    starts, dirs = [], []
+    for line in shapely.get_parts(edges).tolist():
+        xy = np.asarray(line.coords, dtype=np.float64)[:, :2]
+        starts.append(xy[:-1])
+        dirs.append(np.diff(xy, axis=0))
+    a, d = np.concatenate(starts), np.concatenate(dirs)
+    len2 = np.einsum("ij,ij->i", d, d)
+    len2[len2 == 0.0] = 1.0
+    return a, d, len2
 
 
 class Containment:

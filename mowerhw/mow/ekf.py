@@ -26,6 +26,7 @@ the map can support.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -120,6 +121,11 @@ class WorldPoseEKF:
         self.pxl = np.zeros((N_ERR, 3 * self.landmark_cov.shape[0]))  # P_xL (consider)
         self.gate = float(chi2.ppf(gate_probability, df=2))
         self._qv = np.array([noise.speed**2, noise.lateral**2, noise.lateral**2])
+        self._eye = np.eye(N_ERR)
+        self._q_per_s = np.zeros((N_ERR, N_ERR))
+        self._q_per_s[TH, TH] = np.eye(3) * noise.gyro**2
+        self._q_per_s[BG, BG] = np.eye(3) * noise.gyro_bias_walk**2
+        self._q_per_s[K_, K_] = SCALE_WALK**2
 
     # -- state handling -----------------------------------------------------------------------
 
@@ -204,21 +210,20 @@ class WorldPoseEKF:
 
     def sigma_xy(self) -> float:
         """Largest standard deviation of the horizontal position (m)."""
-        w = np.linalg.eigvalsh(self.P[0:2, 0:2])
-        return float(np.sqrt(max(float(w[-1]), 0.0)))
+        # the larger eigenvalue of the symmetric 2×2 block, in closed form (per IMU sample)
+        a, b, c = float(self.P[0, 0]), float(self.P[0, 1]), float(self.P[1, 1])
+        largest = 0.5 * (a + c) + math.hypot(0.5 * (a - c), b)
+        return math.sqrt(largest) if largest > 0.0 else (largest if math.isnan(largest) else 0.0)
 
     @property
     def R(self) -> FloatArray:
         return quat_to_rotmat(self.q)
 
     def finite(self) -> bool:
-        return bool(
-            np.all(np.isfinite(self.x))
-            and np.all(np.isfinite(self.q))
-            and np.all(np.isfinite(self.P))
-            and np.all(np.isfinite(self.bg))
-            and np.isfinite(self.k)
-        )
+        # one sum per array: a NaN or an infinity anywhere makes it non-finite (a sum that
+        # overflows from finite entries is as unusable)
+        total = self.x.sum() + self.q.sum() + self.P.sum() + self.bg.sum() + self.k
+        return math.isfinite(float(total))
 
     # -- eq. (21): propagation ------------------------------------------------------------------
 
@@ -229,15 +234,12 @@ class WorldPoseEKF:
         self.q = quat_normalize(quat_multiply(self.q, m.dq))
         r_new = quat_to_rotmat(self.q)
         dt = m.dt
-        phi = np.eye(N_ERR)
+        phi = self._eye.copy()
         phi[TH, BG] = -r_new * dt
         phi[TH, K_] = -r_new[:, 2] * (m.w[2] * dt)  # the yaw rate's scale error
         phi[X, TH] = -skew(disp_w)
-        q = np.zeros((N_ERR, N_ERR))
-        q[TH, TH] = np.eye(3) * (self.noise.gyro**2 * dt)
+        q = self._q_per_s * dt  # attitude, bias and scale random walks (diagonal)
         q[X, X] = (r * self._qv) @ r.T * dt
-        q[BG, BG] = np.eye(3) * (self.noise.gyro_bias_walk**2 * dt)
-        q[K_, K_] = SCALE_WALK**2 * dt
         self.P = phi @ self.P @ phi.T + q
         if self.pxl.shape[1]:
             self.pxl = phi @ self.pxl
