@@ -157,3 +157,29 @@ def test_a_task_that_dies_ends_the_daemon_non_zero(tmp_path: Path, caplog: Any) 
         imu.stop()
     assert status == 1  # crash-only: systemd (or the supervisor) restarts it
     assert "the ticker task died (RuntimeError('a bug in the ticker'))" in caplog.text
+
+
+def test_an_imu_handler_that_raises_ends_the_daemon_non_zero(tmp_path: Path, caplog: Any) -> None:
+    """IMU samples are handled in a loop callback (the VN-100 is read on the loop), where
+    asyncio would only log an exception: the daemon halts and exits 1 instead."""
+    channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
+    cfg = _config(tmp_path, channel)
+    imu = MockVn100(tmp_path / "vn100").start()
+    daemon = Daemon(cfg, "idle")
+
+    def broken(sample: Any, now: float) -> Any:
+        raise RuntimeError("a bug in the core")
+
+    async def scenario() -> int:
+        task = asyncio.create_task(daemon.run())
+        await _until(lambda: daemon.core.last_arrival["imu"] is not None, 20, "IMU data")
+        daemon.core.imu = broken  # type: ignore[method-assign]
+        return await asyncio.wait_for(task, 20)
+
+    try:
+        status = asyncio.run(scenario())
+    finally:
+        imu.stop()
+    assert status == 1
+    assert "the IMU sample handler failed" in caplog.text
+    assert daemon.core.shutting_down  # the deck was halted on the way out

@@ -115,6 +115,37 @@ def test_reconnects_when_the_port_vanishes_and_returns(link, power_cycle):
     )
 
 
+def test_read_on_an_event_loop_and_reconnected_by_the_thread(link):
+    """The daemon's way: samples read and delivered on the event loop (no hand-off between
+    threads); the port vanishing and returning is still the driver thread's to handle."""
+    import asyncio
+    import threading
+
+    samples, threads = [], set()
+
+    def on_sample(s):
+        samples.append(s)
+        threads.add(threading.get_ident())
+
+    async def main():
+        drv = Vn100(str(link), on_sample=on_sample, reconnect_max_backoff_s=0.5)
+        drv.start(asyncio.get_running_loop())
+        await asyncio.sleep(6.0)
+        drv.stop()
+        return drv
+
+    with MockVn100(link, source=moving_source, faults=Faults(vanish=[(2.0, 1.5)])) as mock:
+        loop_thread = threading.get_ident()
+        drv = asyncio.run(main())
+        assert mock.stats.vanished == 1
+    assert threads == {loop_thread}
+    assert drv.stats.reconnects >= 1 and drv.stats.reconfigurations >= 2
+    t = np.array([s.host_time_ns for s in samples]) * 1e-9
+    gaps = np.diff(t)
+    assert gaps.max() > 1.0 and (t[-1] - t[np.argmax(gaps) + 1]) > 1.5  # data after the outage
+    assert 300 < len(samples) < 700
+
+
 def test_driver_asks_for_the_configured_gyro_field(link):
     """imu.gyro_source: uncomp_gyro → register 75 asks for Common.Imu, and the samples carry
     the uncompensated gyro."""

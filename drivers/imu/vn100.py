@@ -9,7 +9,9 @@ Two layers:
   byte; every rejected byte or packet is counted by cause; it never raises on bad input.
 * :class:`Vn100` — the device on a serial port (pyserial): finds the sensor's baud rate,
   configures it (pause async output, switch baud — the reply comes at the old rate —, write
-  the binary output register 75, verify every reply, resume), then reads in a thread,
+  the binary output register 75, verify every reply, resume), then reads in a thread — or,
+  given an asyncio loop, on that loop (``add_reader``, the way python-can's ``Notifier``
+  reads a bus that has a file descriptor: one wake-up per packet instead of two),
   timestamps every packet on arrival, maps the sensor's ``TimeStartup`` onto the host clock
   (:class:`mowerhw.common.clocksync.ClockSync`), and reconnects with backoff when the port vanishes
   (USB unplugged) and comes back.
@@ -26,12 +28,14 @@ ns).
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import math
 import os
 import re
 import select
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -718,6 +722,9 @@ class Vn100(ThreadedDevice):
         self._pending: list[tuple[Any, int]] = []  # async packets read while waiting for replies
         self._low_latency_warned = False
         self._warned_fields: set[str] = set()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_fd: int | None = None  # the descriptor the loop watches, while it does
+        self._loop_lost = threading.Event()
         self._last_t = -math.inf
 
     # -- connection -------------------------------------------------------------------------
@@ -924,18 +931,84 @@ class Vn100(ThreadedDevice):
                     self._stop.wait(backoff)
                     backoff = min(backoff * 2, self.reconnect_max_backoff_s)
                     continue
+            if self._loop is not None and self._read_on_loop():
+                continue
             try:
                 self.read_once()
             except Exception as exc:  # serial.SerialException, OSError: the port went away
-                self.stats.read_errors += 1
-                self.stats.reconnects += 1
-                self.stats.last_error = f"{type(exc).__name__}: {exc}"
-                log.warning("vn100: %s lost (%s); reconnecting", self.port, exc)
+                self._note_lost(exc)
                 self.close()
 
-    def start(self) -> None:
+    def _note_lost(self, exc: BaseException) -> None:
+        self.stats.read_errors += 1
+        self.stats.reconnects += 1
+        self.stats.last_error = f"{type(exc).__name__}: {exc}"
+        log.warning("vn100: %s lost (%s); reconnecting", self.port, exc)
+
+    def _read_on_loop(self) -> bool:
+        """Hand the open port to the event loop and wait until the loop finds it lost (the
+        thread then reconnects) or the driver stops; False for a port without a descriptor
+        (read here, as without a loop)."""
+        loop = self._loop
+        try:
+            fd = self._serial.fileno()
+        except (AttributeError, OSError, ValueError):
+            return False
+        assert loop is not None
+        self._loop_lost.clear()
+        try:
+            loop.call_soon_threadsafe(self._watch_on_loop, fd)
+        except RuntimeError:  # the loop is closed: nothing will read any more
+            self._stop.wait()
+            return True
+        while not self._stop.is_set() and not self._loop_lost.wait(0.5):
+            pass
+        if self._loop_lost.is_set():
+            self.close()
+        return True
+
+    def _watch_on_loop(self, fd: int) -> None:
+        assert self._loop is not None
+        if self._stop.is_set() or self._serial is None:
+            return
+        self._loop_fd = fd
+        self._loop.add_reader(fd, self._readable, fd)
+
+    def _unwatch(self) -> None:
+        fd, self._loop_fd = self._loop_fd, None
+        if fd is not None and self._loop is not None:
+            self._loop.remove_reader(fd)
+
+    def _readable(self, fd: int) -> None:
+        """On the loop: the port has bytes (or failed). A failure is handed to the thread,
+        which reconnects; an exception from a sample's consumer is not the port's and goes
+        to the loop (the daemon's handler halts)."""
+        try:
+            if self._pending:
+                pending, self._pending = self._pending, []
+                self._deliver(pending)
+            try:
+                data = os.read(fd, 65536)
+            except BlockingIOError:
+                return
+            if not data:
+                raise OSError("the serial device reports data but returns none (disconnected?)")
+        except OSError as exc:
+            self._unwatch()
+            self._note_lost(exc)
+            self._loop_lost.set()  # the thread closes the port and reconnects
+            return
+        self.feed(data, time.monotonic_ns())
+
+    def start(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
+        """Start reading: on this driver's thread, or — given the event loop the samples
+        are for — on that loop, ``on_sample`` then being called on it (the thread only
+        opens, configures and reopens the port)."""
+        self._loop = loop
         self._start_thread()
 
     def stop(self) -> None:
+        """Stop reading and close the port (in loop mode: call it on the loop)."""
+        self._unwatch()
         super().stop()
         self.close()

@@ -26,6 +26,7 @@ pixels and ages. Track ids are never reused.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -95,14 +96,32 @@ def shi_tomasi(image: NDArray[np.uint8], pts: FloatArray, half: int = 3) -> Floa
 def spread(pts: FloatArray, min_distance: float, limit: int) -> FloatArray:
     """Greedy non-maximum suppression: ``pts`` (strongest first) at least ``min_distance``
     apart, at most ``limit`` of them."""
-    chosen = np.zeros((0, 2))
-    for p in pts:
-        if chosen.shape[0] and np.min(np.sum((chosen - p) ** 2, axis=1)) < min_distance**2:
+    if limit <= 0:
+        return np.zeros((0, 2))
+    if not min_distance > 0.0:
+        return np.asarray(pts, dtype=np.float64).reshape(-1, 2)[:limit].copy()
+    # Chosen points kept in a grid of min_distance cells: a point closer than that to a
+    # chosen one is in its cell or one of the eight around it (plain floats: the loop runs
+    # over a frame's thousands of candidates).
+    d2 = min_distance * min_distance
+    grid: dict[tuple[int, int], list[tuple[float, float]]] = {}
+    chosen: list[tuple[float, float]] = []
+    for x, y in np.asarray(pts, dtype=np.float64).reshape(-1, 2).tolist():
+        if not (math.isfinite(x) and math.isfinite(y)):
             continue
-        chosen = np.vstack([chosen, p])
-        if chosen.shape[0] >= limit:
+        i, j = int(x // min_distance), int(y // min_distance)
+        if any(
+            (cx - x) ** 2 + (cy - y) ** 2 < d2
+            for di in (-1, 0, 1)
+            for dj in (-1, 0, 1)
+            for cx, cy in grid.get((i + di, j + dj), ())
+        ):
+            continue
+        chosen.append((x, y))
+        grid.setdefault((i, j), []).append((x, y))
+        if len(chosen) >= limit:
             break
-    return chosen
+    return np.array(chosen, dtype=np.float64).reshape(-1, 2)
 
 
 class FrontEnd:

@@ -2,9 +2,10 @@
 
 Everything that decides lives in the core; this module moves data between it and the world:
 
-* device threads (VN-100, CAN receive, camera) hand samples to the event loop with
-  ``call_soon_threadsafe``; each IMU sample goes into the core, which decides at once, and the
-  decision goes out on CAN — a halt leaves within the IMU period of the sample revealing it;
+* the VN-100 is read on the event loop itself (its thread only opens and reopens the port);
+  other device threads (CAN receive, camera) hand samples over with ``call_soon_threadsafe``;
+  each IMU sample goes into the core, which decides at once, and the decision goes out — a
+  halt leaves within the IMU period of the sample revealing it;
 * camera frames wait in a one-slot queue (the oldest is dropped); the front end tracks one
   frame at a time on a worker thread and its tracks go back into the core;
 * estimator chains are built off the loop when the core asks for one;
@@ -34,6 +35,7 @@ from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.mow.gate import Decision
 from mowerhw.recording.mcap import Recorder
+from mowerhw.runtime.callbacks import crash_only, threadsafe
 from mowerhw.runtime.commands import core_status, handle_command
 from mowerhw.runtime.control import ControlServer, control_server
 from mowerhw.runtime.core import MODES, RuntimeCore
@@ -55,7 +57,9 @@ from mowerhw.runtime.sdnotify import Notifier
 log = logging.getLogger("mowerhw.daemon")
 
 TICK_MIN_S = 0.0005
-TICK_MAX_S = 0.02
+#: the ticker's longest sleep: IMU samples decide 100 times a second and the next staleness
+#: limit wakes it anyway; this keeps the supervisor's lease (80 ms) renewed without them
+TICK_MAX_S = 0.04
 
 
 class Daemon:
@@ -119,11 +123,16 @@ class Daemon:
         self.can = open_output(
             self.cfg,
             self.link,
-            self._threadsafe(self._on_speed),
-            self._threadsafe(self.request_stop),
+            threadsafe(loop, crash_only(self._on_speed, "speed sample", self._handler_failed)),
+            threadsafe(loop, self.request_stop),
             self.recorder,
         )
-        self.imu_dev = open_imu(self.cfg, self._threadsafe(self._on_imu), self.recorder)
+        self.imu_dev = open_imu(
+            self.cfg,
+            crash_only(self._on_imu, "IMU sample", self._handler_failed),
+            self.recorder,
+            loop,
+        )
         self.camera = open_camera(self.cfg, asyncio_sink(loop, self._frames))
         await self.set_mode(self.start_mode)
         tasks = [self._spawn(self._ticker(), "ticker"), self._spawn(self._frame_task(), "frontend")]
@@ -166,17 +175,6 @@ class Daemon:
         self._pose_pool.shutdown(wait=True)
         log.info("stopped")
 
-    def _threadsafe(self, fn: Any) -> Any:
-        """``fn`` called on the event loop, from a device thread."""
-        loop = self.loop
-        assert loop is not None
-
-        def call(sample: Any) -> None:
-            with contextlib.suppress(RuntimeError):  # the loop is closing
-                loop.call_soon_threadsafe(fn, sample)
-
-        return call
-
     def _spawn(self, coro: Awaitable[Any], name: str) -> asyncio.Future[Any]:
         return self._watch(asyncio.ensure_future(coro), name)
 
@@ -192,6 +190,10 @@ class Daemon:
             log.error("the %s task died (%r): halting and ending the process", name, exc)
             self.exit_status = 1
             self.request_stop(f"the {name} task died")
+
+    def _handler_failed(self, why: str) -> None:
+        self.exit_status = 1
+        self.request_stop(why)
 
     # --------------------------------------------------------------------------- inputs
 

@@ -4,6 +4,7 @@ callback on the device's own thread; the daemon moves them onto its event loop."
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import math
@@ -32,9 +33,13 @@ log = logging.getLogger("mowerhw.daemon")
 
 
 def open_imu(
-    cfg: Config, on_sample: Callable[[ImuSample], None], recorder: Recorder | None
+    cfg: Config,
+    on_sample: Callable[[ImuSample], None],
+    recorder: Recorder | None,
+    loop: asyncio.AbstractEventLoop | None = None,
 ) -> Vn100:
-    """The VN-100 as configured, started (it reconnects by itself)."""
+    """The VN-100 as configured, started (it reconnects by itself); read on ``loop`` when
+    given (``on_sample`` then runs on it), else on the driver's thread."""
     c = cfg.imu
     dev = Vn100(
         c.port,
@@ -49,7 +54,7 @@ def open_imu(
         on_sample=on_sample,
         on_raw=(lambda data, ns: recorder.serial(ns, data)) if recorder else None,
     )
-    dev.start()
+    dev.start(loop)
     return dev
 
 

@@ -1,16 +1,19 @@
 """The estimation side's end of the pipe to the supervisor.
 
-Decisions go up as :class:`~.lease.Lease` messages from a writer thread holding only the
-newest one (a decision is state: a newer one replaces an older one not yet sent), so the event
-loop never waits on the pipe. Ground-speed samples the supervisor reads from CAN come down;
-so do its status and the request to stop. If the pipe breaks (the supervisor died) the
-estimation process stops: it must never run without its supervisor.
+Decisions go up as :class:`~.lease.Lease` messages, sent from the event loop as they are
+made: a changed decision at once, an unchanged one renewed at most every ``RENEW_S``. The
+loop never waits on the pipe: a lease goes only while the pipe has room (a pipe the
+supervisor does not empty is a supervisor that will halt on an expired lease anyway; the
+lease is tried again with the next decision). Ground-speed frames the supervisor reads from
+CAN come down; so do its status and the request to stop. If the pipe breaks (the supervisor
+died) the estimation process stops: it must never run without its supervisor.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import select
 import threading
 import time
 from collections.abc import Callable
@@ -38,10 +41,12 @@ class SupervisorLink:
         self.open_failures = 0
         self.supervisor_status: dict[str, Any] = {}
         self.leases_sent = 0
-        self._newest: Lease | None = None
-        self._given_key: tuple[bool, str] | None = None
+        self.leases_deferred = 0  # the pipe was full: tried again with the next decision
+        self._sent_key: tuple[bool, str] | None = None
+        self._sent_at = -math.inf
         self._permit = False
-        self._wake = threading.Condition()
+        self._room = select.poll()
+        self._room.register(conn.fileno(), select.POLLOUT)
         self._send_lock = threading.Lock()
         self._closed = False
         self._frames: CanFrames | None = None
@@ -65,7 +70,6 @@ class SupervisorLink:
 
     def open(self) -> bool:
         threading.Thread(target=self._read, name="supervisor-rx", daemon=True).start()
-        threading.Thread(target=self._write, name="supervisor-tx", daemon=True).start()
         self.send(("ready", None))
         return True
 
@@ -80,11 +84,12 @@ class SupervisorLink:
         accel: tuple[float, float, float] | None = None,
     ) -> bool:
         key = (bool(d.permit), d.reason)
-        with self._wake:
-            self._newest = Lease.of(d, pose_xyh, now, accel or (math.nan, math.nan, math.nan))
-            if key != self._given_key:  # a change goes at once; a renewal when it is due
-                self._given_key = key
-                self._wake.notify()
+        due = key != self._sent_key or time.monotonic() - self._sent_at >= RENEW_S
+        if due and not self._closed:
+            lease = Lease.of(d, pose_xyh, now, accel or (math.nan, math.nan, math.nan))
+            if self._send_if_room(("lease", lease)):
+                self._sent_key, self._sent_at = key, time.monotonic()
+                self.leases_sent += 1
         was, self._permit = self._permit, bool(d.permit)
         return was and not d.permit
 
@@ -95,9 +100,7 @@ class SupervisorLink:
         return math.inf
 
     def shutdown(self, now: float) -> None:
-        with self._wake:
-            self._closed = True
-            self._wake.notify()
+        self._closed = True
 
     def close(self) -> None:
         self.shutdown(0.0)
@@ -106,6 +109,7 @@ class SupervisorLink:
         out: dict[str, Any] = {
             "supervisor": dict(self.supervisor_status),
             "leases_sent": self.leases_sent,
+            "leases_deferred": self.leases_deferred,
         }
         if self._frames is not None:
             out["speed_reader"] = vars(self._frames.speed_reader.stats)
@@ -120,30 +124,19 @@ class SupervisorLink:
         except (OSError, EOFError, ValueError) as exc:
             self._lost(f"cannot write to the supervisor ({exc})")
 
-    def _write(self) -> None:
-        """Send the newest lease: at once when the decision changed (the only time this
-        thread is woken), else at most every ``RENEW_S`` (leases last 80 ms; renewing at every
-        100 Hz decision would only cost CPU in both processes)."""
-        last_key: tuple[bool, str] | None = None
-        last_sent = 0.0
-        while True:
-            with self._wake:
-                while not self._closed:
-                    lease = self._newest
-                    if lease is not None:
-                        wait = last_sent + RENEW_S - time.monotonic()
-                        if (lease.permit, lease.reason) != last_key or wait <= 0:
-                            break
-                        self._wake.wait(wait)
-                    else:  # renewals are not notified: look again when one is due
-                        self._wake.wait(RENEW_S)
-                if self._closed:
-                    return
-                lease, self._newest = self._newest, None
-            assert lease is not None
-            self.send(("lease", lease))
-            last_key, last_sent = (lease.permit, lease.reason), time.monotonic()
-            self.leases_sent += 1
+    def _send_if_room(self, msg: tuple[str, Any]) -> bool:
+        """Send ``msg`` if the pipe has room for it now (never blocks: a Unix socket is
+        reported writable while at most a quarter of its send buffer is in use, and a lease
+        is a few hundred bytes)."""
+        try:
+            if not self._room.poll(0):
+                self.leases_deferred += 1
+                return False
+        except OSError as exc:
+            self._lost(f"cannot write to the supervisor ({exc})")
+            return False
+        self.send(msg)
+        return not self._closed
 
     def _read(self) -> None:
         while True:

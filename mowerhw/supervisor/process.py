@@ -2,8 +2,8 @@
 
 It owns the CAN bus and is the only writer of the permit frames; it starts the estimation
 process (:func:`mowerhw.supervisor.child.estimator_main`) and talks to it over one pipe:
-every CAN frame it receives goes down (the child decodes its ground speed and records it),
-every decision comes up as a lease. One plain loop, no numpy, no asyncio: it wakes when a
+the ground-speed frames it receives go down (the child decodes them; every frame while it
+records), every decision comes up as a lease. One plain loop, no numpy, no asyncio: it wakes when a
 lease arrives, when the newest lease runs out, when a frame is due (at least every 20 ms).
 
 Crash-only: the estimation process dying (or not starting) halts the deck, announces the
@@ -185,11 +185,14 @@ class Supervisor:
                     with self._safety_lock:
                         self.safety.switches(now, sw.lifted, sw.bumped, sw.stop)
                 continue
-            self._to_child(("can", (now, msg.arbitration_id, data, True)))
-            self.counts["frames_forwarded"] += 1
             s = self._speed.handle(msg.arbitration_id, data, now)
             if s is not None and s.valid:
                 self._speed_arrival["speed"] = now
+            # the child decodes the ground speed, and records every frame when it records
+            # (only what it needs: each frame forwarded is a wake-up of both processes)
+            if s is not None or self.record is not None:
+                self._to_child(("can", (now, msg.arbitration_id, data, True)))
+                self.counts["frames_forwarded"] += 1
 
     def _send_frames(self, d: Lease, now: float) -> None:
         if not self.port.ensure(now):
