@@ -402,6 +402,12 @@ class MowConfig(MotionNoiseConfig):
     localized_after_frames: int = opt(
         3, "good frames needed after a (re)start to be localized", ge=1
     )
+    areas: tuple[str, ...] = opt(
+        (),
+        "the mowing areas of the map to mow (names); empty: all of them. The others are "
+        "driven with the deck off (state TRANSIT), like navigation areas",
+        nonempty=True,
+    )
     max_speed_mps: float = opt(
         1.0,
         "fastest the mower can go: while the ground speed is stale, the position is "
@@ -733,6 +739,16 @@ def _check_value(tp: Any, value: Any, key: str, meta: dict, base: Path | None) -
         if value is None:
             return None
         return _check_value(args[0], value, key, meta, base)
+    if origin is tuple and typing.get_args(tp)[1:] == (Ellipsis,):  # a list of names
+        item = typing.get_args(tp)[0]
+        if not isinstance(value, list | tuple) or len(value) > 64:
+            raise ValueError(f"{key}: {_fmt(value)} must be a list (at most 64 entries)")
+        names = tuple(
+            _check_scalar(item, v, f"{key}[{i}]", meta, base) for i, v in enumerate(value)
+        )
+        if len(set(names)) != len(names):
+            raise ValueError(f"{key}: {list(names)} names an entry twice")
+        return names
     if origin is tuple:
         args = typing.get_args(tp)
         if not isinstance(value, list | tuple) or len(value) != len(args):

@@ -7,13 +7,17 @@ frame at its first sample: x forward, y left, z up, origin at the camera centre)
 
     {
       "format": "mowerhw-map",          always this string
-      "version": 1,                      the layout below; other versions are refused
+      "version": 2,                      the layout below (1 is read too, see below)
       "created_utc": "2026-11-22T10:00:00Z",
       "frame": "...",                    a sentence describing the frame, for people
-      "boundary": [[x, y], ...],         the lawn outline, counter-clockwise, ≥ 3 points,
-                                         the first point not repeated
+      "areas": [{"name": "lawn", "kind": "mow", "polygon": [[x, y], ...]}, ...],
+                                         named areas, each outline counter-clockwise, ≥ 3
+                                         points, the first not repeated; kind "mow": a
+                                         mowing area (the first is the taught lawn), "nav":
+                                         a navigation (transit) area — driven, never cut
       "keepout_zones": [{"name": "pond", "polygon": [[x, y], ...]}, ...],
-                                         holes in the lawn (flower beds, ponds, a sandpit)
+                                         no-go zones (flower beds, ponds, a sandpit),
+                                         subtracted from the areas; they may cross edges
       "landmarks": [{"id": 7, "xyz": [x, y, z], "covariance": [[...], [...], [...]],
                      "descriptor": null | "<base64>", "keyframe": null | k}, ...],
                                          descriptor: one or more 32-byte ORB descriptors
@@ -24,6 +28,10 @@ frame at its first sample: x forward, y left, z up, origin at the camera centre)
       "teach": {...},                    how the map was made (duration, distance, closure)
       "checksum": "sha256:<hex>"         over the canonical JSON of everything else
     }
+
+Version 1 had one outline, ``"boundary": [[x, y], ...]``, instead of ``areas``, and its
+keep-outs inside it; it loads as the mowing area ``lawn`` (same decisions), and ``mowerhw
+map upgrade`` rewrites it as version 2. Maps are always written as version 2.
 
 The checksum is the SHA-256 of the document without ``checksum``, serialised with sorted
 keys and no spaces. :func:`load` refuses, with a message that says what is wrong, a file
@@ -41,6 +49,7 @@ import json
 import math
 import os
 import stat
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -49,6 +58,7 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 from shapely.geometry import Polygon
+from shapely.geometry.base import BaseGeometry
 from shapely.geometry.polygon import orient
 from shapely.validation import explain_validity
 
@@ -60,8 +70,14 @@ from mowerhw.zones import Garden, Zone
 FloatArray = NDArray[np.float64]
 
 FORMAT = "mowerhw-map"
-VERSION = 1
-SUPPORTED_VERSIONS = (1,)
+VERSION = 2
+SUPPORTED_VERSIONS = (1, 2)
+#: the kinds of area: mowing, navigation (transit)
+AREA_KINDS = ("mow", "nav")
+#: the name a version 1 map's outline (and a taught lawn) gets
+TAUGHT_AREA = "lawn"
+#: two mowing areas overlapping more than this (m²) are reported
+OVERLAP_REPORT_M2 = 0.01
 FRAME_DESCRIPTION = (
     "local metres; world frame = body frame at the first teach sample "
     "(x forward, y left, z up, origin at the camera centre)"
@@ -69,9 +85,6 @@ FRAME_DESCRIPTION = (
 MIN_AREA_M2 = 4.0
 MIN_LANDMARKS = 4
 DESCRIPTOR_BYTES = 32  # one ORB descriptor (mowerhw.frontend.descriptors)
-#: a keep-out may reach this far past the lawn's edge (m): a zone clipped to the edge
-#: lies on it up to rounding
-EDGE_TOLERANCE_M = 1e-3
 #: the dock (where teach started and mowing starts) lies on the taught edge: further out
 #: than this (m), the map and its dock do not belong together
 MAX_DOCK_OUTSIDE_M = 2.0
@@ -104,9 +117,19 @@ class KeepOut:
     polygon: FloatArray  # (M, 2)
 
 
+@dataclass(frozen=True)
+class Area:
+    """A named mowing (``mow``) or navigation (``nav``) area."""
+
+    name: str
+    kind: str  # one of AREA_KINDS
+    polygon: FloatArray  # (M, 2), counter-clockwise
+
+
 @dataclass
 class LawnMap:
-    """A validated lawn map."""
+    """A validated lawn map. ``boundary`` is the first mowing area (``boundary_name``: the
+    taught lawn), ``areas`` the others, mowing or navigation (:meth:`all_areas`: every one)."""
 
     boundary: FloatArray
     landmarks: list[Landmark]
@@ -118,18 +141,48 @@ class LawnMap:
     created_utc: str = ""
     version: int = VERSION
     checksum: str = ""
+    boundary_name: str = TAUGHT_AREA
+    areas: list[Area] = field(default_factory=list)
 
     # -- geometry -----------------------------------------------------------------------------
+
+    def all_areas(self) -> list[Area]:
+        """Every area, the taught lawn first."""
+        return [Area(self.boundary_name, "mow", self.boundary), *self.areas]
+
+    def area_names(self, kind: str) -> list[str]:
+        return [a.name for a in self.all_areas() if a.kind == kind]
 
     def outline_polygon(self) -> Polygon:
         return Polygon(self.boundary)
 
-    def lawn_polygon(self) -> Polygon:
-        """The mowable area: the outline with every keep-out zone as a hole."""
-        lawn = self.outline_polygon()
+    def lawn_polygon(self, mow_areas: Sequence[str] | None = None) -> BaseGeometry:
+        """The mowable area: the mowing areas (those named, else all) with every keep-out
+        zone taken out."""
+        wanted = set(mow_areas) if mow_areas else None
+        parts = [
+            Polygon(a.polygon)
+            for a in self.all_areas()
+            if a.kind == "mow" and (wanted is None or a.name in wanted)
+        ]
+        lawn = parts[0] if len(parts) == 1 else shapely.union_all(parts)
         for zone in self.keepouts:
             lawn = lawn.difference(Polygon(zone.polygon))
         return lawn
+
+    def transit_polygon(self, mow_areas: Sequence[str] | None = None) -> BaseGeometry:
+        """Where the mower may drive with the deck off: the navigation areas and the mowing
+        areas not named in ``mow_areas`` (none when it is empty), keep-outs taken out."""
+        wanted = set(mow_areas) if mow_areas else None
+        parts = [
+            Polygon(a.polygon)
+            for a in self.all_areas()
+            if a.kind == "nav" or (wanted is not None and a.name not in wanted)
+        ]
+        transit = shapely.union_all(parts) if parts else Polygon()
+        for zone in self.keepouts:
+            transit = transit.difference(Polygon(zone.polygon))
+        return transit
 
     def landmark_ids(self) -> NDArray[np.int64]:
         return np.array([lm.id for lm in self.landmarks], dtype=np.int64)
@@ -143,45 +196,64 @@ class LawnMap:
     def problems(self) -> list[str]:
         """Everything that makes this map unfit for mowing (empty: fit)."""
         out: list[str] = []
-        outline = self.outline_polygon()
-        if not outline.is_valid:
-            out.append(f"boundary: not a simple polygon ({explain_validity(outline)})")
-        elif outline.area < MIN_AREA_M2:
-            out.append(f"boundary: encloses {outline.area:.1f} m², less than {MIN_AREA_M2} m²")
-        names: set[str] = set()
         shapes: dict[bytes, str] = {}
-        for zone in self.keepouts:
-            poly = Polygon(zone.polygon)
-            if zone.name in names:
-                out.append(f"keep-out {zone.name!r}: the name is used twice")
-            names.add(zone.name)
+
+        def same_as(poly: Polygon, label: str) -> None:
             shape = orient(poly.normalize(), 1.0).wkb if poly.is_valid else b""
             if shape and shape in shapes:
-                out.append(f"keep-out {zone.name!r}: the same zone as {shapes[shape]!r}")
-            shapes.setdefault(shape, zone.name)
+                out.append(f"{label}: the same zone as {shapes[shape]}")
+            shapes.setdefault(shape, label)
+
+        names: set[str] = set()
+        valid: list[Polygon] = []
+        for area in self.all_areas():
+            label = f"{'mowing' if area.kind == 'mow' else 'navigation'} area {area.name!r}"
+            if area.kind == "mow" and area.name == self.boundary_name and not self.areas:
+                label = "boundary"  # a map of one lawn says it as it always has
+            poly = Polygon(area.polygon)
+            if area.name in names:
+                out.append(f"{label}: the name is used twice")
+            names.add(area.name)
+            same_as(poly, label)
+            if area.kind not in AREA_KINDS:
+                out.append(f"{label}: kind {area.kind!r} is not one of {', '.join(AREA_KINDS)}")
             if not poly.is_valid:
-                out.append(
-                    f"keep-out {zone.name!r}: not a simple polygon ({explain_validity(poly)})"
-                )
-            elif outline.is_valid and not outline.buffer(EDGE_TOLERANCE_M).contains(poly):
-                out.append(f"keep-out {zone.name!r}: not inside the lawn boundary")
+                out.append(f"{label}: not a simple polygon ({explain_validity(poly)})")
+                continue
+            if area.kind == "mow" and poly.area < MIN_AREA_M2:
+                out.append(f"{label}: encloses {poly.area:.1f} m², less than {MIN_AREA_M2} m²")
             elif poly.area <= 0.0:
-                out.append(f"keep-out {zone.name!r}: has no area")
-        if outline.is_valid and self.keepouts and outline.area >= MIN_AREA_M2:
+                out.append(f"{label}: has no area")
+            valid.append(poly)
+        names = set()
+        for zone in self.keepouts:
+            poly = Polygon(zone.polygon)
+            label = f"keep-out {zone.name!r}"
+            if zone.name in names:
+                out.append(f"{label}: the name is used twice")
+            names.add(zone.name)
+            same_as(poly, label)
+            if not poly.is_valid:
+                out.append(f"{label}: not a simple polygon ({explain_validity(poly)})")
+            elif poly.area <= 0.0:
+                out.append(f"{label}: has no area")
+        if len(valid) == len(self.all_areas()):
             try:
                 left = float(self.lawn_polygon().area)
             except shapely.errors.GEOSException:
                 left = 0.0
-            if left < MIN_AREA_M2:
+            if self.keepouts and left < MIN_AREA_M2:
                 out.append(
                     f"keep-outs: they leave {left:.1f} m² to mow, less than {MIN_AREA_M2} m²"
                 )
-        if outline.is_valid:
+        if valid:
             dock = shapely.Point(float(self.dock_position[0]), float(self.dock_position[1]))
-            off = float(outline.exterior.distance(dock)) if not outline.covers(dock) else 0.0
+            everywhere = shapely.union_all(valid)
+            off = float(everywhere.distance(dock))
             if off > MAX_DOCK_OUTSIDE_M:
+                where = "the lawn" if len(valid) == 1 else "every area"
                 out.append(
-                    f"dock: {off:.1f} m outside the lawn (at most {MAX_DOCK_OUTSIDE_M} m: "
+                    f"dock: {off:.1f} m outside {where} (at most {MAX_DOCK_OUTSIDE_M} m: "
                     "mowing starts there)"
                 )
         if len(self.landmarks) < MIN_LANDMARKS:
@@ -192,6 +264,29 @@ class LawnMap:
         ids = [lm.id for lm in self.landmarks]
         if len(set(ids)) != len(ids):
             out.append("landmarks: duplicate ids")
+        return out
+
+    def warnings(self) -> list[str]:
+        """What is allowed but worth saying: mowing areas that overlap (mowed as one),
+        keep-outs outside every area (they change nothing)."""
+        out: list[str] = []
+        polys = [(a, Polygon(a.polygon)) for a in self.all_areas()]
+        polys = [(a, p) for a, p in polys if p.is_valid]
+        mow = [(a, p) for a, p in polys if a.kind == "mow"]
+        for i, (a, pa) in enumerate(mow):
+            for b, pb in mow[i + 1 :]:
+                overlap = float(pa.intersection(pb).area)
+                if overlap > OVERLAP_REPORT_M2:
+                    out.append(
+                        f"mowing areas {a.name!r} and {b.name!r} overlap by {overlap:.2f} m² "
+                        "(mowed as one)"
+                    )
+        if polys:
+            everywhere = shapely.union_all([p for _, p in polys])
+            for zone in self.keepouts:
+                poly = Polygon(zone.polygon)
+                if poly.is_valid and not poly.intersects(everywhere):
+                    out.append(f"keep-out {zone.name!r}: outside every area (it changes nothing)")
         return out
 
     # -- editing (without re-driving) -----------------------------------------------------------
@@ -215,31 +310,56 @@ class LawnMap:
         return math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
 
     def garden(self) -> Garden:
-        """The map's zones (the outline as the one mowing area ``lawn``, the keep-outs) and
-        its dock, as :mod:`mowerhw.zones` holds them (GeoJSON, other tools)."""
-        zones = [Zone("lawn", "mow", _ccw(self.boundary))]
+        """The map's zones (its areas, the keep-outs) and its dock, as :mod:`mowerhw.zones`
+        holds them (GeoJSON, other tools)."""
+        zones = [Zone(a.name, a.kind, _ccw(a.polygon)) for a in self.all_areas()]
         zones += [Zone(z.name, "keepout", _ccw(z.polygon)) for z in self.keepouts]
         return Garden(zones, np.asarray(self.dock_position[:2], float), self.dock_heading())
 
     def with_zones(self, garden: Garden) -> LawnMap:
-        """This map (landmarks, dock, frame) with the outline and keep-outs of ``garden``:
-        exactly one mowing area, keep-outs inside it; :class:`MapError` otherwise (several
-        areas and navigation areas need a map format this version does not have)."""
+        """This map (landmarks, dock, frame) with the areas and keep-outs of ``garden`` (at
+        least one mowing area; the first is the lawn); :class:`MapError` if unfit."""
         mow = garden.of_kind("mow")
-        if len(mow) != 1 or garden.of_kind("nav"):
-            raise MapError(
-                f"{len(mow)} mowing and {len(garden.of_kind('nav'))} navigation area(s): this "
-                f"map format (version {VERSION}) holds one mowing area and keep-outs"
-            )
+        if not mow:
+            raise MapError("the zones have no mowing area")
+        others = [z for z in garden.zones if z.kind in AREA_KINDS and z is not mow[0]]
         new = replace(
             self,
             boundary=mow[0].polygon.copy(),
+            boundary_name=mow[0].name,
+            areas=[Area(z.name, z.kind, z.polygon.copy()) for z in others],
             keepouts=[KeepOut(z.name, z.polygon.copy()) for z in garden.of_kind("keepout")],
+            version=VERSION,
         )
         problems = new.problems()
         if problems:
             raise MapError("; ".join(problems))
         return new
+
+    def with_area(self, name: str, kind: str, polygon: FloatArray) -> LawnMap:
+        """This map with one more area (``mow`` or ``nav``); :class:`MapError` if unfit."""
+        poly = np.asarray(polygon, dtype=np.float64)
+        if kind not in AREA_KINDS:
+            raise MapError(f"area kind {kind!r} is not one of {', '.join(AREA_KINDS)}")
+        if poly.ndim != 2 or poly.shape[1] != 2 or poly.shape[0] < 3:
+            raise MapError("an area needs at least 3 points x,y")
+        if name in {a.name for a in self.all_areas()}:
+            raise MapError(f"an area named {name!r} exists already")
+        new = replace(self, areas=[*self.areas, Area(name, kind, _ccw(poly))], version=VERSION)
+        problems = new.problems()
+        if problems:
+            raise MapError("; ".join(problems))
+        return new
+
+    def without_area(self, name: str) -> LawnMap:
+        """This map without the area ``name`` (not the taught lawn: the landmarks and the
+        dock belong to it)."""
+        if name == self.boundary_name:
+            raise MapError(f"{name!r} is the taught lawn; it can be replaced, not removed")
+        if not any(a.name == name for a in self.areas):
+            known = ", ".join(repr(a.name) for a in self.all_areas())
+            raise MapError(f"no area named {name!r} (areas: {known})")
+        return replace(self, areas=[a for a in self.areas if a.name != name], version=VERSION)
 
     def without_keepout(self, name: str) -> LawnMap:
         if not any(z.name == name for z in self.keepouts):
@@ -255,7 +375,10 @@ class LawnMap:
             "version": VERSION,
             "created_utc": self.created_utc or _utc_now(),
             "frame": FRAME_DESCRIPTION,
-            "boundary": _rows(self.boundary),
+            "areas": [
+                {"name": a.name, "kind": a.kind, "polygon": _rows(a.polygon)}
+                for a in self.all_areas()
+            ],
             "keepout_zones": [{"name": z.name, "polygon": _rows(z.polygon)} for z in self.keepouts],
             "landmarks": [
                 {
@@ -434,7 +557,7 @@ def _from_document(doc: Any, source: str, strict: bool) -> LawnMap:
             f"{source}: checksum mismatch: the file was modified or corrupted after it was "
             "saved (edit maps with `mowerhw map`, or teach again)"
         )
-    boundary = _points(doc.get("boundary"), f"{source}: boundary", 3)
+    boundary_name, boundary, areas = _areas(doc, int(version), source)
     keepouts = []
     zones = doc.get("keepout_zones") or []
     if not isinstance(zones, list):
@@ -496,6 +619,8 @@ def _from_document(doc: Any, source: str, strict: bool) -> LawnMap:
             raise MapError(f"{source}: {exc}") from None
     lawn = LawnMap(
         boundary=boundary,
+        boundary_name=boundary_name,
+        areas=areas,
         landmarks=landmarks,
         dock_position=dock_pos,
         dock_quaternion=dock_q,
@@ -510,6 +635,32 @@ def _from_document(doc: Any, source: str, strict: bool) -> LawnMap:
     if problems and strict:
         raise MapError(f"{source}: " + "; ".join(problems))
     return lawn
+
+
+def _areas(doc: dict[str, Any], version: int, source: str) -> tuple[str, FloatArray, list[Area]]:
+    """The taught lawn's name and outline and the other areas: version 1's ``boundary`` is
+    the one mowing area ``lawn``; version 2 lists ``areas``, the first mowing one the lawn."""
+    if version == 1:
+        return TAUGHT_AREA, _points(doc.get("boundary"), f"{source}: boundary", 3), []
+    raw = doc.get("areas")
+    if not isinstance(raw, list) or not raw:
+        raise MapError(f"{source}: areas must be a list of at least one area")
+    areas = []
+    for k, entry in enumerate(raw):
+        if not isinstance(entry, dict) or not isinstance(entry.get("name"), str):
+            raise MapError(f"{source}: areas[{k}] needs a name, a kind and a polygon")
+        name, kind = entry["name"], entry.get("kind")
+        if not name.strip() or len(name) > 100:
+            raise MapError(f"{source}: areas[{k}]: a name of 1 to 100 characters")
+        if kind not in AREA_KINDS:
+            raise MapError(
+                f"{source}: area {name!r}: kind {kind!r} is not one of {', '.join(AREA_KINDS)}"
+            )
+        areas.append(Area(name, kind, _points(entry.get("polygon"), f"area {name!r}", 3)))
+    first = next((a for a in areas if a.kind == "mow"), None)
+    if first is None:
+        raise MapError(f'{source}: no mowing area (kind "mow")')
+    return first.name, first.polygon, [a for a in areas if a is not first]
 
 
 def check_map_file(path: str | Path, max_bytes: int = MAX_MAP_BYTES) -> None:

@@ -106,19 +106,36 @@ def teach_figures(outcome: TeachOutcome, out_dir: str | Path) -> list[Path]:
 def map_figure(
     lawn_map: Any, path: str | Path, title: str = "", problems: list[str] | None = None
 ) -> Path:
-    """Plot a lawn map: outline, keep-out zones, landmarks, dock; ``problems`` (what makes
-    it unfit for mowing) in red over the plot."""
+    """Plot a lawn map: its areas (mowing, navigation), keep-out zones, landmarks, dock;
+    ``problems`` (what makes it unfit for mowing) in red over the plot."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(6.0, 5.4))
-    b = np.vstack([lawn_map.boundary, lawn_map.boundary[:1]])
-    ax.fill(b[:, 0], b[:, 1], color="#cdeccd", label="lawn")
-    ax.plot(b[:, 0], b[:, 1], "g-", lw=1.5)
+    big = len(lawn_map.all_areas()) + len(lawn_map.keepouts) > 8
+    fig, ax = plt.subplots(figsize=(8.0, 7.2) if big else (6.0, 5.4))
+    labelled: set[str] = set()
+    for area in lawn_map.all_areas():  # mowing areas green, navigation areas grey
+        b = np.vstack([area.polygon, area.polygon[:1]])
+        kind = "mowing area" if area.kind == "mow" else "navigation area"
+        fill, edge = ("#cdeccd", "g-") if area.kind == "mow" else ("#e4e4e4", "k--")
+        ax.fill(b[:, 0], b[:, 1], color=fill, label=None if kind in labelled else kind)
+        ax.plot(b[:, 0], b[:, 1], edge, lw=1.2)
+        labelled.add(kind)
+        if len(lawn_map.all_areas()) > 1:
+            c = area.polygon.mean(axis=0)
+            ax.text(c[0], c[1], area.name[:8], ha="center", va="center", fontsize=7, color="g")
     for zone in lawn_map.keepouts:
         z = np.vstack([zone.polygon, zone.polygon[:1]])
         ax.fill(z[:, 0], z[:, 1], color="#f2c0c0")
         ax.plot(z[:, 0], z[:, 1], "r-", lw=1)
         c = zone.polygon.mean(axis=0)
-        ax.text(c[0], c[1], zone.name, ha="center", va="center", fontsize=8)
+        many = len(lawn_map.keepouts) > 8  # short labels, or the names hide the map
+        ax.text(
+            c[0],
+            c[1],
+            zone.name[:6] if many else zone.name,
+            ha="center",
+            va="center",
+            fontsize=6 if many else 8,
+        )
     pts = lawn_map.landmark_positions()
     if pts.size:
         ax.plot(pts[:, 0], pts[:, 1], "k^", ms=6, label=f"{pts.shape[0]} landmarks")

@@ -100,35 +100,6 @@ def align_by_points(garden: Garden, source: Any, target: Any) -> tuple[Garden, f
     return garden.moved(turn, shift), rms
 
 
-def one_area(garden: Garden, name: str) -> Garden:
-    """The mowing area ``name`` with the keep-outs that reach into it, clipped to it (a
-    map of format 1 holds one area, its keep-outs inside it); each clip is a repair."""
-    areas = {z.name: z for z in garden.of_kind("mow")}
-    if name not in areas:
-        raise ZoneError(f"no mowing area {name!r}; the areas are: {', '.join(areas) or 'none'}")
-    area = areas[name]
-    outline = Polygon(area.polygon)
-    keepouts, repairs = [], []
-    for z in garden.of_kind("keepout"):
-        zone = Polygon(z.polygon)
-        if not zone.intersects(outline) or zone.touches(outline):
-            continue
-        if outline.contains(zone):
-            keepouts.append(z)
-            continue
-        part = zone.intersection(outline)
-        pieces = [part] if part.geom_type == "Polygon" else list(getattr(part, "geoms", []))
-        pieces = [q for q in pieces if q.geom_type == "Polygon" and q.area > 1e-4]
-        for k, piece in enumerate(pieces):
-            ring = np.asarray(piece.exterior.coords)[:-1]
-            label = z.name if len(pieces) == 1 else f"{z.name}-{k + 1}"
-            keepouts.append(Zone(label, "keepout", ring))
-        repairs.append(f"keep-out {z.name!r}: clipped to the area {name!r} (it crossed its edge)")
-    kept = {area.name} | {z.name for z in keepouts}
-    said = [r for r in garden.repairs if any(f"{n!r}:" in r for n in kept)]
-    return Garden([area, *keepouts], garden.dock_xy, garden.dock_heading_rad, said + repairs)
-
-
 def clean_outline(points: Any, where: str) -> tuple[FloatArray, list[str]]:
     """``points`` as a counter-clockwise open ring without repeated vertices, and the
     repairs made (each a sentence naming ``where``); :class:`ZoneError` if it is unusable."""

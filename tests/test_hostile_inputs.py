@@ -200,13 +200,15 @@ MAP_EDITS = [
         "landmarks[0].covariance: not symmetric",
     ),
     (
-        lambda d: d.update(boundary=[[x * 1e150, y * 1e150] for x, y in d["boundary"]]),
-        "boundary: coordinates beyond ±10000 m",
+        lambda d: d["areas"][0].update(
+            polygon=[[x * 1e150, y * 1e150] for x, y in d["areas"][0]["polygon"]]
+        ),
+        "area 'lawn': coordinates beyond ±10000 m",
     ),
     (lambda d: d["landmarks"][0].update(id=2**63), "needs an integer id from 0 to 2**63 - 1"),
     (lambda d: d["landmarks"][0].update(id=-1), "needs an integer id from 0 to 2**63 - 1"),
     (
-        lambda d: d.update(keepout_zones=[{"name": "all", "polygon": d["boundary"]}]),
+        lambda d: d.update(keepout_zones=[{"name": "all", "polygon": d["areas"][0]["polygon"]}]),
         "keep-outs: they leave 0.0 m² to mow",
     ),
     (lambda d: d["landmarks"][0].update(xyz=[1e300, 0, 0]), "landmarks[0].xyz: values beyond"),

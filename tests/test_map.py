@@ -31,7 +31,7 @@ def test_round_trip(tmp_path):
     assert np.allclose(back.landmark_positions(), m.landmark_positions())
     assert back.checksum.startswith("sha256:") and back.checksum == m.checksum
     doc = json.loads((tmp_path / "lawn.json").read_text())
-    assert doc["format"] == "mowerhw-map" and doc["version"] == 1
+    assert doc["format"] == "mowerhw-map" and doc["version"] == 2
 
 
 def test_write_is_atomic_and_leaves_no_temp_files(tmp_path):
@@ -71,7 +71,7 @@ def test_tampered_file_is_refused(tmp_path):
     path = tmp_path / "lawn.json"
     make_map().save(path)
     doc = json.loads(path.read_text())
-    doc["boundary"][0][0] += 0.5  # someone "fixed" the boundary by hand
+    doc["areas"][0]["polygon"][0][0] += 0.5  # someone "fixed" the boundary by hand
     path.write_text(json.dumps(doc))
     with pytest.raises(MapError, match="checksum mismatch"):
         lawnmap.load(path)
@@ -81,8 +81,8 @@ def test_wrong_version_format_and_missing_checksum(tmp_path):
     path = tmp_path / "lawn.json"
     make_map().save(path)
     doc = json.loads(path.read_text())
-    path.write_text(json.dumps({**doc, "version": 2}))
-    with pytest.raises(MapError, match=r"version 2 is not supported .*supported: 1"):
+    path.write_text(json.dumps({**doc, "version": 3}))
+    with pytest.raises(MapError, match=r"version 3 is not supported .*supported: 1, 2"):
         lawnmap.load(path)
     path.write_text(json.dumps({**doc, "format": "gpx"}))
     with pytest.raises(MapError, match="not a mowerhw map"):
@@ -121,8 +121,11 @@ def test_keepouts_edit_and_validate(tmp_path):
     m2.save(tmp_path / "k.json")
     back = lawnmap.load(tmp_path / "k.json")
     assert [z.name for z in back.keepouts] == ["pond"]
-    with pytest.raises(MapError, match="not inside the lawn boundary"):
-        m.with_keepout("road", np.array([[4, 0], [9, 0], [9, 1], [4, 1]], float))
+    # a keep-out may cross the edge (version 2): it is taken out of the lawn
+    road = m.with_keepout("road", np.array([[4, -1], [12, -1], [12, 1], [4, 1]], float))
+    assert road.problems() == [] and road.lawn_polygon().area < m.lawn_polygon().area
+    with pytest.raises(MapError, match="the same zone as keep-out 'pond'"):
+        m2.with_keepout("pond2", np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)[::-1])
     with pytest.raises(MapError, match="exists already"):
         m2.with_keepout("pond", np.array([[2, 0], [3, 0], [3, 1]], float))
     assert m2.without_keepout("pond").keepouts == []

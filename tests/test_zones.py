@@ -118,7 +118,7 @@ def test_geojson_round_trip_and_an_edit_come_back_into_the_map(map_file, tmp_pat
 @pytest.mark.parametrize(
     ("feature", "message"),
     [
-        ({"kind": "nav", "name": "path"}, "this map format (version 1) holds one mowing area"),
+        ({"kind": "mow", "name": "patch"}, "mowing area 'patch': encloses 1.0 m², less than 4.0"),
         ({"kind": "lawn", "name": "x"}, "kind must be one of mow, nav, keepout or dock"),
         ({"kind": "keepout", "name": "hole", "hole": True}, "holes are not allowed"),
     ],

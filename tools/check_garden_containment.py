@@ -2,8 +2,9 @@
 """Containment over a real garden: the OpenMower map backup in
 ``../shared/data/real/openmower-garden-map`` (9 mowing areas, 22 obstacles, 1 navigation area,
 a dock), read and cleaned by :mod:`mowerhw.zones`, judged on a grid by mowerhw's containment
-geometry (:class:`mowerhw.mow.LawnGeometry`, per mowing area with the obstacles subtracted,
-crossing edges included), against an independent even-odd ray cast over the *raw* outlines
+geometry (:class:`mowerhw.mow.LawnGeometry` as a map of format 2 builds it: the mowing areas
+with the obstacles subtracted, crossing edges included; the navigation area as its transit
+part), against an independent even-odd ray cast over the *raw* outlines
 from the file (no repairs, no shapely). Prints one JSON object.
 
     .venv/bin/python tools/check_garden_containment.py [--step 0.05]
@@ -11,8 +12,8 @@ from the file (no repairs, no shapely). Prints one JSON object.
 A grid point is MOW in an area and in no obstacle, TRANSIT in the navigation area and no
 mowing area, else OUTSIDE. Points within 1 mm of an outline are on the edge, where even-odd
 and "the edge belongs to the area" may differ by definition: they are counted, not compared.
-``states``: the containment table for the MOW points with σ = 0 (INSIDE at least
-``containment.margin_m`` from the edge of their area, else NEAR_EDGE).
+``states``: the containment table with σ = 0 (MOW points INSIDE at least
+``containment.margin_m`` from the edge of the mowable area, else NEAR_EDGE; TRANSIT; OUTSIDE).
 """
 
 from __future__ import annotations
@@ -72,19 +73,21 @@ def check(path: Path = DATA, step: float = 0.05) -> dict[str, Any]:
     t0 = time.perf_counter()
     garden = read_openmower(path)
     obstacles = [(z.name, z.polygon) for z in garden.of_kind("keepout")]
-    mow = [LawnGeometry(z.polygon, obstacles) for z in garden.of_kind("mow")]
-    nav = [LawnGeometry(z.polygon, obstacles) for z in garden.of_kind("nav")]
+    mow = [z.polygon for z in garden.of_kind("mow")]
+    geom = LawnGeometry(mow[0], obstacles, mow[1:], [z.polygon for z in garden.of_kind("nav")])
     allpts = np.vstack([z.polygon for z in garden.zones])
     lo, hi = allpts.min(axis=0) - 1.0, allpts.max(axis=0) + 1.0
     gx = np.arange(lo[0], hi[0], step)
     gy = np.arange(lo[1], hi[1], step)
     pts = np.column_stack([np.repeat(gx, gy.size), np.tile(gy, gx.size)])
     # mowerhw: the containment geometry the permit uses
-    s_mow = np.max([g.signed_distances(pts) for g in mow], axis=0)
-    s_nav = (
-        np.max([g.signed_distances(pts) for g in nav], axis=0) if nav else np.full(len(pts), -1.0)
+    s_mow = geom.signed_distances(pts)
+    transit = (
+        shapely.contains_xy(geom.transit, pts[:, 0], pts[:, 1])
+        if geom.transit is not None
+        else np.zeros(len(pts), bool)
     )
-    ours = np.where(s_mow >= 0.0, "MOW", np.where(s_nav >= 0.0, "TRANSIT", "OUTSIDE"))
+    ours = np.where(s_mow >= 0.0, "MOW", np.where(transit, "TRANSIT", "OUTSIDE"))
     # the reference: even-odd over the raw outlines of the file
     raw = raw_rings(path)
     in_obstacle = np.any([even_odd(r, pts) for r in raw["keepout"]], axis=0)

@@ -36,7 +36,7 @@ HB_ERROR = 254
 HB_SHUTDOWN = 255
 _TICK_TOLERANCE_S = 1e-6  # a tick "at" the deadline counts, whatever the float rounding
 
-STATE_CODES = {"INSIDE": 0, "NEAR_EDGE": 1, "OUTSIDE": 2, "UNKNOWN": 3}
+STATE_CODES = {"INSIDE": 0, "NEAR_EDGE": 1, "OUTSIDE": 2, "UNKNOWN": 3, "TRANSIT": 4}
 REASON_CODES = {
     "": 0,
     "OUTSIDE": 1,
@@ -51,7 +51,9 @@ REASON_CODES = {
     "LIFTED": 10,
     "TILTED": 11,
     "COLLISION": 12,
+    "TRANSIT": 13,
 }
+REASON_OTHER = 15  # a reason this table does not know (4 bits)
 REASON_NAMES = {v: k for k, v in REASON_CODES.items()}
 STATE_NAMES = {v: k for k, v in STATE_CODES.items()}
 
@@ -89,12 +91,11 @@ def _i16(value: float, scale: float) -> int:
 
 
 def encode_status(s: Status) -> bytes:
-    """Byte 0: state (bits 0–1), permit (bit 2), reason (bits 3–7); bytes 1–2: signed distance
+    """Byte 0: state (bits 0–2), permit (bit 3), reason (bits 4–7); bytes 1–2: signed distance
     (int16, 0.01 m); 3–4: x, 5–6: y (int16, 0.05 m); 7: heading (uint8, 1.40625 °/bit).
-    Not available: 0x7FFF (int16), 0xFF (heading)."""
-    b0 = (
-        STATE_CODES.get(s.state, 3) | (4 if s.permit else 0) | (REASON_CODES.get(s.reason, 31) << 3)
-    )
+    Not available: 0x7FFF (int16), 0xFF (heading). (configs/mowerhw.dbc, MowerhwStatus.)"""
+    reason = REASON_CODES.get(s.reason, REASON_OTHER)
+    b0 = STATE_CODES.get(s.state, 3) | (8 if s.permit else 0) | (reason << 4)
     if math.isfinite(s.heading_rad):
         heading = round(math.degrees(s.heading_rad) % 360.0 / 1.40625) % 256
         heading = min(heading, 0xFE)  # 0xFF means "not available"
@@ -119,9 +120,9 @@ def decode_status(data: bytes) -> Status:
 
     heading = float("nan") if data[7] == 0xFF else math.radians(data[7] * 1.40625)
     return Status(
-        STATE_NAMES.get(b0 & 3, "UNKNOWN"),
-        bool(b0 & 4),
-        REASON_NAMES.get(b0 >> 3, "?"),
+        STATE_NAMES.get(b0 & 7, "UNKNOWN"),
+        bool(b0 & 8),
+        REASON_NAMES.get(b0 >> 4, "?"),
         val(dist, 0.01),
         val(x, 0.05),
         val(y, 0.05),

@@ -1,4 +1,5 @@
-"""``mowerhw map check|show|plot|add-keepout|remove-keepout``: look at and edit lawn maps."""
+"""``mowerhw map check|show|plot|upgrade|add-keepout|remove-keepout|add-area|remove-area|
+export-geojson|import-geojson|import-openmower``: look at and edit lawn maps."""
 
 from __future__ import annotations
 
@@ -56,15 +57,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     imp.set_defaults(handler=_import_geojson)
     om = msub.add_parser(
         "import-openmower",
-        help="one mowing area of an OpenMower map, with its obstacles, into a taught map",
+        help="an OpenMower map's areas, navigation areas and obstacles into a taught map",
         description="Read an OpenMower map backup (its outlines repaired and each repair "
-        "said), align it to the taught map by the dock both have (or by --points), and put "
-        "the mowing area --area with the obstacles reaching into it (clipped to it) into "
-        "MAP; the landmarks stay, the old map is kept as a backup.",
+        "said), align it to the taught map by the dock both have (or by --points), and add "
+        "its mowing areas (all, or those named with --area), navigation areas and obstacles "
+        "to MAP; the taught lawn and the landmarks stay, the old map is kept as a backup.",
     )
     om.add_argument("file", type=Path, help="the OpenMower map backup (JSON)")
     om.add_argument("--into", type=Path, required=True, metavar="MAP")
-    om.add_argument("--area", help="the mowing area (name or id); without it: list them")
+    om.add_argument(
+        "--area", action="append", help="a mowing area to take (name or id; repeat for more)"
+    )
     om.add_argument(
         "--points",
         help='reference points instead of the dock: "ox,oy:mx,my ..." (OpenMower → map, 2+)',
@@ -74,6 +77,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     rem.add_argument("map", type=Path)
     rem.add_argument("--name", required=True)
     rem.set_defaults(handler=_remove)
+    area = msub.add_parser(
+        "add-area", help="add a mowing or navigation area (no re-driving; with a backup)"
+    )
+    area.add_argument("map", type=Path)
+    area.add_argument("--name", required=True)
+    area.add_argument("--kind", choices=("mow", "nav"), required=True)
+    area.add_argument("--polygon", required=True, help='corners in map metres: "x,y x,y x,y ..."')
+    area.set_defaults(handler=_add_area)
+    rma = msub.add_parser("remove-area", help="remove an area by name (with a backup)")
+    rma.add_argument("map", type=Path)
+    rma.add_argument("--name", required=True)
+    rma.set_defaults(handler=_remove_area)
+    up = msub.add_parser(
+        "upgrade",
+        help="rewrite a map of an older format as the current one (with a backup)",
+        description="Rewrite MAP in map format 2 (its outline becomes the mowing area "
+        "'lawn'; outlines repaired where safe, each repair said); same decisions.",
+    )
+    up.add_argument("map", type=Path)
+    up.set_defaults(handler=_upgrade)
 
 
 def _load(path: Path, strict: bool = True):
@@ -115,7 +138,17 @@ def _summary(m, path: Path) -> dict:
         "perimeter_m": round(outline.length, 2),
         "area_m2": round(outline.area, 2),
         "mowable_area_m2": _mowable_m2(m),
+        "areas": [
+            {
+                "name": a.name,
+                "kind": a.kind,
+                "points": len(a.polygon),
+                "area_m2": round(Polygon(a.polygon).area, 2),
+            }
+            for a in m.all_areas()
+        ],
         "problems": m.problems(),
+        "warnings": m.warnings(),
         "keepout_zones": [
             {"name": z.name, "points": len(z.polygon), "area_m2": round(Polygon(z.polygon).area, 2)}
             for z in m.keepouts
@@ -134,10 +167,15 @@ def _summary(m, path: Path) -> dict:
 
 def _check(args: argparse.Namespace) -> int:
     m = _load(args.map)
+    areas = m.all_areas()
+    mowing = sum(a.kind == "mow" for a in areas)
     print(
-        f"{args.map}: ok ({len(m.landmarks)} landmarks, {m.outline_polygon().area:.1f} m² "
-        f"outline, {len(m.keepouts)} keep-out zone(s), checksum verified)"
+        f"{args.map}: ok (version {m.version}; {len(m.landmarks)} landmarks, {mowing} mowing "
+        f"and {len(areas) - mowing} navigation area(s), {m.lawn_polygon().area:.1f} m² to mow, "
+        f"{len(m.keepouts)} keep-out zone(s), checksum verified)"
     )
+    for warning in m.warnings():
+        print(f"WARNING      {warning}")
     return 0
 
 
@@ -148,15 +186,27 @@ def _show(args: argparse.Namespace) -> int:
         print_json(s)
         return _report_problems(s["problems"], args.map)
     print(f"map          {s['map']}  (version {s['version']}, created {s['created_utc']})")
-    print(
-        f"outline      {s['boundary_points']} points, perimeter {s['perimeter_m']} m, "
-        f"area {s['area_m2']} m² (mowable {s['mowable_area_m2']} m²)"
-    )
+    if len(s["areas"]) == 1:
+        print(
+            f"outline      {s['boundary_points']} points, perimeter {s['perimeter_m']} m, "
+            f"area {s['area_m2']} m² (mowable {s['mowable_area_m2']} m²)"
+        )
+    else:
+        mowing = sum(a["kind"] == "mow" for a in s["areas"])
+        print(
+            f"areas        {mowing} mowing, {len(s['areas']) - mowing} navigation; mowable "
+            f"{s['mowable_area_m2']} m² (keep-outs taken out)"
+        )
+        for a in s["areas"]:
+            kind = "mowing" if a["kind"] == "mow" else "navigation"
+            print(f"area         {a['name']!r} ({kind}): {a['points']} points, {a['area_m2']} m²")
     for z in s["keepout_zones"]:
         print(f"keep-out     {z['name']!r}: {z['points']} points, {z['area_m2']} m²")
     print(f"landmarks    {s['landmarks']} (median σ {s['landmark_sigma_median_m']} m)")
     print(f"dock         {s['dock_position']}")
     print(f"checksum     {s['checksum']}")
+    for warning in s["warnings"]:
+        print(f"WARNING      {warning}")
     for problem in s["problems"]:
         print(f"PROBLEM      {problem}")
     return _report_problems(s["problems"], args.map)
@@ -226,6 +276,69 @@ def _add(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_area(args: argparse.Namespace) -> int:
+    from mowerhw.map import MapError
+
+    try:
+        poly = parse_polygon(args.polygon)
+    except ValueError as exc:
+        print(f'mowerhw: --polygon: {exc}; expected "x,y x,y x,y ..."', file=sys.stderr)
+        return 2
+    m = _load(args.map)
+    try:
+        new = m.with_area(args.name, args.kind, poly)
+    except MapError as exc:
+        print(f"mowerhw: cannot add area {args.name!r}: {exc}", file=sys.stderr)
+        return EX_CONFIG
+    return _replace(args.map, new, [], f"added {args.kind} area {args.name!r}")
+
+
+def _remove_area(args: argparse.Namespace) -> int:
+    from mowerhw.map import MapError
+
+    m = _load(args.map)
+    try:
+        new = m.without_area(args.name)
+    except MapError as exc:
+        print(f"mowerhw: {exc}", file=sys.stderr)
+        return EX_CONFIG
+    return _replace(args.map, new, [], f"removed area {args.name!r}")
+
+
+def _upgrade(args: argparse.Namespace) -> int:
+    from mowerhw.map import VERSION, MapError
+    from mowerhw.zones import ZoneError
+
+    m = _load(args.map)
+    if m.version == VERSION:
+        print(f"{args.map}: already map format {VERSION}; nothing to do")
+        return 0
+    try:
+        garden = cleaned(m)
+        new = m.with_zones(garden)
+    except (ZoneError, MapError) as exc:
+        print(f"mowerhw: cannot upgrade {args.map}: {exc}", file=sys.stderr)
+        return EX_CONFIG
+    return _replace(args.map, new, garden.repairs, f"map format {m.version} → {VERSION}")
+
+
+def cleaned(m):
+    """The map's zones with their outlines repaired where safe (each repair said)."""
+    from mowerhw.zones import Garden, Zone, clean_outline
+
+    zones, repairs = [], []
+    for a in m.all_areas():
+        kind = "mowing" if a.kind == "mow" else "navigation"
+        poly, said = clean_outline(a.polygon, f"{kind} area {a.name!r}")
+        zones.append(Zone(a.name, a.kind, poly))
+        repairs += said
+    for z in m.keepouts:
+        poly, said = clean_outline(z.polygon, f"keep-out {z.name!r}")
+        zones.append(Zone(z.name, "keepout", poly))
+        repairs += said
+    return Garden(zones, m.dock_position[:2], m.dock_heading(), repairs)
+
+
 def _remove(args: argparse.Namespace) -> int:
     from mowerhw.map import MapError
 
@@ -248,10 +361,15 @@ def _replace(path: Path, new, repairs: list[str], what: str) -> int:
         print(f"repaired     {repair}")
     backup = _backup(path)
     new.save(path)
+    areas = new.all_areas()
+    mowing = sum(a.kind == "mow" for a in areas)
     print(
-        f"{path}: {what}, {len(new.keepouts)} keep-out(s) ({new.lawn_polygon().area:.1f} m² to "
-        f"mow); previous map kept as {backup}"
+        f"{path}: {what}; {mowing} mowing and {len(areas) - mowing} navigation area(s), "
+        f"{len(new.keepouts)} keep-out(s) ({new.lawn_polygon().area:.1f} m² to mow); "
+        f"previous map kept as {backup}"
     )
+    for warning in new.warnings():
+        print(f"WARNING      {warning}")
     return 0
 
 
@@ -288,7 +406,7 @@ def _import_geojson(args: argparse.Namespace) -> int:
 
 def _import_openmower(args: argparse.Namespace) -> int:
     from mowerhw.map import MapError
-    from mowerhw.zones import ZoneError, align_by_dock, align_by_points, one_area, read_openmower
+    from mowerhw.zones import Garden, ZoneError, align_by_dock, align_by_points, read_openmower
 
     m = _load(args.into, strict=False)
     try:
@@ -302,14 +420,26 @@ def _import_openmower(args: argparse.Namespace) -> int:
         else:
             garden = align_by_dock(garden, m.dock_position[:2], m.dock_heading())
             print("aligned      by the dock")
-        if not args.area:
-            for z in garden.of_kind("mow"):
-                print(f"mowing area  {z.name!r}: {len(z.polygon)} points, {z.area_m2():.1f} m²")
-            print("mowerhw: choose one with --area NAME", file=sys.stderr)
-            return 2
-        chosen = one_area(garden, args.area)
-        new = m.with_zones(chosen)
+        mow = {z.name for z in garden.of_kind("mow")}
+        unknown = sorted(set(args.area or ()) - mow)
+        if unknown:
+            raise ZoneError(
+                f"no mowing area {', '.join(map(repr, unknown))} in {args.file} (its mowing "
+                f"areas: {', '.join(map(repr, sorted(mow)))})"
+            )
+        taken = [z for z in garden.zones if z.kind != "mow" or not args.area or z.name in args.area]
+        mine = m.garden()
+        clash = sorted({z.name for z in mine.zones} & {z.name for z in taken})
+        if clash:
+            raise ZoneError(f"{', '.join(map(repr, clash))}: already in {args.into}")
+        merged = Garden([*mine.zones, *taken], mine.dock_xy, mine.dock_heading_rad)
+        new = m.with_zones(merged)
     except (ZoneError, MapError, ValueError) as exc:
         print(f"mowerhw: {exc}", file=sys.stderr)
         return EX_CONFIG
-    return _replace(args.into, new, chosen.repairs, f"mowing area {args.area!r}")
+    kinds = {k: sum(z.kind == k for z in taken) for k in ("mow", "nav", "keepout")}
+    what = (
+        f"imported {kinds['mow']} mowing area(s), {kinds['nav']} navigation area(s) and "
+        f"{kinds['keepout']} obstacle(s) from {args.file}"
+    )
+    return _replace(args.into, new, garden.repairs, what)

@@ -6,6 +6,7 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+from typing import Any
 
 from mowerhw.cli.common import (
     add_config_argument,
@@ -66,6 +67,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_config_argument(c)
     c.add_argument("command", choices=[x for x in COMMANDS if x != "fault"] + ["fault"])
     c.add_argument("args", nargs="*", help="save-map: PATH; fault: nan|exception")
+    c.add_argument(
+        "--area",
+        action="append",
+        help="mow: mow only this mowing area of the map (repeat for more); the others are "
+        "driven with the deck off (TRANSIT). Default: the config's mow.areas (empty: all)",
+    )
     c.add_argument("--socket", type=Path, help="control socket (default: from the config)")
     c.add_argument(
         "--timeout",
@@ -124,7 +131,12 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     sock = args.socket
     if sock is None:
         sock = load_config_or_exit(args.config).runtime.control_socket
-    extra = {"args": args.args} if args.args else {}
+    extra: dict[str, Any] = {"args": args.args} if args.args else {}
+    if args.area:
+        if args.command != "mow":
+            print("mowerhw ctl: --area is for mow", file=sys.stderr)
+            return 2
+        extra["areas"] = args.area
     try:
         reply = request(sock, args.command, timeout=args.timeout, **extra)
     except (OSError, ConnectionError) as exc:

@@ -11,6 +11,7 @@ class State(StrEnum):
     NEAR_EDGE = "NEAR_EDGE"
     OUTSIDE = "OUTSIDE"
     UNKNOWN = "UNKNOWN"
+    TRANSIT = "TRANSIT"  # in a navigation area (or a mowing area not chosen): drive, do not cut
 
 
 class Reason(StrEnum):
@@ -28,3 +29,4 @@ class Reason(StrEnum):
     LIFTED = "LIFTED"  # lifted, or a lift switch (latched until clear for a while)
     TILTED = "TILTED"  # tilted past the limit, or rolled over
     COLLISION = "COLLISION"  # a bump: an acceleration spike or a bump switch
+    TRANSIT = "TRANSIT"  # in a navigation area: the mower may drive there, the deck stays off

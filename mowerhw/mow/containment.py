@@ -33,6 +33,7 @@ from shapely.geometry.polygon import orient
 from mowerhw.common.reasons import Reason as Reason
 from mowerhw.common.reasons import State as State
 from mowerhw.config import ContainmentConfig
+from mowerhw.map import LawnMap
 
 FloatArray = NDArray[np.float64]
 
@@ -62,17 +63,35 @@ class LawnGeometry:
     INWARD_BAND_M = 0.5
 
     def __init__(
-        self, outline: FloatArray, keepouts: Sequence[tuple[str, FloatArray]] = ()
+        self,
+        outline: FloatArray,
+        keepouts: Sequence[tuple[str, FloatArray]] = (),
+        more_areas: Sequence[FloatArray] = (),
+        transit: Sequence[FloatArray] = (),
     ) -> None:
-        poly = orient(Polygon(outline), 1.0)
-        if not poly.is_valid or poly.area <= 0:
-            raise ValueError("the lawn outline is not a simple polygon with an area")
-        self.outline = poly
+        """The mowable area: ``outline`` and ``more_areas`` (mowing areas) minus the
+        keep-outs; ``transit``: outlines where the mower may drive with the deck off
+        (navigation areas, mowing areas not chosen), keep-outs and the mowable area taken
+        out."""
+        polys = [orient(Polygon(pts), 1.0) for pts in (outline, *more_areas)]
+        if any(not poly.is_valid or poly.area <= 0 for poly in polys):
+            raise ValueError("a mowing area's outline is not a simple polygon with an area")
+        self.outline = polys[0]
         self.keepouts = [(name, Polygon(pts)) for name, pts in keepouts]
-        area = poly
+        area = polys[0] if len(polys) == 1 else shapely.union_all(polys)
         for _, zone in self.keepouts:
             area = area.difference(zone)
+        if area.is_empty:
+            raise ValueError("the keep-outs leave nothing to mow")
         self.area = area
+        self.transit: shapely.Geometry | None = None
+        if transit:
+            way = shapely.union_all([Polygon(pts) for pts in transit]).difference(area)
+            for _, zone in self.keepouts:
+                way = way.difference(zone)
+            if not way.is_empty:
+                shapely.prepare(way)
+                self.transit = way
         self.edges = area.boundary
         shapely.prepare(self.area)
         shapely.prepare(self.edges)
@@ -108,6 +127,28 @@ class LawnGeometry:
         d = shapely.distance(self.edges, pts)
         signed: FloatArray = np.where(shapely.contains_xy(self.area, xy[:, 0], xy[:, 1]), d, -d)
         return signed
+
+    @classmethod
+    def of_map(cls, lawn_map: LawnMap, mow_areas: Sequence[str] = ()) -> LawnGeometry:
+        """The geometry of ``lawn_map``: its mowing areas (those named in ``mow_areas``,
+        else all) to mow, its navigation areas and the other mowing areas to drive through;
+        ValueError naming the areas there are for a name the map does not have."""
+        mow = {a.name: a.polygon for a in lawn_map.all_areas() if a.kind == "mow"}
+        unknown = [name for name in mow_areas if name not in mow]
+        if unknown:
+            raise ValueError(
+                f"no mowing area {', '.join(map(repr, unknown))} in the map (its mowing "
+                f"areas: {', '.join(map(repr, mow))})"
+            )
+        chosen = [pts for name, pts in mow.items() if not mow_areas or name in mow_areas]
+        transit = [a.polygon for a in lawn_map.all_areas() if a.kind == "nav"]
+        transit += [pts for name, pts in mow.items() if mow_areas and name not in mow_areas]
+        keepouts = [(z.name, z.polygon) for z in lawn_map.keepouts]
+        return cls(chosen[0], keepouts, chosen[1:], transit)
+
+    def in_transit(self, x: float, y: float) -> bool:
+        """In a navigation area (or a mowing area not chosen), outside every keep-out."""
+        return self.transit is not None and bool(shapely.contains_xy(self.transit, x, y))
 
     def keepout_at(self, x: float, y: float) -> str | None:
         for name, zone in self.keepouts:
@@ -221,6 +262,12 @@ class Containment:
         self, t: float, x: float, y: float, s: float, sigma: float, why: str
     ) -> ContainmentResult:
         zone = self.geometry.keepout_at(x, y) if self.geometry.keepouts else None
+        if zone is None and self.geometry.in_transit(x, y):  # drive on, deck off
+            detail = f"in transit, {max(-s, 0.0):.2f} m from a mowing area (σ {sigma:.2f} m); {why}"
+            self.last = ContainmentResult(
+                State.TRANSIT, False, s, sigma, Reason.TRANSIT.value, detail, t
+            )
+            return self.last
         where = f"inside keep-out {zone!r}" if zone else "outside the boundary"
         detail = f"{where} by {max(-s, 0.0):.2f} m (σ {sigma:.2f} m); {why}"
         self.last = ContainmentResult(

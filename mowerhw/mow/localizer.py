@@ -130,9 +130,7 @@ class Localizer:
         self.ids = self.map.landmark_ids()
         self._row = {int(i): r for r, i in enumerate(self.ids.tolist())}
         self.landmarks = self.map.landmark_positions()
-        self.geometry = LawnGeometry(
-            self.map.boundary, [(z.name, z.polygon) for z in self.map.keepouts]
-        )
+        self.geometry = LawnGeometry.of_map(self.map, c.areas)
         self._containment = Containment(self.geometry, ccfg)
         g_noise, g_walk, g_scale = c.gyro()
         noise = LocalizerNoise(g_noise, g_walk, c.speed_noise, c.lateral_noise, g_scale)

@@ -384,7 +384,8 @@ def replay_journal(
         elif kind == "decide":
             compare(core.decide(rec["now"], rec["revealed_at"]), rec["out"], seq)
         elif kind == "set_mode":
-            core.set_mode(rec["mode"])
+            areas = rec.get("mow_areas")
+            core.set_mode(rec["mode"], tuple(areas) if areas is not None else None)
         elif kind == "map_loaded":
             core.map_loaded(dec.lawn_map(rec["map"]), dec.start_pose(rec["saved_pose"]))
         elif kind == "map_invalid":

@@ -35,9 +35,10 @@ class ChainRequests:
         lawn_map: LawnMap | None = None,
         start_pose: StartPose | None = None,
         resumed: bool = False,
+        mow_areas: tuple[str, ...] | None = None,
     ) -> BuildRequest:
         self._serial += 1
-        req = BuildRequest(self._serial, kind, lawn_map, start_pose, resumed)
+        req = BuildRequest(self._serial, kind, lawn_map, start_pose, resumed, mow_areas)
         self.pending = req
         if self.on_build is not None:
             self.on_build(req)

@@ -21,7 +21,9 @@ class Controllable(Protocol):
     link: Any
     estimator_delay_s: float
 
-    async def set_mode(self, mode: str) -> dict[str, Any]: ...
+    async def set_mode(
+        self, mode: str, mow_areas: tuple[str, ...] | None = None
+    ) -> dict[str, Any]: ...
     async def finish_teach(self) -> dict[str, Any]: ...
     async def save_map(self, path: Path) -> None: ...
     def status(self) -> dict[str, Any]: ...
@@ -32,7 +34,12 @@ async def handle_command(d: Controllable, cmd: str, args: dict[str, Any]) -> dic
     if cmd == "status":
         return {"ok": True, **d.status()}
     if cmd in MODES:
-        return await d.set_mode(cmd)
+        areas = args.get("areas")
+        if areas is not None and (
+            not isinstance(areas, list) or not areas or not all(isinstance(a, str) for a in areas)
+        ):
+            return {"ok": False, "error": "areas: a list of mowing area names"}
+        return await d.set_mode(cmd, tuple(areas) if areas is not None else None)
     if cmd == "finish-teach":
         return await d.finish_teach()
     if cmd == "save-map":
@@ -97,6 +104,7 @@ def core_status(core: RuntimeCore, now: float) -> dict[str, Any]:
     pipe = core.pipeline
     out: dict[str, Any] = {
         "mode": core.mode,
+        "mow_areas": list(core.mow_areas) if core.mow_areas is not None else None,
         "permit": d.permit,
         "state": str(d.state),
         "reason": d.reason,

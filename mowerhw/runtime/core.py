@@ -76,6 +76,7 @@ class RuntimeCore:
         self.gate = PermitGate.from_config(config)
         self.decision: Decision = self.gate.current
         self.mode = "idle"
+        self.mow_areas: tuple[str, ...] | None = None  # set by `ctl mow --area`; None: config
         self.pipeline: Pipeline | None = None
         self.map: LawnMap | None = None
         self.map_problem = ""
@@ -192,7 +193,7 @@ class RuntimeCore:
         self.buffer.pop_ready()
         self.pipeline = None
         if self.mode == "mow" and self.map is not None:
-            self.chains.request("mow", self.map, self._last_good_pose)
+            self._request_mow(self.map, self._last_good_pose)
         elif self.mode == "teach":
             log.error("teach: the recording so far is lost; drive the loop again")
             self.chains.request("teach")
@@ -285,14 +286,18 @@ class RuntimeCore:
 
     # ------------------------------------------------------------------- modes, map
 
-    def set_mode(self, mode: str) -> str:
+    def set_mode(self, mode: str, mow_areas: tuple[str, ...] | None = None) -> str:
         """Switch mode: ``""`` if done, else why not. Teach asks for a teach chain; mow waits
-        for the shell's :meth:`map_loaded` / :meth:`map_invalid`."""
+        for the shell's :meth:`map_loaded` / :meth:`map_invalid`. ``mow_areas``: mow only
+        these mowing areas of the map, the others being transit (None: ``mow.areas``)."""
         if mode not in MODES:
             return f"mode {mode!r} is not one of {', '.join(MODES)}"
         if self.mode == "teach" and self.teach_state == "finishing":
             return "teach is finishing (loop closure); try again shortly"
-        self._log("set_mode", mode=mode)
+        if mow_areas is not None and mode != "mow":
+            return "areas are for mow mode only"
+        self._log("set_mode", mode=mode, mow_areas=mow_areas)
+        self.mow_areas = mow_areas
         self.buffer.pop_ready()
         self.fault = ""
         self.map_problem = ""
@@ -314,7 +319,19 @@ class RuntimeCore:
             return
         self.map = lawn_map
         self.map_problem = ""
-        self.chains.request("mow", lawn_map, saved_pose, resumed=saved_pose is not None)
+        unknown = [a for a in self.mow_areas or () if a not in lawn_map.area_names("mow")]
+        if unknown:
+            known = ", ".join(map(repr, lawn_map.area_names("mow")))
+            self.map_problem = (
+                f"no mowing area {', '.join(map(repr, unknown))} (the map's: {known})"
+            )
+            return
+        self._request_mow(lawn_map, saved_pose, resumed=saved_pose is not None)
+
+    def _request_mow(
+        self, lawn_map: LawnMap, pose: StartPose | None, resumed: bool = False
+    ) -> None:
+        self.chains.request("mow", lawn_map, pose, resumed=resumed, mow_areas=self.mow_areas)
 
     def map_invalid(self, problem: str) -> None:
         """The map file is unusable: halt MAP_INVALID naming the problem (the estimator keeps
@@ -330,11 +347,11 @@ class RuntimeCore:
         if old is not None and lawn_map.checksum == old.checksum:
             log.info("map file valid again, same map (checksum %s)", old.checksum[:19])
             if self.pipeline is None and self.chains.pending is None:
-                self.chains.request("mow", old, self._last_good_pose)
+                self._request_mow(old, self._last_good_pose)
             return
         self.map, self.pipeline = lawn_map, None
         log.info("new map loaded: %d landmarks", len(lawn_map.landmarks))
-        self.chains.request("mow", lawn_map, self._last_good_pose)
+        self._request_mow(lawn_map, self._last_good_pose)
 
     def inject(self, kind: str) -> str:
         """Fault injection (the shell checks ``runtime.fault_injection``): ``""`` or why not."""

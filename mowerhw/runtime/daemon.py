@@ -272,8 +272,8 @@ class Daemon:
 
     # ---------------------------------------------------------------------------- modes
 
-    async def set_mode(self, mode: str) -> dict[str, Any]:
-        problem = self.core.set_mode(mode)
+    async def set_mode(self, mode: str, mow_areas: tuple[str, ...] | None = None) -> dict[str, Any]:
+        problem = self.core.set_mode(mode, mow_areas)
         if problem:
             return {"ok": False, "error": problem}
         if mode == "mow":

@@ -10,7 +10,7 @@ tracks), estimates out. The daemon decides when to feed them; the heavy front-en
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -55,6 +55,7 @@ class BuildRequest:
     lawn_map: LawnMap | None = None
     start_pose: StartPose | None = None
     resumed: bool = False
+    mow_areas: tuple[str, ...] | None = None  # mow only these (None: the config's mow.areas)
 
 
 def build_pipeline(config: Config, camera: CameraModel, req: BuildRequest) -> Pipeline:
@@ -63,6 +64,8 @@ def build_pipeline(config: Config, camera: CameraModel, req: BuildRequest) -> Pi
         return TeachPipeline(config, camera)
     if req.lawn_map is None:
         raise ValueError("a mow chain needs a map")
+    if req.mow_areas is not None:
+        config = replace(config, mow=replace(config.mow, areas=req.mow_areas))
     return MowPipeline(config, camera, req.lawn_map, start_pose=req.start_pose)
 
 
