@@ -442,8 +442,17 @@ class LawnMap:
                 "rotation_rad": closure.rotation_rad,
             },
         }
+        zones = getattr(result, "zones", [])
+        mowing = [z for z in zones if z.kind == "mow"]
         return cls(
             boundary=np.asarray(result.boundary, dtype=np.float64),
+            boundary_name=mowing[0].name if mowing else TAUGHT_AREA,
+            areas=[
+                Area(z.name, z.kind, z.polygon)
+                for z in zones
+                if z.kind != "keepout" and z is not mowing[0]
+            ],
+            keepouts=[KeepOut(z.name, z.polygon) for z in zones if z.kind == "keepout"],
             landmarks=landmarks,
             dock_position=pos,
             dock_quaternion=quat,

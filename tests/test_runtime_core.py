@@ -150,3 +150,20 @@ def test_the_journal_codec_round_trips_exactly(tmp_path: Any) -> None:
     assert (
         dec.lawn_map(first).checksum == m.checksum and dec.lawn_map(again) is dec.maps[m.checksum]
     )
+
+
+def test_mowing_only_named_areas_and_teach_marks_through_the_core(camera: Any) -> None:
+    """`ctl mow --area NAME`: the chain is built for those areas, a name the map does not have
+    halts MAP_INVALID naming the map's areas; teach marks only while teaching."""
+    core, asked = _core(camera)
+    assert core.teach_mark("area", "front") == "not teaching (mode idle)"
+    assert core.set_mode("idle", ("lawn",)) == "areas are for mow mode only"
+    assert core.set_mode("mow", ("back",)) == ""
+    core.map_loaded(_map())
+    assert core.map_problem == "no mowing area 'back' (the map's: 'lawn')"
+    assert not asked
+    assert core.set_mode("mow", ("lawn",)) == ""
+    core.map_loaded(_map())
+    assert core.map_problem == "" and asked[-1].mow_areas == ("lawn",)
+    assert core.pipeline is not None
+    assert core.pipeline.localizer.geometry.transit is None  # type: ignore[union-attr]

@@ -128,3 +128,48 @@ def test_the_smoother_measures_a_mems_gyros_yaw_scale_error(seed):
     assert abs(true_error) > 0.015  # these seeds have a scale error worth finding
     assert out.result.diagnostics["gyro_yaw_scale_error"] == pytest.approx(true_error, abs=0.003)
     assert out.metrics["boundary_rmse_scale_free_m"] < 0.03
+
+
+def test_a_marked_drive_makes_named_zones_in_one_map(tmp_path):
+    """``ctl teach area NAME`` / ``dock`` through the Teacher: the whole loop marked as the
+    mowing area 'front' becomes the map's lawn by that name; the dock where it was marked."""
+    run = simulate_teach("paper", seed=4)
+    t = Teacher(camera=run.world.camera)
+    marked = False
+    for kind, p in run.streams.events():
+        if kind == "imu":
+            t.imu(*p)
+            if not marked and t.phase == "driving":
+                assert t.mark(p[0], "dock") == ""
+                assert t.mark(p[0] + 1e-6, "area", "front") == ""
+                assert t.mark(p[0] + 2e-6, "area", "front").endswith("is marked already")
+                marked = True
+        elif kind == "speed":
+            t.speed(*p)
+        else:
+            t.bearings(p.t, p.ids, p.bearings)
+    assert marked and t.zone_open
+    result = t.finish()
+    assert [(z.kind, z.name) for z in result.zones] == [("mow", "front")]
+    m = lawnmap.LawnMap.from_teach_result(result)
+    assert m.boundary_name == "front" and m.areas == [] and m.problems() == []
+    assert m.lawn_polygon().area > 50.0
+    assert result.dock_index is not None and result.dock_index > 0
+    m.save(tmp_path / "front.json")
+    assert lawnmap.load(tmp_path / "front.json").area_names("mow") == ["front"]
+
+
+def test_zones_without_a_lawn_are_refused():
+    run = simulate_teach("paper", seed=4)
+    t = Teacher(camera=run.world.camera)
+    for kind, p in run.streams.events():
+        if kind == "imu":
+            t.imu(*p)
+            if t.phase == "driving" and not t.marks:
+                t.mark(p[0], "keepout", "bed")
+        elif kind == "speed":
+            t.speed(*p)
+        else:
+            t.bearings(p.t, p.ids, p.bearings)
+    with pytest.raises(BoundaryError, match="no mowing area: mark each lawn too"):
+        t.finish()

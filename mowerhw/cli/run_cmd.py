@@ -66,7 +66,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_config_argument(c)
     c.add_argument("command", choices=[x for x in COMMANDS if x != "fault"] + ["fault"])
-    c.add_argument("args", nargs="*", help="save-map: PATH; fault: nan|exception")
+    c.add_argument(
+        "args",
+        nargs="*",
+        help="save-map: PATH; fault: nan|exception; teach (while teaching): area NAME | "
+        "keepout NAME | nav NAME | dock | end — what is driven from now on",
+    )
     c.add_argument(
         "--area",
         action="append",

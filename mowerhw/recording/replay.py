@@ -383,6 +383,8 @@ def replay_journal(
                 core.install(req.serial, build_pipeline(config, camera, req))
         elif kind == "decide":
             compare(core.decide(rec["now"], rec["revealed_at"]), rec["out"], seq)
+        elif kind == "teach_mark":
+            core.teach_mark(rec["mark"], rec["name"])
         elif kind == "set_mode":
             areas = rec.get("mow_areas")
             core.set_mode(rec["mode"], tuple(areas) if areas is not None else None)

@@ -33,6 +33,12 @@ async def handle_command(d: Controllable, cmd: str, args: dict[str, Any]) -> dic
     """The reply to one command: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``."""
     if cmd == "status":
         return {"ok": True, **d.status()}
+    if cmd == "teach" and args.get("args"):  # ctl teach area NAME | keepout NAME | ... | dock
+        words = [str(a) for a in args["args"]]
+        if len(words) > 2:
+            return {"ok": False, "error": "teach marks take a kind and at most one name"}
+        problem = d.core.teach_mark(words[0], words[1] if len(words) > 1 else "")
+        return {"ok": False, "error": problem} if problem else {"ok": True, "marked": words}
     if cmd in MODES:
         areas = args.get("areas")
         if areas is not None and (

@@ -76,6 +76,7 @@ class RuntimeCore:
         self.gate = PermitGate.from_config(config)
         self.decision: Decision = self.gate.current
         self.mode = "idle"
+        self.t_imu_newest: float | None = None  # sensor time of the newest IMU sample
         self.mow_areas: tuple[str, ...] | None = None  # set by `ctl mow --area`; None: config
         self.pipeline: Pipeline | None = None
         self.map: LawnMap | None = None
@@ -111,6 +112,7 @@ class RuntimeCore:
         buffer, the estimator fed with what is ready, and the permit decided at once."""
         self._log("imu", sample=sample, now=now)
         self.last_arrival["imu"] = now
+        self.t_imu_newest = sample.t
         self.counts["imu"] += 1
         gyro = self.r_bi @ sample.gyro
         if sample.accel is not None:  # for the supervisor's lift/tilt/collision checks
@@ -375,6 +377,18 @@ class RuntimeCore:
         return (
             isinstance(pipe, TeachPipeline) and self.teach_state == "recording" and pipe.loop_done()
         )
+
+    def teach_mark(self, kind: str, name: str = "") -> str:
+        """``ctl teach area NAME | keepout NAME | nav NAME | dock | end``: what the operator
+        drives from now on (:mod:`mowerhw.teach.marks`), at the newest IMU sample's time;
+        why not, or ""."""
+        self._log("teach_mark", mark=kind, name=name, t=self.t_imu_newest)
+        pipe = self.pipeline
+        if self.mode != "teach" or not isinstance(pipe, TeachPipeline):
+            return f"not teaching (mode {self.mode})"
+        if self.teach_state != "recording" or self.t_imu_newest is None:
+            return f"teach is {self.teach_state or 'not started'}; mark once it is recording"
+        return pipe.teacher.mark(self.t_imu_newest, kind, name)
 
     def begin_finish_teach(self) -> TeachPipeline | str:
         """The teach chain to finish (loop closure, boundary: off the loop), or why not."""

@@ -127,6 +127,8 @@ class TeachPipeline:
         tch = self.teacher
         if tch.phase != "driving" or tch.distance_m < self.AUTO_MIN_DISTANCE_M:
             return False
+        if tch.zone_open:  # back at the dock inside a marked zone: the zone goes on
+            return False
         if self._stopped_since is None or self.t_last - self._stopped_since < self.AUTO_STOPPED_S:
             return False
         pos, _ = tch.world_pose()

@@ -63,7 +63,12 @@ def set_session_priority(nice: int) -> None:
     processes of one session share one CPU share, outside systemd), a nice value acts only
     among the session's own processes: give the session the same nice, so other work on the
     computer does not take the daemon's share. Under systemd the unit's ``CPUWeight=`` does
-    this; nothing happens where there is no autogroup."""
+    this; nothing happens where there is no autogroup. Only a daemon that leads its own
+    session does it: started from a shell (or a test) it would renice the user's whole
+    session — found on the bench, where a session left at −10 that way starved the daemon's."""
+    if os.getsid(0) != os.getpid():
+        log.debug("not a session leader: the session's nice is left as it is")
+        return
     path = Path("/proc/self/autogroup")
     try:
         if path.exists():

@@ -45,7 +45,7 @@ from mowerhw.common.geometry import (
 from mowerhw.config import Config, TeachConfig, with_imu_noise
 from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.estimation.standstill import StandstillCalibrator
-from mowerhw.teach.boundary import boundary_from_path
+from mowerhw.teach.boundary import BoundaryError, boundary_from_path
 from mowerhw.teach.depth import depth_pseudo_measurement
 from mowerhw.teach.ekf import EkfNoise, RobotCentricEKF
 from mowerhw.teach.keyframes import (
@@ -54,6 +54,14 @@ from mowerhw.teach.keyframes import (
     landmark_world_covariance,
     landmarks_in_world,
     world_pose_covariance,
+)
+from mowerhw.teach.marks import (
+    MARK_KINDS,
+    TaughtZone,
+    TeachMark,
+    check_mark,
+    dock_index,
+    zones_from_marks,
 )
 from mowerhw.teach.observer import LandmarkObservers
 from mowerhw.teach.smoother import SmootherProblem, preintegrate_segments, smooth
@@ -147,11 +155,15 @@ class TeachResult:
     descriptors: dict[int, bytes] = field(default_factory=dict)  # id → ORB descriptor(s)
     landmark_keyframes: dict[int, int] = field(default_factory=dict)  # id → keyframe first seen
     camera: Any = None  # the calibration the map was made with (OmniRadtanCamera)
+    zones: list[TaughtZone] = field(default_factory=list)  # marked stretches (teach/marks.py)
+    dock_index: int | None = None  # the trajectory sample the operator marked as the dock
 
     @property
     def start_pose(self) -> tuple[FloatArray, FloatArray]:
-        """Position and q_wb where the teach drive started (the dock)."""
-        return self.trajectory[0, 1:4].copy(), self.trajectory[0, 4:8].copy()
+        """Position and q_wb of the dock: where the teach drive started, or where the
+        operator marked it."""
+        k = 0 if self.dock_index is None else self.dock_index
+        return self.trajectory[k, 1:4].copy(), self.trajectory[k, 4:8].copy()
 
     def save(self, path: Any) -> Any:
         """Write the map file atomically (see :mod:`mowerhw.map`); returns the saved map."""
@@ -230,6 +242,7 @@ class Teacher:
             )
         )
         self.phase = "waiting"  # waiting → standstill → driving → finished
+        self.marks: list[TeachMark] = []  # what the operator marked while driving
         self.t0: float | None = None
         self.t_imu: float | None = None
         self.t_frame: float | None = None
@@ -839,8 +852,25 @@ class Teacher:
         for i in inconsistent:
             del landmarks[i]
         c = self.cfg
-        boundary = boundary_from_path(
-            traj9[:, 1:3], c.boundary_simplify_m, c.min_area_m2, distance=traj9[:, 8]
+        zones = zones_from_marks(
+            traj9[:, 0],
+            traj9[:, 1:3],
+            traj9[:, 8],
+            self.marks,
+            c.boundary_simplify_m,
+            c.min_area_m2,
+        )
+        mowing = [z for z in zones if z.kind == "mow"]
+        if zones and not mowing:
+            raise BoundaryError(
+                "zones were marked but no mowing area: mark each lawn too (ctl teach area NAME)"
+            )
+        boundary = (
+            mowing[0].polygon
+            if mowing
+            else boundary_from_path(
+                traj9[:, 1:3], c.boundary_simplify_m, c.min_area_m2, distance=traj9[:, 8]
+            )
         )
         diagnostics = {
             "standstill_samples": getattr(self, "standstill_samples", 0),
@@ -865,4 +895,21 @@ class Teacher:
             keyframes=list(self.keyframes),
             diagnostics=diagnostics,
             camera=self.camera,
+            zones=zones,
+            dock_index=dock_index(traj9[:, 0], self.marks),
         )
+
+    def mark(self, t: float, kind: str, name: str = "") -> str:
+        """The operator marks, at sensor time ``t``, what is driven from now on (see
+        :mod:`mowerhw.teach.marks`); why not, or ""."""
+        if self.phase == "finished":
+            return "teach is finished"
+        problem = check_mark(kind, name, self.marks)
+        if not problem:
+            self.marks.append(TeachMark(t, kind, name))
+        return problem
+
+    @property
+    def zone_open(self) -> bool:
+        """A marked zone is being driven (no end of the drive yet)."""
+        return bool(self.marks) and MARK_KINDS[self.marks[-1].kind] is not None
