@@ -12,7 +12,8 @@ from mowerhw.cli.map_cmd import parse_polygon
 
 def test_check_and_show(map_file, capsys):
     assert main(["map", "check", str(map_file)]) == 0
-    assert "ok (6 landmarks" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "ok (version 2; 6 landmarks, 1 mowing and 0 navigation area(s)" in out
     assert main(["map", "show", str(map_file), "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["landmarks"] == 6 and s["area_m2"] == pytest.approx(np.pi * 24, rel=0.01)

@@ -188,39 +188,48 @@ def _openmower_file(tmp_path, dock=(1.0, 1.0), heading=0.0):
     return path
 
 
-def test_an_openmower_area_is_imported_by_the_dock_with_its_obstacle_clipped(
-    map_file, tmp_path, capsys
-) -> None:
+def test_an_openmower_garden_is_imported_by_the_dock(map_file, tmp_path, capsys) -> None:
     from mowerhw.cli import main
     from mowerhw.map import load
 
     m = map_file
     om = _openmower_file(tmp_path, dock=(1.0, 1.0), heading=0.5)
-    assert main(["map", "import-openmower", str(om), "--into", str(m)]) == 2  # lists the areas
-    assert "mowing area  'front'" in capsys.readouterr().out
-    assert main(["map", "import-openmower", str(om), "--into", str(m), "--area", "front"]) == 0
+    assert main(["map", "import-openmower", str(om), "--into", str(m)]) == 0
     out = capsys.readouterr().out
-    assert "keep-out 'bed': clipped to the area 'front' (it crossed its edge)" in out
+    assert "imported 2 mowing area(s), 1 navigation area(s) and 1 obstacle(s)" in out
     assert "clockwise outline made counter-clockwise" in out
     lawn = load(m)
+    assert [(a.name, a.kind) for a in lawn.all_areas()] == [
+        ("lawn", "mow"),
+        ("front", "mow"),
+        ("back", "mow"),
+        ("path", "nav"),
+    ]
     # aligned: the OpenMower dock (1, 1, heading 0.5) lands on the map's dock (0, 0, heading 0)
     c, s = np.cos(-0.5), np.sin(-0.5)
     corner = np.array([[c, -s], [s, c]]) @ (np.array([10.0, 8.0]) - [1.0, 1.0])
-    assert np.min(np.linalg.norm(lawn.boundary - corner, axis=1)) < 1e-6
-    assert [z.name for z in lawn.keepouts] == ["bed"] and len(lawn.landmarks) == 6
-    assert lawn.keepouts[0].polygon.shape[0] == 4  # the half inside the area
+    front = next(a for a in lawn.areas if a.name == "front")
+    assert np.min(np.linalg.norm(front.polygon - corner, axis=1)) < 1e-6
+    # the obstacle crosses the front lawn's edge into the path: kept whole (it is taken out)
+    assert [z.name for z in lawn.keepouts] == ["bed"] and len(lawn.keepouts[0].polygon) == 4
+    assert len(lawn.landmarks) == 6
 
 
-def test_an_area_the_map_format_cannot_hold_is_refused_by_name(map_file, tmp_path, capsys) -> None:
+def test_openmower_areas_are_chosen_and_refused_by_name(map_file, tmp_path, capsys) -> None:
     from mowerhw.cli import main
+    from mowerhw.map import load
 
     m = map_file
     om = _openmower_file(tmp_path)
     before = m.read_bytes()
-    assert main(["map", "import-openmower", str(om), "--into", str(m), "--area", "back"]) == 78
-    assert "dock: " in capsys.readouterr().err and m.read_bytes() == before  # dock far off
     assert main(["map", "import-openmower", str(om), "--into", str(m), "--area", "nope"]) == 78
-    assert "no mowing area 'nope'; the areas are: front, back" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "no mowing area 'nope' in" in err and "(its mowing areas: 'back', 'front')" in err
+    assert m.read_bytes() == before
+    assert main(["map", "import-openmower", str(om), "--into", str(m), "--area", "back"]) == 0
+    assert load(m).area_names("mow") == ["lawn", "back"]
+    assert main(["map", "import-openmower", str(om), "--into", str(m), "--area", "back"]) == 78
+    assert "'back', 'bed', 'path': already in" in capsys.readouterr().err
 
 
 def test_alignment_by_reference_points_finds_the_rigid_motion() -> None:
