@@ -33,6 +33,7 @@ PARTS = (
     ("localizer: IMU propagation", "Localizer.imu"),
     ("core: decisions", "RuntimeCore._decide"),
     ("core: other", "RuntimeCore."),
+    ("VN-100 reading and parsing", "Vn100._readable"),
     ("VN-100 reading and parsing", "Vn100._run"),
     ("camera stream", "StreamCamera"),
     ("supervisor: leases and frames", "Supervisor._decide"),
