@@ -136,25 +136,31 @@ def test_replay_of_a_recording_without_journal_says_so(tmp_path: Path) -> None:
         replay_decisions(tmp_path / "old.mcap")
 
 
-def test_a_task_that_dies_ends_the_daemon_non_zero(tmp_path: Path, caplog: Any) -> None:
+def _run_until_broken(tmp_path: Path, break_it: Any) -> tuple[int, Daemon]:
+    """An idle daemon on the mock VN-100; once IMU data flows, ``break_it(daemon)``; its exit
+    status."""
     channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
     cfg = _config(tmp_path, channel)
     imu = MockVn100(tmp_path / "vn100").start()
     daemon = Daemon(cfg, "idle")
 
-    def broken() -> str:
-        raise RuntimeError("a bug in the ticker")
-
     async def scenario() -> int:
         task = asyncio.create_task(daemon.run())
         await _until(lambda: daemon.core.last_arrival["imu"] is not None, 20, "IMU data")
-        daemon.core.status_line = broken  # type: ignore[method-assign]
+        break_it(daemon)
         return await asyncio.wait_for(task, 20)
 
     try:
-        status = asyncio.run(scenario())
+        return asyncio.run(scenario()), daemon
     finally:
         imu.stop()
+
+
+def test_a_task_that_dies_ends_the_daemon_non_zero(tmp_path: Path, caplog: Any) -> None:
+    def broken() -> str:
+        raise RuntimeError("a bug in the ticker")
+
+    status, _ = _run_until_broken(tmp_path, lambda d: setattr(d.core, "status_line", broken))
     assert status == 1  # crash-only: systemd (or the supervisor) restarts it
     assert "the ticker task died (RuntimeError('a bug in the ticker'))" in caplog.text
 
@@ -162,24 +168,11 @@ def test_a_task_that_dies_ends_the_daemon_non_zero(tmp_path: Path, caplog: Any) 
 def test_an_imu_handler_that_raises_ends_the_daemon_non_zero(tmp_path: Path, caplog: Any) -> None:
     """IMU samples are handled in a loop callback (the VN-100 is read on the loop), where
     asyncio would only log an exception: the daemon halts and exits 1 instead."""
-    channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
-    cfg = _config(tmp_path, channel)
-    imu = MockVn100(tmp_path / "vn100").start()
-    daemon = Daemon(cfg, "idle")
 
     def broken(sample: Any, now: float) -> Any:
         raise RuntimeError("a bug in the core")
 
-    async def scenario() -> int:
-        task = asyncio.create_task(daemon.run())
-        await _until(lambda: daemon.core.last_arrival["imu"] is not None, 20, "IMU data")
-        daemon.core.imu = broken  # type: ignore[method-assign]
-        return await asyncio.wait_for(task, 20)
-
-    try:
-        status = asyncio.run(scenario())
-    finally:
-        imu.stop()
+    status, daemon = _run_until_broken(tmp_path, lambda d: setattr(d.core, "imu", broken))
     assert status == 1
     assert "the IMU sample handler failed" in caplog.text
     assert daemon.core.shutting_down  # the deck was halted on the way out

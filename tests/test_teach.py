@@ -1,6 +1,7 @@
 """The teach phase end to end on the simulated bench (paper §V), through the pure API."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -11,6 +12,22 @@ from mowerhw.evaluation.teach import run_teach
 from mowerhw.sim import simulate_teach
 from mowerhw.teach import Teacher, TeachError
 from mowerhw.teach.boundary import BoundaryError
+
+
+def feed_until(t: Teacher, run, until: float, on_imu=None) -> None:
+    """The simulated drive's samples into the teacher up to time ``until``; ``on_imu(t)``
+    after each IMU sample."""
+    for kind, p in run.streams.events():
+        if (p[0] if kind != "bearings" else p.t) > until:
+            break
+        if kind == "imu":
+            t.imu(*p)
+            if on_imu is not None:
+                on_imu(p[0])
+        elif kind == "speed":
+            t.speed(*p)
+        else:
+            t.bearings(p.t, p.ids, p.bearings)
 
 
 @pytest.fixture(scope="module")
@@ -90,16 +107,7 @@ def test_an_unfinished_loop_is_refused():
     run = simulate_teach("paper", seed=4)
     t = Teacher()
     half = run.duration_s / 2
-    for kind, p in run.streams.events():
-        tt = p[0] if kind != "bearings" else p.t
-        if tt > half:
-            break
-        if kind == "imu":
-            t.imu(*p)
-        elif kind == "speed":
-            t.speed(*p)
-        else:
-            t.bearings(p.t, p.ids, p.bearings)
+    feed_until(t, run, half)
     with pytest.raises(BoundaryError, match="open loop"):
         t.finish()
 
@@ -135,20 +143,16 @@ def test_a_marked_drive_makes_named_zones_in_one_map(tmp_path):
     mowing area 'front' becomes the map's lawn by that name; the dock where it was marked."""
     run = simulate_teach("paper", seed=4)
     t = Teacher(camera=run.world.camera)
-    marked = False
-    for kind, p in run.streams.events():
-        if kind == "imu":
-            t.imu(*p)
-            if not marked and t.phase == "driving":
-                assert t.mark(p[0], "dock") == ""
-                assert t.mark(p[0] + 1e-6, "area", "front") == ""
-                assert t.mark(p[0] + 2e-6, "area", "front").endswith("is marked already")
-                marked = True
-        elif kind == "speed":
-            t.speed(*p)
-        else:
-            t.bearings(p.t, p.ids, p.bearings)
-    assert marked and t.zone_open
+    marked = []
+
+    def mark(tt: float) -> None:
+        if not marked and t.phase == "driving":
+            assert t.mark(tt, "dock") == ""
+            assert t.mark(tt + 1e-6, "area", "front") == ""
+            marked.append(t.mark(tt + 2e-6, "area", "front"))
+
+    feed_until(t, run, math.inf, on_imu=mark)
+    assert marked == ["teach area: a zone named 'front' is marked already"] and t.zone_open
     result = t.finish()
     assert [(z.kind, z.name) for z in result.zones] == [("mow", "front")]
     m = lawnmap.LawnMap.from_teach_result(result)
@@ -162,14 +166,11 @@ def test_a_marked_drive_makes_named_zones_in_one_map(tmp_path):
 def test_zones_without_a_lawn_are_refused():
     run = simulate_teach("paper", seed=4)
     t = Teacher(camera=run.world.camera)
-    for kind, p in run.streams.events():
-        if kind == "imu":
-            t.imu(*p)
-            if t.phase == "driving" and not t.marks:
-                t.mark(p[0], "keepout", "bed")
-        elif kind == "speed":
-            t.speed(*p)
-        else:
-            t.bearings(p.t, p.ids, p.bearings)
+    feed_until(
+        t,
+        run,
+        math.inf,
+        on_imu=lambda tt: t.phase == "driving" and not t.marks and t.mark(tt, "keepout", "bed"),
+    )
     with pytest.raises(BoundaryError, match="no mowing area: mark each lawn too"):
         t.finish()

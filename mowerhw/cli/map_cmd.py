@@ -7,7 +7,9 @@ import argparse
 import datetime as dt
 import shutil
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from shapely.geometry import Polygon
@@ -73,10 +75,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help='reference points instead of the dock: "ox,oy:mx,my ..." (OpenMower → map, 2+)',
     )
     om.set_defaults(handler=_import_openmower)
-    rem = msub.add_parser("remove-keepout", help="remove a keep-out zone by name (with a backup)")
-    rem.add_argument("map", type=Path)
-    rem.add_argument("--name", required=True)
-    rem.set_defaults(handler=_remove)
+    for command, what, handler in (
+        ("remove-keepout", "a keep-out zone", _remove),
+        ("remove-area", "an area", _remove_area),
+    ):
+        rem = msub.add_parser(command, help=f"remove {what} by name (with a backup)")
+        rem.add_argument("map", type=Path)
+        rem.add_argument("--name", required=True)
+        rem.set_defaults(handler=handler)
     area = msub.add_parser(
         "add-area", help="add a mowing or navigation area (no re-driving; with a backup)"
     )
@@ -85,10 +91,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     area.add_argument("--kind", choices=("mow", "nav"), required=True)
     area.add_argument("--polygon", required=True, help='corners in map metres: "x,y x,y x,y ..."')
     area.set_defaults(handler=_add_area)
-    rma = msub.add_parser("remove-area", help="remove an area by name (with a backup)")
-    rma.add_argument("map", type=Path)
-    rma.add_argument("--name", required=True)
-    rma.set_defaults(handler=_remove_area)
     up = msub.add_parser(
         "upgrade",
         help="rewrite a map of an older format as the current one (with a backup)",
@@ -252,57 +254,48 @@ def _backup(path: Path) -> Path:
     return backup
 
 
-def _add(args: argparse.Namespace) -> int:
-    from mowerhw.map import MapError
-
+def _polygon(args: argparse.Namespace) -> np.ndarray | None:
+    """``--polygon``, or None after saying what is wrong with it."""
     try:
-        poly = parse_polygon(args.polygon)
+        return parse_polygon(args.polygon)
     except ValueError as exc:
         print(f'mowerhw: --polygon: {exc}; expected "x,y x,y x,y ..."', file=sys.stderr)
-        return 2
-    m = _load(args.map)
-    name = args.name or f"keepout-{len(m.keepouts) + 1}"
+        return None
+
+
+def _edit(path: Path, edit: Callable[[Any], Any], verb: str, what: str) -> int:
+    """Load the map, apply ``edit`` (a MapError says why not: exit 78, nothing written), and
+    save the result over it with a backup; ``verb`` ("add"/"remove") ``what``."""
+    from mowerhw.map import MapError
+
+    m = _load(path)
     try:
-        new = m.with_keepout(name, poly)
+        new = edit(m)
     except MapError as exc:
-        print(f"mowerhw: cannot add keep-out {name!r}: {exc}", file=sys.stderr)
+        print(f"mowerhw: cannot {verb} {what}: {exc}", file=sys.stderr)
         return EX_CONFIG
-    backup = _backup(args.map)
-    new.save(args.map)
-    print(
-        f"{args.map}: added keep-out {name!r} ({new.lawn_polygon().area:.1f} m² left to mow); "
-        f"previous map kept as {backup}"
-    )
-    return 0
+    done = {"add": "added", "remove": "removed"}[verb]
+    return _replace(path, new, [], f"{done} {what}")
+
+
+def _add(args: argparse.Namespace) -> int:
+    poly = _polygon(args)
+    if poly is None:
+        return 2
+    name = args.name or f"keepout-{len(_load(args.map).keepouts) + 1}"
+    return _edit(args.map, lambda m: m.with_keepout(name, poly), "add", f"keep-out {name!r}")
 
 
 def _add_area(args: argparse.Namespace) -> int:
-    from mowerhw.map import MapError
-
-    try:
-        poly = parse_polygon(args.polygon)
-    except ValueError as exc:
-        print(f'mowerhw: --polygon: {exc}; expected "x,y x,y x,y ..."', file=sys.stderr)
+    poly = _polygon(args)
+    if poly is None:
         return 2
-    m = _load(args.map)
-    try:
-        new = m.with_area(args.name, args.kind, poly)
-    except MapError as exc:
-        print(f"mowerhw: cannot add area {args.name!r}: {exc}", file=sys.stderr)
-        return EX_CONFIG
-    return _replace(args.map, new, [], f"added {args.kind} area {args.name!r}")
+    what = f"{args.kind} area {args.name!r}"
+    return _edit(args.map, lambda m: m.with_area(args.name, args.kind, poly), "add", what)
 
 
 def _remove_area(args: argparse.Namespace) -> int:
-    from mowerhw.map import MapError
-
-    m = _load(args.map)
-    try:
-        new = m.without_area(args.name)
-    except MapError as exc:
-        print(f"mowerhw: {exc}", file=sys.stderr)
-        return EX_CONFIG
-    return _replace(args.map, new, [], f"removed area {args.name!r}")
+    return _edit(args.map, lambda m: m.without_area(args.name), "remove", f"area {args.name!r}")
 
 
 def _upgrade(args: argparse.Namespace) -> int:
@@ -340,18 +333,8 @@ def cleaned(m):
 
 
 def _remove(args: argparse.Namespace) -> int:
-    from mowerhw.map import MapError
-
-    m = _load(args.map)
-    try:
-        new = m.without_keepout(args.name)
-    except MapError as exc:
-        print(f"mowerhw: {exc}", file=sys.stderr)
-        return EX_CONFIG
-    backup = _backup(args.map)
-    new.save(args.map)
-    print(f"{args.map}: removed keep-out {args.name!r}; previous map kept as {backup}")
-    return 0
+    what = f"keep-out {args.name!r}"
+    return _edit(args.map, lambda m: m.without_keepout(args.name), "remove", what)
 
 
 def _replace(path: Path, new, repairs: list[str], what: str) -> int:
