@@ -84,6 +84,8 @@ class MockStats:
     #: output gaps not asked for (the sensor process was late: a loaded bench), wall time
     late_gaps_over_50ms: int = 0
     max_output_gap_s: float = 0.0
+    #: (end time on the host's monotonic clock, length in s) of the last 1000 such gaps
+    late_gaps: list[tuple[float, float]] = field(default_factory=list)
 
 
 class MockVn100(ThreadedDevice):
@@ -233,6 +235,8 @@ class MockVn100(ThreadedDevice):
         self.stats.max_output_gap_s = max(self.stats.max_output_gap_s, gap)
         if gap > 0.05:
             self.stats.late_gaps_over_50ms += 1
+            self.stats.late_gaps.append((now, gap))
+            del self.stats.late_gaps[:-1000]
 
     def _stalled(self, t: float) -> bool:
         return any(a <= t < a + d for a, d in self.faults.stalls)

@@ -7,7 +7,8 @@ What runs (docs/design.md §9, level 3):
 * a CAN bus shared between processes (python-can ``udp_multicast`` on the loopback, a random
   group per run) carrying the mock speed sensor's GBSD frames and the daemon's ISB /
   heartbeat / status frames, which the mock mower controller reads;
-* the camera: frames rendered from the true pose (:class:`mowerhw.sim.render.OmniRenderer`)
+* the camera: frames rendered from the true pose (:class:`mowerhw.sim.render.OmniRenderer`,
+  in a process of its own: :mod:`mowerhw.bench.render_process`)
   and served on a Unix socket (:mod:`drivers.camera.stream`);
 * the daemon itself, ``mowerhw run`` in its own process, configured like the real mower
   except for device paths.
@@ -270,11 +271,11 @@ class Bench:
         from drivers.can.mock_mower import MockMowerController
         from drivers.can.mock_speed import MockSpeedSensor
         from drivers.imu.mock import MockVn100
+        from mowerhw.bench.render_process import RenderProcess
         from mowerhw.bench.world import RealTimeMower
         from mowerhw.config import load_config
         from mowerhw.sim import make_world
         from mowerhw.sim.motion import teach_loop
-        from mowerhw.sim.render import OmniRenderer
 
         t_wall0 = time.monotonic()
         self.cfg_path = self._write_config()
@@ -284,7 +285,7 @@ class Bench:
         sc = world.scenario
         truth = teach_loop(world.lawn, sc.speed_mps, sc.camera_height_m, standstill_s=1.0)
         mower = RealTimeMower(world, truth, self.seed, q_bi=cfg.imu.q_bi)
-        renderer = OmniRenderer(world, self.seed)
+        renderer = RenderProcess(self.scenario, self.seed)  # off this process's GIL
         bus = open_bus("udp_multicast", self.can_channel, udp_port=self.can_port)
         vn = MockVn100(self.out / "vn100", source=mower.imu_source, seed=self.seed)
         speed = MockSpeedSensor(bus, mower.speed_source)
@@ -326,6 +327,7 @@ class Bench:
             for hog in hogs:
                 hog.kill()
                 hog.wait()
+            renderer.close()
             for dev in reversed(started):
                 with contextlib.suppress(Exception):
                     dev.stop()
@@ -491,9 +493,13 @@ class Bench:
         metrics = self._score_mow(world, t_mow0, windows, latencies, mow_s)
         metrics["watchdog"] = self.notify.gaps(t_mow0, time.monotonic())
         vs = self.vn.stats  # the mock sensor's own lateness (a loaded bench, not the daemon)
+        mowing = [gap for t, gap in vs.late_gaps if t >= t_mow0]
         metrics["mock_imu"] = {
             "late_gaps_over_50ms": vs.late_gaps_over_50ms,
             "max_output_gap_ms": round(vs.max_output_gap_s * 1e3, 1),
+            # while mowing; over 100 ms the mock alone makes the daemon halt "imu silent"
+            "late_gaps_while_mowing": len(mowing),
+            "late_gaps_over_100ms_while_mowing": sum(gap > 0.1 for gap in mowing),
         }
         sup = st.get("supervisor")
         if sup:  # the permit supervisor's own figures (the process that sends the frames)
