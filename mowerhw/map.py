@@ -22,8 +22,12 @@ frame at its first sample: x forward, y left, z up, origin at the camera centre)
                      "descriptor": null | "<base64>", "keyframe": null | k}, ...],
                                          descriptor: one or more 32-byte ORB descriptors
                                          (views of the landmark), keyframe: where first seen
-      "dock": {"position": [x, y, z], "quaternion_wxyz": [w, x, y, z]},
-                                         where teach started: the default start of mow
+      "dock": {"position": [x, y, z], "quaternion_wxyz": [w, x, y, z],
+               "approach": null | [[x, y], ...]},
+                                         where teach started (or was marked): the default
+                                         start of mow; approach: the way from the dock into
+                                         the garden, inside its areas (for the mower's
+                                         controller; version 2)
       "camera": {Kalibr camchain entry} | null,   the calibration the map was made with
       "teach": {...},                    how the map was made (duration, distance, closure)
       "checksum": "sha256:<hex>"         over the canonical JSON of everything else
@@ -143,6 +147,7 @@ class LawnMap:
     checksum: str = ""
     boundary_name: str = TAUGHT_AREA
     areas: list[Area] = field(default_factory=list)
+    dock_approach: FloatArray | None = None  # (K, 2): from the dock into the garden
 
     # -- geometry -----------------------------------------------------------------------------
 
@@ -256,6 +261,12 @@ class LawnMap:
                     f"dock: {off:.1f} m outside {where} (at most {MAX_DOCK_OUTSIDE_M} m: "
                     "mowing starts there)"
                 )
+        if valid and self.dock_approach is not None:
+            way = shapely.LineString(self.dock_approach)
+            outside = way.difference(shapely.union_all(valid).buffer(1e-3))
+            if not outside.is_empty:
+                x, y = np.asarray(shapely.get_coordinates(outside))[0]
+                out.append(f"dock approach: leaves every area (at {x:.2f}, {y:.2f})")
         if len(self.landmarks) < MIN_LANDMARKS:
             out.append(
                 f"landmarks: {len(self.landmarks)} mapped, at least {MIN_LANDMARKS} needed to "
@@ -351,6 +362,17 @@ class LawnMap:
             raise MapError("; ".join(problems))
         return new
 
+    def with_dock_approach(self, path: FloatArray | None) -> LawnMap:
+        """This map with the way from the dock into the garden (None: without one)."""
+        way = None if path is None else np.asarray(path, dtype=np.float64).reshape(-1, 2)
+        if way is not None and way.shape[0] < 2:
+            raise MapError("a dock approach needs at least 2 points x,y")
+        new = replace(self, dock_approach=way, version=VERSION)
+        problems = new.problems()
+        if problems:
+            raise MapError("; ".join(problems))
+        return new
+
     def without_area(self, name: str) -> LawnMap:
         """This map without the area ``name`` (not the taught lawn: the landmarks and the
         dock belong to it)."""
@@ -395,6 +417,7 @@ class LawnMap:
             "dock": {
                 "position": _rows(self.dock_position),
                 "quaternion_wxyz": _rows(self.dock_quaternion),
+                "approach": None if self.dock_approach is None else _rows(self.dock_approach),
             },
             "camera": self.camera,
             "teach": self.teach,
@@ -618,6 +641,8 @@ def _from_document(doc: Any, source: str, strict: bool) -> LawnMap:
     )
     if not math.isclose(float(np.linalg.norm(dock_q)), 1.0, abs_tol=1e-6):
         raise MapError(f"{source}: dock.quaternion_wxyz is not a unit quaternion")
+    approach = dock.get("approach")
+    dock_approach = None if approach is None else _points(approach, "dock approach", 2)
     camera = doc.get("camera")
     if camera is not None:
         from mowerhw.camera import CameraCalibrationError, OmniRadtanCamera
@@ -633,6 +658,7 @@ def _from_document(doc: Any, source: str, strict: bool) -> LawnMap:
         landmarks=landmarks,
         dock_position=dock_pos,
         dock_quaternion=dock_q,
+        dock_approach=dock_approach,
         keepouts=keepouts,
         camera=camera,
         teach=doc.get("teach") if isinstance(doc.get("teach"), dict) else {},

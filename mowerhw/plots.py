@@ -140,6 +140,9 @@ def map_figure(
     if pts.size:
         ax.plot(pts[:, 0], pts[:, 1], "k^", ms=6, label=f"{pts.shape[0]} landmarks")
     ax.plot(*lawn_map.dock_position[:2], "bs", ms=8, label="dock / teach start")
+    if getattr(lawn_map, "dock_approach", None) is not None:
+        way = lawn_map.dock_approach
+        ax.plot(way[:, 0], way[:, 1], "b-", lw=1.5, label="dock approach")
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")

@@ -205,3 +205,16 @@ def test_a_garden_goes_through_geojson_and_back(tmp_path: Path, capsys):
     path_area = next(a for a in back.areas if a.name == "path")
     assert abs(float(np.ptp(path_area.polygon[:, 1])) - 4.0) < 1e-9
     assert decide(LawnGeometry.of_map(back), 15, 3.5)[0] == State.TRANSIT
+
+
+def test_the_dock_approach_stays_inside_the_garden(tmp_path: Path, capsys):
+    path = tmp_path / "garden.json"
+    garden_map().save(path)  # the dock (11, 5) on the path between the lawns
+    assert main(["map", "set-approach", str(path), "--path", "11,5 9,5 5,5"]) == 0
+    assert np.allclose(load(path).dock_approach, [[11, 5], [9, 5], [5, 5]])
+    assert main(["map", "set-approach", str(path), "--path", "11,5 15,8"]) == 78
+    assert "dock approach: leaves every area (at 12.33, 6.00)" in capsys.readouterr().err
+    assert main(["map", "show", str(path)]) == 0
+    assert "approach of 3 points" in capsys.readouterr().out
+    assert main(["map", "set-approach", str(path), "--path", "none"]) == 0
+    assert load(path).dock_approach is None

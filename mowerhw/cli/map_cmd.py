@@ -91,6 +91,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     area.add_argument("--kind", choices=("mow", "nav"), required=True)
     area.add_argument("--polygon", required=True, help='corners in map metres: "x,y x,y x,y ..."')
     area.set_defaults(handler=_add_area)
+    way = msub.add_parser(
+        "set-approach",
+        help="the way from the dock into the garden, inside its areas (with a backup)",
+    )
+    way.add_argument("map", type=Path)
+    way.add_argument("--path", required=True, help='"x,y x,y ..." from the dock, or "none"')
+    way.set_defaults(handler=_set_approach)
     up = msub.add_parser(
         "upgrade",
         help="rewrite a map of an older format as the current one (with a backup)",
@@ -162,6 +169,7 @@ def _summary(m, path: Path) -> dict:
         if m.landmarks
         else None,
         "dock_position": [round(v, 3) for v in m.dock_position.tolist()],
+        "dock_approach_points": None if m.dock_approach is None else len(m.dock_approach),
         "camera": (m.camera or {}).get("camera_model"),
         "teach": m.teach,
     }
@@ -205,7 +213,8 @@ def _show(args: argparse.Namespace) -> int:
     for z in s["keepout_zones"]:
         print(f"keep-out     {z['name']!r}: {z['points']} points, {z['area_m2']} m²")
     print(f"landmarks    {s['landmarks']} (median σ {s['landmark_sigma_median_m']} m)")
-    print(f"dock         {s['dock_position']}")
+    way = s["dock_approach_points"]
+    print(f"dock         {s['dock_position']}" + (f", approach of {way} points" if way else ""))
     print(f"checksum     {s['checksum']}")
     for warning in s["warnings"]:
         print(f"WARNING      {warning}")
@@ -228,7 +237,7 @@ def _plot(args: argparse.Namespace) -> int:
     return _report_problems(problems, args.map)
 
 
-def parse_polygon(text: str) -> np.ndarray:
+def parse_polygon(text: str, min_points: int = 3) -> np.ndarray:
     """``"x,y x,y x,y"`` → (N, 2); a ValueError says what is wrong."""
     pts = []
     for k, tok in enumerate(text.replace(";", " ").split()):
@@ -242,8 +251,9 @@ def parse_polygon(text: str) -> np.ndarray:
         if not (np.isfinite(x) and np.isfinite(y)):
             raise ValueError(f"corner {k + 1} {tok!r} is not finite")
         pts.append((x, y))
-    if len(pts) < 3:
-        raise ValueError(f"a keep-out zone needs at least 3 corners, got {len(pts)}")
+    if len(pts) < min_points:
+        what = "a keep-out zone or area" if min_points == 3 else "it"
+        raise ValueError(f"{what} needs at least {min_points} corners, got {len(pts)}")
     return np.array(pts)
 
 
@@ -292,6 +302,17 @@ def _add_area(args: argparse.Namespace) -> int:
         return 2
     what = f"{args.kind} area {args.name!r}"
     return _edit(args.map, lambda m: m.with_area(args.name, args.kind, poly), "add", what)
+
+
+def _set_approach(args: argparse.Namespace) -> int:
+    if args.path.strip().lower() == "none":
+        return _edit(args.map, lambda m: m.with_dock_approach(None), "remove", "the dock approach")
+    try:
+        way = parse_polygon(args.path, min_points=2)
+    except ValueError as exc:
+        print(f'mowerhw: --path: {exc}; expected "x,y x,y ..."', file=sys.stderr)
+        return 2
+    return _edit(args.map, lambda m: m.with_dock_approach(way), "add", "a dock approach")
 
 
 def _remove_area(args: argparse.Namespace) -> int:
