@@ -1,5 +1,5 @@
 """``mowerhw map check|show|plot|upgrade|add-keepout|remove-keepout|add-area|remove-area|
-export-geojson|import-geojson|import-openmower``: look at and edit lawn maps."""
+set-approach|export-geojson|import-geojson|import-openmower``: look at and edit lawn maps."""
 
 from __future__ import annotations
 
