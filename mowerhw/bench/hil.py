@@ -407,7 +407,7 @@ class Bench:
 
         lawn_map = load_map(cfg.map.path)
         self.map_bytes = Path(cfg.map.path).read_bytes()
-        geom = LawnGeometry(lawn_map.boundary, [(z.name, z.polygon) for z in lawn_map.keepouts])
+        geom = LawnGeometry.of_map(lawn_map)
         bang = BangBangMower(geom.inward_direction, np.random.default_rng([self.seed, 30]))
         ctl = self.controller
         t_mow0 = time.monotonic()
