@@ -327,10 +327,10 @@ class Bench:
             for hog in hogs:
                 hog.kill()
                 hog.wait()
-            renderer.close()
             for dev in reversed(started):
                 with contextlib.suppress(Exception):
                     dev.stop()
+            renderer.close()  # after the camera that asks it for frames
             bus.shutdown()
             self.notify.close()
         if self.load:
