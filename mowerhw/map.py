@@ -325,7 +325,8 @@ class LawnMap:
         holds them (GeoJSON, other tools)."""
         zones = [Zone(a.name, a.kind, _ccw(a.polygon)) for a in self.all_areas()]
         zones += [Zone(z.name, "keepout", _ccw(z.polygon)) for z in self.keepouts]
-        return Garden(zones, np.asarray(self.dock_position[:2], float), self.dock_heading())
+        dock = np.asarray(self.dock_position[:2], float)
+        return Garden(zones, dock, self.dock_heading(), approach=self.dock_approach)
 
     def with_zones(self, garden: Garden) -> LawnMap:
         """This map (landmarks, dock, frame) with the areas and keep-outs of ``garden`` (at
@@ -340,6 +341,7 @@ class LawnMap:
             boundary_name=mow[0].name,
             areas=[Area(z.name, z.kind, z.polygon.copy()) for z in others],
             keepouts=[KeepOut(z.name, z.polygon.copy()) for z in garden.of_kind("keepout")],
+            dock_approach=self.dock_approach if garden.approach is None else garden.approach,
             version=VERSION,
         )
         problems = new.problems()

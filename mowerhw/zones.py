@@ -56,6 +56,7 @@ class Garden:
     dock_xy: FloatArray | None = None
     dock_heading_rad: float | None = None
     repairs: list[str] = field(default_factory=list)
+    approach: FloatArray | None = None  # (K, 2): the way from the dock into the garden
 
     def of_kind(self, kind: str) -> list[Zone]:
         return [z for z in self.zones if z.kind == kind]
@@ -68,7 +69,8 @@ class Garden:
         zones = [Zone(z.name, z.kind, z.polygon @ rot.T + t) for z in self.zones]
         dock = None if self.dock_xy is None else rot @ self.dock_xy + t
         heading = None if self.dock_heading_rad is None else self.dock_heading_rad + rotation_rad
-        return Garden(zones, dock, heading, list(self.repairs))
+        way = None if self.approach is None else self.approach @ rot.T + t
+        return Garden(zones, dock, heading, list(self.repairs), way)
 
 
 def align_by_dock(garden: Garden, dock_xy: Any, dock_heading_rad: float) -> Garden:
@@ -189,7 +191,7 @@ GEOJSON_FRAME = "local metres of the mowerhw map (x forward, y left at the teach
 def to_geojson(garden: Garden, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """A GeoJSON FeatureCollection: one Polygon feature per zone (``properties``: ``kind``
     mow | nav | keepout, ``name``; closed counter-clockwise rings), the dock as a Point
-    with its heading."""
+    with its heading, the dock approach as a LineString (``kind`` approach)."""
     features: list[dict[str, Any]] = []
     for z in garden.zones:
         ring = np.vstack([z.polygon, z.polygon[:1]]).round(6).tolist()
@@ -206,6 +208,17 @@ def to_geojson(garden: Garden, extra: dict[str, Any] | None = None) -> dict[str,
                 "type": "Feature",
                 "properties": {"kind": "dock", "heading_rad": garden.dock_heading_rad or 0.0},
                 "geometry": {"type": "Point", "coordinates": np.round(garden.dock_xy, 6).tolist()},
+            }
+        )
+    if garden.approach is not None:
+        features.append(
+            {
+                "type": "Feature",
+                "properties": {"kind": "approach"},
+                "geometry": {
+                    "type": "LineString",
+                    "coordinates": garden.approach.round(6).tolist(),
+                },
             }
         )
     return {
@@ -231,6 +244,7 @@ def read_geojson(path: str | Path) -> Garden:
         raise ZoneError(f"{path}: the FeatureCollection has no list of features")
     zones, repairs = [], []
     dock_xy, heading = None, None
+    approach: FloatArray | None = None
     for k, f in enumerate(features):
         props = f.get("properties") if isinstance(f, dict) else None
         geom = f.get("geometry") if isinstance(f, dict) else None
@@ -246,8 +260,16 @@ def read_geojson(path: str | Path) -> Garden:
             except (TypeError, KeyError, ValueError, IndexError):
                 raise ZoneError(f"{where}: the dock needs coordinates [x, y]") from None
             continue
+        if kind == "approach" and geom.get("type") == "LineString":
+            try:
+                approach = np.asarray(geom["coordinates"], dtype=np.float64)[:, :2]
+            except (TypeError, KeyError, ValueError, IndexError):
+                raise ZoneError(f"{where}: the approach needs coordinates [[x, y], ...]") from None
+            if approach.shape[0] < 2 or not np.all(np.isfinite(approach)):
+                raise ZoneError(f"{where}: the approach needs 2 or more finite points")
+            continue
         if kind not in KINDS:
-            raise ZoneError(f"{where}: kind must be one of {', '.join(KINDS)} or dock")
+            raise ZoneError(f"{where}: kind must be one of {', '.join(KINDS)}, dock or approach")
         rings = geom.get("coordinates")
         if geom.get("type") != "Polygon" or not isinstance(rings, list) or not rings:
             raise ZoneError(f"{where}: a zone is a Polygon")
@@ -265,4 +287,4 @@ def read_geojson(path: str | Path) -> Garden:
         raise ZoneError(f"{path.name}: two {dup[0]} zones named {dup[1]!r}")
     if dock_xy is not None and not (np.all(np.isfinite(dock_xy)) and math.isfinite(heading or 0.0)):
         raise ZoneError(f"{path.name}: the dock's position is not finite")
-    return Garden(zones, dock_xy, heading, repairs)
+    return Garden(zones, dock_xy, heading, repairs, approach)

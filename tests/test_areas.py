@@ -218,3 +218,15 @@ def test_the_dock_approach_stays_inside_the_garden(tmp_path: Path, capsys):
     assert "approach of 3 points" in capsys.readouterr().out
     assert main(["map", "set-approach", str(path), "--path", "none"]) == 0
     assert load(path).dock_approach is None
+
+
+def test_the_dock_approach_goes_through_geojson(tmp_path: Path):
+    path = tmp_path / "garden.json"
+    garden_map().with_dock_approach(np.array([[11.0, 5.0], [5.0, 5.0]])).save(path)
+    assert main(["map", "export-geojson", str(path)]) == 0
+    doc = json.loads(path.with_suffix(".geojson").read_text())
+    way = next(f for f in doc["features"] if f["properties"]["kind"] == "approach")
+    way["geometry"]["coordinates"] = [[11, 5], [8, 5], [4, 4]]  # edited
+    path.with_suffix(".geojson").write_text(json.dumps(doc))
+    assert main(["map", "import-geojson", str(path), str(path.with_suffix(".geojson"))]) == 0
+    assert np.allclose(load(path).dock_approach, [[11, 5], [8, 5], [4, 4]])

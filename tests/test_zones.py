@@ -119,7 +119,7 @@ def test_geojson_round_trip_and_an_edit_come_back_into_the_map(map_file, tmp_pat
     ("feature", "message"),
     [
         ({"kind": "mow", "name": "patch"}, "mowing area 'patch': encloses 1.0 m², less than 4.0"),
-        ({"kind": "lawn", "name": "x"}, "kind must be one of mow, nav, keepout or dock"),
+        ({"kind": "lawn", "name": "x"}, "kind must be one of mow, nav, keepout, dock or approach"),
         ({"kind": "keepout", "name": "hole", "hole": True}, "holes are not allowed"),
     ],
 )
