@@ -515,6 +515,11 @@ class RuntimeConfig:
     auto_finish_teach: bool = opt(
         True, "finish teach by itself when the mower stops back at its start after a loop"
     )
+    frontend_process: bool = opt(
+        True,
+        "track camera frames in a process of its own (off the GIL of the loop that reads the "
+        "IMU and decides); false: on a thread of the estimation process",
+    )
     map_check_period_s: float = opt(
         0.1, "how often mow mode checks the map file for changes", gt=0.0, le=10.0
     )

@@ -7,11 +7,10 @@ Everything that decides lives in the core; this module moves data between it and
   each IMU sample goes into the core, which decides at once, and the decision goes out — a
   halt leaves within the IMU period of the sample revealing it;
 * camera frames wait in a one-slot queue (the oldest is dropped); the front end tracks one
-  frame at a time on a worker thread and its tracks go back into the core;
+  frame at a time in its own process (``frontend_worker``) and the tracks go into the core;
 * estimator chains are built off the loop when the core asks for one;
-* a ticker (at the next staleness deadline or CAN frame due, at least every 20 ms) decides,
-  sends the periodic ISB / heartbeat / status frames, watches the map file, finishes a taught
-  loop, pings systemd's watchdog — from the loop, so a hung loop stops the pings.
+* a ticker (next staleness deadline or CAN frame due, at least every 40 ms) decides, sends
+  frames, watches the map file, finishes a taught loop, pings systemd's watchdog.
 """
 
 from __future__ import annotations
@@ -49,6 +48,7 @@ from mowerhw.runtime.devices import (
     open_recorder,
     record_estimate,
 )
+from mowerhw.runtime.frontend_worker import FrontendWorker, FrontendWorkerDied, track_frame
 from mowerhw.runtime.mapfiles import MapFile, PoseFile, save_map, teach_to_map_file
 from mowerhw.runtime.pipelines import BuildRequest, build_pipeline
 from mowerhw.runtime.process import LoopLag
@@ -57,9 +57,7 @@ from mowerhw.runtime.sdnotify import Notifier
 log = logging.getLogger("mowerhw.daemon")
 
 TICK_MIN_S = 0.0005
-#: the ticker's longest sleep: IMU samples decide 100 times a second and the next staleness
-#: limit wakes it anyway; this keeps the supervisor's lease (80 ms) renewed without them
-TICK_MAX_S = 0.04
+TICK_MAX_S = 0.04  # IMU samples decide at 100 Hz; this renews the 80 ms lease without them
 
 
 class Daemon:
@@ -91,19 +89,18 @@ class Daemon:
         self.camera: CameraSource | None = None
         self.loop_lag = LoopLag()
         self.control: ControlServer | None = None
-        self.estimator_delay_s = 0.0
-        self._next_delay = 0.0
+        self.estimator_delay_s, self._next_delay = 0.0, 0.0
         self._frames: asyncio.Queue[FrameSample] | None = None
         self._stop_event: asyncio.Event | None = None
         self._frontend_pool = ThreadPoolExecutor(1, thread_name_prefix="frontend")
+        self._worker = FrontendWorker() if config.runtime.frontend_process else None
         self._work_pool = ThreadPoolExecutor(1, thread_name_prefix="build")
         self._pose_pool = ThreadPoolExecutor(1, thread_name_prefix="pose-writer")
         self._pose_future: Future[None] | None = None
         self._builds: dict[int, asyncio.Future[Any]] = {}
         self._names: dict[asyncio.Future[Any], str] = {}  # running tasks (kept referenced)
         self.exit_status = 0
-        self._next_map_check = 0.0
-        self._next_record = 0.0
+        self._next_map_check = self._next_record = 0.0
         self._started = time.monotonic()
 
     # ------------------------------------------------------------------------- lifecycle
@@ -171,6 +168,8 @@ class Daemon:
         if self.recorder is not None:
             self.recorder.close()
         self._frontend_pool.shutdown(wait=False, cancel_futures=True)
+        if self._worker is not None:
+            self._worker.close()
         self._work_pool.shutdown(wait=False, cancel_futures=True)
         self._pose_pool.shutdown(wait=True)
         log.info("stopped")
@@ -219,8 +218,10 @@ class Daemon:
             try:
                 r = pipe.vision.prepare(frame.t)
                 tracks: FrameTracks = await loop.run_in_executor(
-                    self._frontend_pool, pipe.vision.track, frame.t, frame.image, r
+                    self._frontend_pool, track_frame, self._worker, serial, pipe.vision, frame, r
                 )
+            except FrontendWorkerDied:
+                raise  # crash-only: the task dies, the deck halts, the process ends (exit 1)
             except Exception as exc:
                 self.core.frontend_error()
                 log.error("front end failed on frame %d: %s", frame.sequence, exc)

@@ -57,7 +57,9 @@ class VisionBase:
         self, camera: CameraModel, q_bc: ArrayLike, config: FrontendConfig | None, seed: int
     ) -> None:
         self.cfg = config or FrontendConfig()
-        self.frontend = FrontEnd(camera, q_bc, self.cfg, seed)
+        #: what the front end is built from (a runtime may run an equal one elsewhere)
+        self.frontend_args = (camera, tuple(np.asarray(q_bc, dtype=float).tolist()), self.cfg, seed)
+        self.frontend = FrontEnd(*self.frontend_args)
         self.camera = camera
         self.r_bc = quat_to_rotmat(np.asarray(q_bc, dtype=np.float64))
         self.rotations = RotationHistory()
@@ -89,11 +91,16 @@ class VisionBase:
         self._t_prev = t
         return r
 
-    def track(self, t: float, image: NDArray[np.uint8], r_prev_cur: FloatArray | None):
+    def track(
+        self, t: float, image: NDArray[np.uint8], r_prev_cur: FloatArray | None
+    ) -> FrameTracks:
         """Detection and tracking, the costly part: touches only the front end, so a runtime
         may run it on a worker thread (one frame at a time). ``t`` is the camera's capture
         time; the tracks carry it on the IMU's clock (``timeshift_cam_imu`` applied)."""
-        tracks = self.frontend.process(t + self.time_shift_s, image, r_prev_cur)
+        return self.tracked(self.frontend.process(t + self.time_shift_s, image, r_prev_cur))
+
+    def tracked(self, tracks: FrameTracks) -> FrameTracks:
+        """Count a frame's tracks (however they were made)."""
         self.stats.frames += 1
         self.stats.tracks_per_frame.append(int(tracks.ids.size))
         self.stats.frontend_ms.append(tracks.ms)

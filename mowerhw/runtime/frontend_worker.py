@@ -1,0 +1,156 @@
+"""The vision front end in a process of its own (``runtime.frontend_process``).
+
+On a worker thread, the front end's tracking shares the estimation process's GIL with the
+event loop that reads the VN-100 and decides at every IMU sample: under load a frame's
+Python work could hold the loop up (measured: an 80 ms block, a lease that ran out). Here
+:class:`~mowerhw.frontend.FrontEnd` runs in a child interpreter, as the map loader does (a
+subprocess: the estimation process is a daemonic child of the supervisor and may not have
+multiprocessing children); the loop's thread only sends the frame and waits for the tracks.
+
+Messages on the child's stdin/stdout: a 4-byte length and a pickle. The child is this
+process's own (killed with it: PDEATHSIG); its answers are trusted like any of our code.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import pickle
+import signal
+import struct
+import subprocess
+import sys
+import threading
+from typing import IO, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mowerhw.common.samples import FrameSample
+from mowerhw.frontend import FrameTracks
+from mowerhw.vision.base import VisionBase
+
+_LEN = struct.Struct("<I")
+
+
+def _write(out: IO[bytes], obj: Any) -> None:
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    out.write(_LEN.pack(len(data)) + data)
+    out.flush()
+
+
+def _read(inp: IO[bytes]) -> Any:
+    head = inp.read(_LEN.size)
+    if len(head) < _LEN.size:
+        raise EOFError("the front-end worker's pipe closed")
+    (n,) = _LEN.unpack(head)
+    data = inp.read(n)
+    if len(data) < n:
+        raise EOFError("the front-end worker's pipe closed mid-message")
+    return pickle.loads(data)
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
+class FrontendWorkerDied(RuntimeError):
+    """The worker process ended: crash-only, the daemon ends too (a new front end in the
+    same chain would hand out track ids the chain already knows)."""
+
+
+class FrontendWorker:
+    """``track(key, frontend_args, t, image, r)`` in the child: one FrontEnd per ``key`` (the
+    chain's serial: a new chain starts a new front end, as it does on a thread)."""
+
+    def __init__(self) -> None:
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._key: Any = None
+        self._lock = threading.Lock()
+
+    def _start(self) -> subprocess.Popen[bytes]:
+        if self._proc is None:
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "mowerhw.runtime.frontend_worker"],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                preexec_fn=_die_with_parent,
+            )
+        elif self._proc.poll() is not None:
+            raise FrontendWorkerDied(
+                f"the front-end worker process ended (exit status {self._proc.returncode})"
+            )
+        return self._proc
+
+    def track(
+        self,
+        key: Any,
+        frontend_args: tuple[Any, ...],
+        t: float,
+        image: NDArray[np.uint8],
+        r_prev_cur: Any,
+    ) -> FrameTracks:
+        """The frame's tracks (blocking: call it off the event loop); RuntimeError if the
+        front end failed on it, :class:`FrontendWorkerDied` if the process is gone."""
+        with self._lock:
+            proc = self._start()
+            assert proc.stdin is not None and proc.stdout is not None
+            try:
+                if key != self._key:
+                    _write(proc.stdin, ("reset", frontend_args))
+                    self._key = key
+                _write(proc.stdin, ("frame", t, np.ascontiguousarray(image), r_prev_cur))
+                kind, body = _read(proc.stdout)
+            except (OSError, EOFError, pickle.PickleError) as exc:
+                proc.kill()
+                proc.wait()
+                raise FrontendWorkerDied(f"the front-end worker process failed ({exc})") from None
+        if kind != "tracks":
+            raise RuntimeError(f"front end: {body}")
+        tracks: FrameTracks = body
+        return tracks
+
+    def close(self) -> None:
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait(timeout=5.0)
+
+
+def track_frame(
+    worker: FrontendWorker | None, key: Any, vision: VisionBase, frame: FrameSample, r: Any
+) -> FrameTracks:
+    """A frame's tracks for ``vision``'s chain (``key``: its serial): in ``worker``'s
+    process, or on this thread without one (blocking: call it off the event loop)."""
+    if worker is None:
+        return vision.track(frame.t, frame.image, r)
+    t = frame.t + vision.time_shift_s
+    return vision.tracked(worker.track(key, vision.frontend_args, t, frame.image, r))
+
+
+def main() -> None:  # pragma: no cover - the child; exercised through FrontendWorker
+    import cv2
+
+    from mowerhw.frontend import FrontEnd
+
+    cv2.setNumThreads(1)
+    with os.fdopen(0, "rb") as inp, os.fdopen(1, "wb") as out:
+        frontend: FrontEnd | None = None
+        while True:
+            try:
+                msg = _read(inp)
+            except EOFError:
+                return
+            if msg[0] == "reset":
+                frontend = FrontEnd(*msg[1])
+                continue
+            _, t, image, r = msg
+            try:
+                assert frontend is not None, "a frame before the front end was set up"
+                _write(out, ("tracks", frontend.process(t, image, r)))
+            except Exception as exc:
+                _write(out, ("error", f"{type(exc).__name__}: {exc}"))
+
+
+if __name__ == "__main__":
+    main()
