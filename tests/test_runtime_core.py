@@ -167,3 +167,22 @@ def test_mowing_only_named_areas_and_teach_marks_through_the_core(camera: Any) -
     assert core.map_problem == "" and asked[-1].mow_areas == ("lawn",)
     assert core.pipeline is not None
     assert core.pipeline.localizer.geometry.transit is None  # type: ignore[union-attr]
+
+
+def test_teach_marks_are_taken_while_recording_and_journalled(camera: Any) -> None:
+    journal = ListJournal()
+    core, _ = _core(camera, journal)
+    assert core.set_mode("teach") == "" and core.teach_state == "recording"
+    assert core.teach_mark("area", "front") == "no IMU sample yet: mark once the IMU is read"
+    core.imu(ImuSample(1.0, np.array([0.0, 0.0, 0.001])), 1.0)
+    assert core.teach_mark("area", "front") == ""
+    assert core.teach_mark("area", "front").endswith("is marked already")
+    assert core.teach_mark("dock") == ""
+    pipe = core.pipeline
+    assert pipe is not None
+    assert [(m.kind, m.name, m.t) for m in pipe.teacher.marks] == [  # type: ignore[union-attr]
+        ("area", "front", 1.0),
+        ("dock", "", 1.0),
+    ]
+    marks = [r for r in journal.records if r["kind"] == "teach_mark"]
+    assert [(r["mark"], r["name"]) for r in marks][-2:] == [("area", "front"), ("dock", "")]

@@ -386,8 +386,10 @@ class RuntimeCore:
         pipe = self.pipeline
         if self.mode != "teach" or not isinstance(pipe, TeachPipeline):
             return f"not teaching (mode {self.mode})"
-        if self.teach_state != "recording" or self.t_imu_newest is None:
+        if self.teach_state != "recording":
             return f"teach is {self.teach_state or 'not started'}; mark once it is recording"
+        if self.t_imu_newest is None:
+            return "no IMU sample yet: mark once the IMU is read"
         return pipe.teacher.mark(self.t_imu_newest, kind, name)
 
     def begin_finish_teach(self) -> TeachPipeline | str:
