@@ -1,8 +1,9 @@
-"""Where the daemon's CPU goes: a bench run, and py-spy sampling both of the daemon's
-processes (the permit supervisor and the estimation process, every thread) while it mows;
-each sample is put in the part of the runtime it belongs to. Prints one JSON object: per
-process, the share of one core per part (samples / (rate × seconds)) and per thread (/proc: user and
-system time, so what py-spy cannot see — system calls, native waits — is counted too).
+"""Where the daemon's CPU goes: a bench run, and py-spy sampling the daemon's processes (the
+permit supervisor, the estimation process and its front-end worker, every thread) while it
+mows; each sample is put in the part of the runtime it belongs to. Prints one JSON object:
+per process, the share of one core per part (samples / (rate × seconds)) and per thread
+(/proc: user and system time, so what py-spy cannot see — system calls, native waits — is
+counted too).
 
     .venv/bin/python tools/profile_daemon.py --map MAP --duration 60 --spy 30
 
@@ -186,6 +187,9 @@ def main() -> None:
         for kid in children(sup):  # not the multiprocessing resource tracker
             if b"spawn_main" in Path(f"/proc/{kid}/cmdline").read_bytes():
                 procs["estimation"] = kid
+                for grandkid in children(kid):  # the front end's process, if it has one
+                    if b"frontend_worker" in Path(f"/proc/{grandkid}/cmdline").read_bytes():
+                        procs["frontend"] = grandkid
         names = {pid: thread_names(pid) for pid in procs.values()}
         before = {pid: thread_times(pid) for pid in procs.values()}
         t0 = time.monotonic()

@@ -14,6 +14,7 @@ process's own (killed with it: PDEATHSIG); its answers are trusted like any of o
 from __future__ import annotations
 
 import ctypes
+import fcntl
 import os
 import pickle
 import signal
@@ -31,6 +32,7 @@ from mowerhw.frontend import FrameTracks
 from mowerhw.vision.base import VisionBase
 
 _LEN = struct.Struct("<I")
+F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 
 
 def _write(out: IO[bytes], obj: Any) -> None:
@@ -48,6 +50,19 @@ def _read(inp: IO[bytes]) -> Any:
     if len(data) < n:
         raise EOFError("the front-end worker's pipe closed mid-message")
     return pickle.loads(data)
+
+
+def _widen(pipe: IO[bytes] | None) -> None:
+    """A frame (2.4 MB) in a few writes, not ~40 of the default 64 KiB (each a wake-up of
+    both ends); the system's limit (``fs.pipe-max-size``, 1 MiB by default) if lower."""
+    if pipe is None:
+        return
+    for size in (4 << 20, 1 << 20):
+        try:
+            fcntl.fcntl(pipe.fileno(), F_SETPIPE_SZ, size)
+            return
+        except OSError:
+            continue
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
@@ -77,6 +92,8 @@ class FrontendWorker:
                 stdout=subprocess.PIPE,
                 preexec_fn=_die_with_parent,
             )
+            for pipe in (self._proc.stdin, self._proc.stdout):
+                _widen(pipe)
         elif self._proc.poll() is not None:
             raise FrontendWorkerDied(
                 f"the front-end worker process ended (exit status {self._proc.returncode})"
