@@ -161,33 +161,25 @@ class LawnMap:
     def outline_polygon(self) -> Polygon:
         return Polygon(self.boundary)
 
-    def lawn_polygon(self, mow_areas: Sequence[str] | None = None) -> BaseGeometry:
-        """The mowable area: the mowing areas (those named, else all) with every keep-out
-        zone taken out."""
-        wanted = set(mow_areas) if mow_areas else None
-        parts = [
-            Polygon(a.polygon)
-            for a in self.all_areas()
-            if a.kind == "mow" and (wanted is None or a.name in wanted)
-        ]
+    def lawn_polygon(self) -> BaseGeometry:
+        """The mowable area: every mowing area with every keep-out zone taken out."""
+        parts = [Polygon(a.polygon) for a in self.all_areas() if a.kind == "mow"]
         lawn = parts[0] if len(parts) == 1 else shapely.union_all(parts)
         for zone in self.keepouts:
             lawn = lawn.difference(Polygon(zone.polygon))
         return lawn
 
-    def transit_polygon(self, mow_areas: Sequence[str] | None = None) -> BaseGeometry:
-        """Where the mower may drive with the deck off: the navigation areas and the mowing
-        areas not named in ``mow_areas`` (none when it is empty), keep-outs taken out."""
-        wanted = set(mow_areas) if mow_areas else None
-        parts = [
-            Polygon(a.polygon)
-            for a in self.all_areas()
-            if a.kind == "nav" or (wanted is not None and a.name not in wanted)
-        ]
-        transit = shapely.union_all(parts) if parts else Polygon()
-        for zone in self.keepouts:
-            transit = transit.difference(Polygon(zone.polygon))
-        return transit
+    def unknown_mow_areas(self, names: Sequence[str]) -> str:
+        """Why ``names`` cannot be mowed here (a name that is no mowing area of this map), or
+        "" (the one check for ``ctl mow --area`` and ``mow.areas``)."""
+        mow = self.area_names("mow")
+        unknown = [name for name in names if name not in mow]
+        if not unknown:
+            return ""
+        return (
+            f"no mowing area {', '.join(map(repr, unknown))} in the map (its mowing areas: "
+            f"{', '.join(map(repr, mow))})"
+        )
 
     def landmark_ids(self) -> NDArray[np.int64]:
         return np.array([lm.id for lm in self.landmarks], dtype=np.int64)
@@ -251,9 +243,9 @@ class LawnMap:
                 out.append(
                     f"keep-outs: they leave {left:.1f} m² to mow, less than {MIN_AREA_M2} m²"
                 )
-        if valid:
+        everywhere = shapely.union_all(valid) if valid else None
+        if everywhere is not None:
             dock = shapely.Point(float(self.dock_position[0]), float(self.dock_position[1]))
-            everywhere = shapely.union_all(valid)
             off = float(everywhere.distance(dock))
             if off > MAX_DOCK_OUTSIDE_M:
                 where = "the lawn" if len(valid) == 1 else "every area"
@@ -261,9 +253,9 @@ class LawnMap:
                     f"dock: {off:.1f} m outside {where} (at most {MAX_DOCK_OUTSIDE_M} m: "
                     "mowing starts there)"
                 )
-        if valid and self.dock_approach is not None:
+        if everywhere is not None and self.dock_approach is not None:
             way = shapely.LineString(self.dock_approach)
-            outside = way.difference(shapely.union_all(valid).buffer(1e-3))
+            outside = way.difference(everywhere.buffer(1e-3))
             if not outside.is_empty:
                 x, y = np.asarray(shapely.get_coordinates(outside))[0]
                 out.append(f"dock approach: leaves every area (at {x:.2f}, {y:.2f})")
@@ -302,6 +294,13 @@ class LawnMap:
 
     # -- editing (without re-driving) -----------------------------------------------------------
 
+    def fit(self) -> LawnMap:
+        """This map, or :class:`MapError` naming what makes it unfit (its :meth:`problems`)."""
+        problems = self.problems()
+        if problems:
+            raise MapError("; ".join(problems))
+        return self
+
     def with_keepout(self, name: str, polygon: FloatArray) -> LawnMap:
         poly = np.asarray(polygon, dtype=np.float64)
         if poly.ndim != 2 or poly.shape[1] != 2 or poly.shape[0] < 3:
@@ -310,10 +309,7 @@ class LawnMap:
             raise MapError(f"a keep-out zone named {name!r} exists already")
         ccw = np.asarray(orient(Polygon(poly), 1.0).exterior.coords)[:-1]
         new = replace(self, keepouts=[*self.keepouts, KeepOut(name, ccw)])
-        problems = new.problems()
-        if problems:
-            raise MapError("; ".join(problems))
-        return new
+        return new.fit()
 
     def dock_heading(self) -> float:
         """The dock's heading (rad, yaw of its quaternion)."""
@@ -344,10 +340,7 @@ class LawnMap:
             dock_approach=self.dock_approach if garden.approach is None else garden.approach,
             version=VERSION,
         )
-        problems = new.problems()
-        if problems:
-            raise MapError("; ".join(problems))
-        return new
+        return new.fit()
 
     def with_area(self, name: str, kind: str, polygon: FloatArray) -> LawnMap:
         """This map with one more area (``mow`` or ``nav``); :class:`MapError` if unfit."""
@@ -359,10 +352,7 @@ class LawnMap:
         if name in {a.name for a in self.all_areas()}:
             raise MapError(f"an area named {name!r} exists already")
         new = replace(self, areas=[*self.areas, Area(name, kind, _ccw(poly))], version=VERSION)
-        problems = new.problems()
-        if problems:
-            raise MapError("; ".join(problems))
-        return new
+        return new.fit()
 
     def with_dock_approach(self, path: FloatArray | None) -> LawnMap:
         """This map with the way from the dock into the garden (None: without one)."""
@@ -370,10 +360,7 @@ class LawnMap:
         if way is not None and way.shape[0] < 2:
             raise MapError("a dock approach needs at least 2 points x,y")
         new = replace(self, dock_approach=way, version=VERSION)
-        problems = new.problems()
-        if problems:
-            raise MapError("; ".join(problems))
-        return new
+        return new.fit()
 
     def without_area(self, name: str) -> LawnMap:
         """This map without the area ``name`` (not the taught lawn: the landmarks and the

@@ -160,7 +160,7 @@ def test_mowing_only_named_areas_and_teach_marks_through_the_core(camera: Any) -
     assert core.set_mode("idle", ("lawn",)) == "areas are for mow mode only"
     assert core.set_mode("mow", ("back",)) == ""
     core.map_loaded(_map())
-    assert core.map_problem == "no mowing area 'back' (the map's: 'lawn')"
+    assert core.map_problem == "no mowing area 'back' in the map (its mowing areas: 'lawn')"
     assert not asked
     assert core.set_mode("mow", ("lawn",)) == ""
     core.map_loaded(_map())

@@ -133,13 +133,10 @@ class LawnGeometry:
         """The geometry of ``lawn_map``: its mowing areas (those named in ``mow_areas``,
         else all) to mow, its navigation areas and the other mowing areas to drive through;
         ValueError naming the areas there are for a name the map does not have."""
+        problem = lawn_map.unknown_mow_areas(mow_areas)
+        if problem:
+            raise ValueError(problem)
         mow = {a.name: a.polygon for a in lawn_map.all_areas() if a.kind == "mow"}
-        unknown = [name for name in mow_areas if name not in mow]
-        if unknown:
-            raise ValueError(
-                f"no mowing area {', '.join(map(repr, unknown))} in the map (its mowing "
-                f"areas: {', '.join(map(repr, mow))})"
-            )
         chosen = [pts for name, pts in mow.items() if not mow_areas or name in mow_areas]
         transit = [a.polygon for a in lawn_map.all_areas() if a.kind == "nav"]
         transit += [pts for name, pts in mow.items() if mow_areas and name not in mow_areas]

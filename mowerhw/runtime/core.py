@@ -321,12 +321,9 @@ class RuntimeCore:
             return
         self.map = lawn_map
         self.map_problem = ""
-        unknown = [a for a in self.mow_areas or () if a not in lawn_map.area_names("mow")]
-        if unknown:
-            known = ", ".join(map(repr, lawn_map.area_names("mow")))
-            self.map_problem = (
-                f"no mowing area {', '.join(map(repr, unknown))} (the map's: {known})"
-            )
+        problem = lawn_map.unknown_mow_areas(self.mow_areas or ())
+        if problem:
+            self.map_problem = problem
             return
         self._request_mow(lawn_map, saved_pose, resumed=saved_pose is not None)
 
