@@ -109,17 +109,18 @@ def map_figure(
     """Plot a lawn map: its areas (mowing, navigation), keep-out zones, landmarks, dock;
     ``problems`` (what makes it unfit for mowing) in red over the plot."""
     plt = _plt()
-    big = len(lawn_map.all_areas()) + len(lawn_map.keepouts) > 8
+    areas = lawn_map.all_areas()
+    big = len(areas) + len(lawn_map.keepouts) > 8
     fig, ax = plt.subplots(figsize=(8.0, 7.2) if big else (6.0, 5.4))
     labelled: set[str] = set()
-    for area in lawn_map.all_areas():  # mowing areas green, navigation areas grey
+    for area in areas:  # mowing areas green, navigation areas grey
         b = np.vstack([area.polygon, area.polygon[:1]])
         kind = "mowing area" if area.kind == "mow" else "navigation area"
         fill, edge = ("#cdeccd", "g-") if area.kind == "mow" else ("#e4e4e4", "k--")
         ax.fill(b[:, 0], b[:, 1], color=fill, label=None if kind in labelled else kind)
         ax.plot(b[:, 0], b[:, 1], edge, lw=1.2)
         labelled.add(kind)
-        if len(lawn_map.all_areas()) > 1:
+        if len(areas) > 1:
             c = area.polygon.mean(axis=0)
             ax.text(c[0], c[1], area.name[:8], ha="center", va="center", fontsize=7, color="g")
     for zone in lawn_map.keepouts:
@@ -140,8 +141,8 @@ def map_figure(
     if pts.size:
         ax.plot(pts[:, 0], pts[:, 1], "k^", ms=6, label=f"{pts.shape[0]} landmarks")
     ax.plot(*lawn_map.dock_position[:2], "bs", ms=8, label="dock / teach start")
-    if getattr(lawn_map, "dock_approach", None) is not None:
-        way = lawn_map.dock_approach
+    way = lawn_map.dock_approach
+    if way is not None:
         ax.plot(way[:, 0], way[:, 1], "b-", lw=1.5, label="dock approach")
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")

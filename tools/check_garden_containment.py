@@ -32,14 +32,8 @@ from mowerhw.config import ContainmentConfig
 from mowerhw.mow import LawnGeometry
 from mowerhw.zones import OPENMOWER_KINDS, read_openmower
 
-DATA = (
-    Path(__file__).resolve().parent.parent.parent
-    / "shared"
-    / "data"
-    / "real"
-    / "openmower-garden-map"
-    / "map_backup_2026-04-12.json"
-)
+REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
+DATA = REAL / "openmower-garden-map" / "map_backup_2026-04-12.json"
 EDGE_M = 1e-3
 
 

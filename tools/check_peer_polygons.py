@@ -25,14 +25,8 @@ import numpy as np
 
 from mowerhw.mow import LawnGeometry
 
-DATA = (
-    Path(__file__).resolve().parent.parent.parent
-    / "shared"
-    / "data"
-    / "real"
-    / "peer-polygon-cases"
-    / "peer_polygon_cases.json"
-)
+REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
+DATA = REAL / "peer-polygon-cases" / "peer_polygon_cases.json"
 EARTH_RADIUS_M = 6_371_000.0
 #: how far inside counts as inside for a sampled segment (m): floating-point dust on edges
 EDGE_TOLERANCE_M = 1e-9

@@ -119,6 +119,12 @@ def _load(path: Path, strict: bool = True):
         raise SystemExit(EX_CONFIG) from None
 
 
+def _areas(m: Any) -> str:
+    """``N mowing and M navigation area(s)``."""
+    mowing = len(m.area_names("mow"))
+    return f"{mowing} mowing and {len(m.all_areas()) - mowing} navigation area(s)"
+
+
 def _report_problems(problems: list[str], path: Path) -> int:
     """Say that the map is unfit (its problems shown already): exit status 78 if so."""
     if problems:
@@ -177,12 +183,10 @@ def _summary(m, path: Path) -> dict:
 
 def _check(args: argparse.Namespace) -> int:
     m = _load(args.map)
-    areas = m.all_areas()
-    mowing = sum(a.kind == "mow" for a in areas)
     print(
-        f"{args.map}: ok (version {m.version}; {len(m.landmarks)} landmarks, {mowing} mowing "
-        f"and {len(areas) - mowing} navigation area(s), {m.lawn_polygon().area:.1f} m² to mow, "
-        f"{len(m.keepouts)} keep-out zone(s), checksum verified)"
+        f"{args.map}: ok (version {m.version}; {len(m.landmarks)} landmarks, {_areas(m)}, "
+        f"{m.lawn_polygon().area:.1f} m² to mow, {len(m.keepouts)} keep-out zone(s), checksum "
+        "verified)"
     )
     for warning in m.warnings():
         print(f"WARNING      {warning}")
@@ -273,12 +277,13 @@ def _polygon(args: argparse.Namespace) -> np.ndarray | None:
         return None
 
 
-def _edit(path: Path, edit: Callable[[Any], Any], verb: str, what: str) -> int:
-    """Load the map, apply ``edit`` (a MapError says why not: exit 78, nothing written), and
-    save the result over it with a backup; ``verb`` ("add"/"remove") ``what``."""
+def _edit(path: Path, edit: Callable[[Any], Any], verb: str, what: str, m: Any = None) -> int:
+    """Load the map (unless given), apply ``edit`` (a MapError says why not: exit 78,
+    nothing written), and save the result over it with a backup; ``verb`` ("add"/"remove")
+    ``what``."""
     from mowerhw.map import MapError
 
-    m = _load(path)
+    m = _load(path) if m is None else m
     try:
         new = edit(m)
     except MapError as exc:
@@ -292,8 +297,10 @@ def _add(args: argparse.Namespace) -> int:
     poly = _polygon(args)
     if poly is None:
         return 2
-    name = args.name or f"keepout-{len(_load(args.map).keepouts) + 1}"
-    return _edit(args.map, lambda m: m.with_keepout(name, poly), "add", f"keep-out {name!r}")
+    lawn = _load(args.map)
+    name = args.name or f"keepout-{len(lawn.keepouts) + 1}"
+    what = f"keep-out {name!r}"
+    return _edit(args.map, lambda m: m.with_keepout(name, poly), "add", what, lawn)
 
 
 def _add_area(args: argparse.Namespace) -> int:
@@ -328,7 +335,7 @@ def _upgrade(args: argparse.Namespace) -> int:
         print(f"{args.map}: already map format {VERSION}; nothing to do")
         return 0
     try:
-        garden = cleaned(m)
+        garden = _cleaned(m)
         new = m.with_zones(garden)
     except (ZoneError, MapError) as exc:
         print(f"mowerhw: cannot upgrade {args.map}: {exc}", file=sys.stderr)
@@ -336,7 +343,7 @@ def _upgrade(args: argparse.Namespace) -> int:
     return _replace(args.map, new, garden.repairs, f"map format {m.version} → {VERSION}")
 
 
-def cleaned(m):
+def _cleaned(m):
     """The map's zones with their outlines repaired where safe (each repair said)."""
     from mowerhw.zones import Garden, Zone, clean_outline
 
@@ -365,10 +372,8 @@ def _replace(path: Path, new, repairs: list[str], what: str) -> int:
         print(f"repaired     {repair}")
     backup = _backup(path)
     new.save(path)
-    areas = new.all_areas()
-    mowing = sum(a.kind == "mow" for a in areas)
     print(
-        f"{path}: {what}; {mowing} mowing and {len(areas) - mowing} navigation area(s), "
+        f"{path}: {what}; {_areas(new)}, "
         f"{len(new.keepouts)} keep-out(s) ({new.lawn_polygon().area:.1f} m² to mow); "
         f"previous map kept as {backup}"
     )
