@@ -13,11 +13,9 @@ process's own (killed with it: PDEATHSIG); its answers are trusted like any of o
 
 from __future__ import annotations
 
-import ctypes
 import fcntl
 import os
 import pickle
-import signal
 import struct
 import subprocess
 import sys
@@ -29,6 +27,7 @@ from numpy.typing import NDArray
 
 from mowerhw.common.samples import FrameSample
 from mowerhw.frontend import FrameTracks
+from mowerhw.runtime.process import die_with_parent
 from mowerhw.vision.base import VisionBase
 
 _LEN = struct.Struct("<I")
@@ -65,11 +64,6 @@ def _widen(pipe: IO[bytes] | None) -> None:
             continue
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
-    libc = ctypes.CDLL(None, use_errno=True)
-    libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-
-
 class FrontendWorkerDied(RuntimeError):
     """The worker process ended: crash-only, the daemon ends too (a new front end in the
     same chain would hand out track ids the chain already knows)."""
@@ -90,7 +84,7 @@ class FrontendWorker:
                 [sys.executable, "-m", "mowerhw.runtime.frontend_worker"],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
-                preexec_fn=_die_with_parent,
+                preexec_fn=die_with_parent,
             )
             for pipe in (self._proc.stdin, self._proc.stdout):
                 _widen(pipe)

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -12,6 +14,17 @@ from pathlib import Path
 from mowerhw.config import Config
 
 log = logging.getLogger("mowerhw.daemon")
+
+
+def die_with_parent() -> None:
+    """Linux: kill this process when its parent dies (even by SIGKILL): the estimation
+    process without its supervisor can permit nothing, the front-end worker without the
+    estimation process serves no one."""
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
 def tune_process() -> None:

@@ -4,10 +4,8 @@ decisions going to the supervisor as leases, its ground speed coming from it."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import os
-import signal
 from multiprocessing.connection import Connection
 from pathlib import Path
 
@@ -15,21 +13,13 @@ from mowerhw.config import Config
 from mowerhw.supervisor.link import SupervisorLink
 
 
-def _die_with_parent() -> None:
-    """Linux: kill this process when the supervisor dies (even by SIGKILL): without its
-    supervisor it can permit nothing, and a stalled one would never handle a SIGTERM."""
-    with contextlib.suppress(Exception):
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-
-
 def estimator_main(
     config: Config, mode: str | None, record: Path | None, conn: Connection, log_level: int
 ) -> None:
     """Entry point of the spawned estimation process."""
-    _die_with_parent()
+    from mowerhw.runtime.process import die_with_parent
+
+    die_with_parent()
     os.environ.pop("NOTIFY_SOCKET", None)  # only the supervisor talks to systemd
     logging.basicConfig(level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from mowerhw.runtime.daemon import Daemon
