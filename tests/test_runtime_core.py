@@ -169,6 +169,40 @@ def test_mowing_only_named_areas_and_teach_marks_through_the_core(camera: Any) -
     assert core.pipeline.localizer.geometry.transit is None  # type: ignore[union-attr]
 
 
+def test_switching_areas_while_mowing_keeps_the_chain_and_replays(camera: Any) -> None:
+    """`ctl mow --area B` while mowing A: the same chain (the localizer's pose goes on, no
+    restart from the dock or a saved pose), A becomes transit; an unknown name is refused
+    and changes nothing; the switch is journalled and replays."""
+    from mowerhw.map import Area
+
+    journal = ListJournal()
+    core, asked = _core(camera, journal)
+    m = _map()
+    ang = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    m.areas = [Area("back", "mow", np.c_[20 + 4 * np.cos(ang), 4 * np.sin(ang)])]
+    assert core.set_mode("mow", ("lawn",)) == ""
+    core.map_loaded(m)
+    pipe = core.pipeline
+    assert pipe is not None and len(asked) == 1
+    _feed(core, 0.0, 0.5)
+    geometry = pipe.localizer.geometry  # type: ignore[union-attr]
+    assert geometry.in_transit(20.0, 0.0) and not geometry.in_transit(0.0, 0.0)
+    assert core.switch_mow_areas(("nope",)) == (
+        "no mowing area 'nope' in the map (its mowing areas: 'lawn', 'back')"
+    )
+    assert core.mow_areas == ("lawn",)
+    assert core.switch_mow_areas(("back",)) == ""
+    assert core.pipeline is pipe and len(asked) == 1 and core.mow_areas == ("back",)
+    geometry = pipe.localizer.geometry  # type: ignore[union-attr]
+    assert geometry.in_transit(0.0, 0.0) and not geometry.in_transit(20.0, 0.0)
+    _feed(core, 0.5, 1.0)
+    idle, _ = _core(camera)
+    assert idle.switch_mow_areas(("back",)) is None  # nothing mowing: the caller sets the mode
+    rep = replay_journal(default_config(), camera, journal.records)
+    assert rep.mismatches == 0 and rep.decisions == 100, rep.first_mismatch
+    assert any(r["kind"] == "switch_mow_areas" for r in journal.records)
+
+
 def test_teach_marks_are_taken_while_recording_and_journalled(camera: Any) -> None:
     journal = ListJournal()
     core, _ = _core(camera, journal)

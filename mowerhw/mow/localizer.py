@@ -33,6 +33,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -130,6 +131,7 @@ class Localizer:
         self.ids = self.map.landmark_ids()
         self._row = {int(i): r for r, i in enumerate(self.ids.tolist())}
         self.landmarks = self.map.landmark_positions()
+        self._containment_cfg = ccfg
         self.geometry = LawnGeometry.of_map(self.map, c.areas)
         self._containment = Containment(self.geometry, ccfg)
         g_noise, g_walk, g_scale = c.gyro()
@@ -148,6 +150,7 @@ class Localizer:
         self.t_fix: float | None = None  # newest frame that gave a landmark fix
         self._good_frames = 0
         self._fault = ""
+        self._area_changes = 0  # mow_only calls (part of :attr:`version`)
         self._lockout_since: float | None = None
         self._inflated = False
         self._lost_inflated = False
@@ -238,6 +241,7 @@ class Localizer:
             c.faults,
             self._resets,
             self._injected,
+            self._area_changes,
         )
 
     @property
@@ -566,6 +570,15 @@ class Localizer:
     def sigma_xy(self) -> float:
         """Largest standard deviation of the horizontal position (m)."""
         return self.ekf.sigma_xy()
+
+    def mow_only(self, areas: Sequence[str]) -> None:
+        """Mow only these mowing areas of the map from now on (empty: all), the others
+        becoming transit; the pose and its filter go on untouched. ValueError naming the
+        areas there are for a name the map does not have."""
+        geometry = LawnGeometry.of_map(self.map, tuple(areas))
+        self.geometry = geometry
+        self._containment = Containment(geometry, self._containment_cfg)
+        self._area_changes += 1
 
     def containment(self) -> ContainmentResult:
         """The containment decision for the newest estimate. Whether the sensors are fresh is

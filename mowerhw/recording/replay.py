@@ -388,6 +388,9 @@ def replay_journal(
         elif kind == "set_mode":
             areas = rec.get("mow_areas")
             core.set_mode(rec["mode"], tuple(areas) if areas is not None else None)
+        elif kind == "switch_mow_areas":
+            areas = rec.get("mow_areas")
+            core.switch_mow_areas(tuple(areas) if areas is not None else None)
         elif kind == "map_loaded":
             core.map_loaded(dec.lawn_map(rec["map"]), dec.start_pose(rec["saved_pose"]))
         elif kind == "map_invalid":

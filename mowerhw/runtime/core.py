@@ -313,6 +313,24 @@ class RuntimeCore:
             self.chains.request("teach")
         return ""
 
+    def switch_mow_areas(self, mow_areas: tuple[str, ...] | None) -> str | None:
+        """While mowing on a running chain: mow only ``mow_areas`` (None: ``mow.areas``) from
+        now on without rebuilding the chain (the pose goes on, no restart from the dock or a
+        saved pose): ``""`` if done, why not if the map lacks an area, None if there is no
+        running mow chain to switch (the caller sets the mode instead)."""
+        pipe = self.pipeline
+        if self.mode != "mow" or not isinstance(pipe, MowPipeline) or self.map_problem:
+            return None
+        self._log("switch_mow_areas", mow_areas=mow_areas)
+        areas = mow_areas if mow_areas is not None else self.cfg.mow.areas
+        try:
+            pipe.mow_only(areas)
+        except ValueError as exc:
+            return str(exc)
+        self.mow_areas = mow_areas
+        log.info("mowing %s from now on", ", ".join(areas) if areas else "every mowing area")
+        return ""
+
     def map_loaded(self, lawn_map: LawnMap, saved_pose: StartPose | None = None) -> None:
         """Mow mode: the map to mow on, checked; ``saved_pose``: a recent pose of this map a
         previous run saved (the localizer resumes from it instead of the dock)."""

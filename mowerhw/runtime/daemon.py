@@ -274,6 +274,12 @@ class Daemon:
     # ---------------------------------------------------------------------------- modes
 
     async def set_mode(self, mode: str, mow_areas: tuple[str, ...] | None = None) -> dict[str, Any]:
+        if mode == "mow":  # mowing already: other areas, the same chain
+            switched = self.core.switch_mow_areas(mow_areas)
+            if switched is not None:
+                if switched:
+                    return {"ok": False, "error": switched}
+                return {"ok": True, "mode": mode, "map_problem": self.core.map_problem}
         problem = self.core.set_mode(mode, mow_areas)
         if problem:
             return {"ok": False, "error": problem}

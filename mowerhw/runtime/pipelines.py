@@ -203,6 +203,11 @@ class MowPipeline:
             self._cont_key = key
         return self._cont
 
+    def mow_only(self, areas: tuple[str, ...]) -> None:
+        """Mow only these areas from now on, the localizer running on (ValueError naming
+        the areas there are for an unknown one)."""
+        self.localizer.mow_only(areas)
+
     def finite(self) -> bool:
         key = self.localizer.version
         if key != self._finite_key:
