@@ -275,15 +275,13 @@ class Bench:
         from mowerhw.bench.world import RealTimeMower
         from mowerhw.config import load_config
         from mowerhw.sim import make_world
-        from mowerhw.sim.motion import teach_loop
 
         t_wall0 = time.monotonic()
         self.cfg_path = self._write_config()
         cfg = load_config(self.cfg_path)
         self.sock = cfg.runtime.control_socket
         world = make_world(self.scenario, self.seed)
-        sc = world.scenario
-        truth = teach_loop(world.lawn, sc.speed_mps, sc.camera_height_m, standstill_s=1.0)
+        truth = self._teach_truth(world)
         mower = RealTimeMower(world, truth, self.seed, q_bi=cfg.imu.q_bi)
         renderer = RenderProcess(self.scenario, self.seed)  # off this process's GIL
         bus = open_bus("udp_multicast", self.can_channel, udp_port=self.can_port)
@@ -350,6 +348,17 @@ class Bench:
 
     # ------------------------------------------------------------------------------ teach
 
+    def _teach_truth(self, world: Any) -> Any:
+        """The operator's teach drive: once around the lawn edge."""
+        from mowerhw.sim.motion import teach_loop
+
+        sc = world.scenario
+        return teach_loop(world.lawn, sc.speed_mps, sc.camera_height_m, standstill_s=1.0)
+
+    def _drive_teach(self, truth: Any) -> None:
+        """While the operator drives: nothing to say to the daemon."""
+        self.mower.teach_done.wait(truth.t[-1] + 30.0)
+
     def _teach(self, world: Any, truth: Any) -> dict[str, Any]:
         from mowerhw.map import load as load_map
 
@@ -357,7 +366,7 @@ class Bench:
         time.sleep(2.0)  # standing: the teacher calibrates the gyro
         self.mower.start_teach()
         log.info("bench: teach drive (%.0f s)", truth.t[-1])
-        self.mower.teach_done.wait(truth.t[-1] + 30.0)
+        self._drive_teach(truth)
         try:  # the daemon usually notices the closed loop by itself
             st = self._wait(
                 lambda s: s.get("teach", {}).get("state") in ("finishing", "saved"),
@@ -381,10 +390,8 @@ class Bench:
             raise RuntimeError(f"teach failed in the daemon: {teach['state']}")
         lawn_map = load_map(teach["map"])
         true_edge = self.mower.true_outline(world.lawn.outline(1440))
-        err = _boundary_errors(lawn_map.boundary, true_edge)
         return {
-            "boundary_rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
-            "boundary_max_m": round(float(err.max()), 4),
+            **self._teach_scores(world, lawn_map),
             "teach": {
                 "drive_s": round(float(truth.t[-1]), 1),
                 "finished_by": "loop detection" if auto else "finish-teach command",
@@ -398,19 +405,25 @@ class Bench:
             },
         }
 
+    def _teach_scores(self, world: Any, lawn_map: Any) -> dict[str, Any]:
+        """The taught boundary against the true lawn edge."""
+        err = _boundary_errors(lawn_map.boundary, self.mower.true_outline(world.lawn.outline(1440)))
+        return {
+            "boundary_rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
+            "boundary_max_m": round(float(err.max()), 4),
+        }
+
     # -------------------------------------------------------------------------------- mow
 
-    def _mow(self, world: Any, cfg: Any) -> dict[str, Any]:
-        from mowerhw.map import load as load_map
+    def _mow_driver(self, lawn_map: Any) -> Any:
+        """The mower's own controller: random coverage with bang-bang edge turns, steering by
+        the daemon's status frame (never the truth)."""
         from mowerhw.mow import LawnGeometry
         from mowerhw.sim.controller import BangBangMower
 
-        lawn_map = load_map(cfg.map.path)
-        self.map_bytes = Path(cfg.map.path).read_bytes()
         geom = LawnGeometry.of_map(lawn_map)
         bang = BangBangMower(geom.inward_direction, np.random.default_rng([self.seed, 30]))
         ctl = self.controller
-        t_mow0 = time.monotonic()
 
         def drive(now: float, _xy: Any, _yaw: float) -> tuple[float, float]:
             st = ctl.state.status
@@ -423,14 +436,30 @@ class Bench:
                 if (ctl.deck_running or st.state in ("NEAR_EDGE", "OUTSIDE"))
                 else ("UNKNOWN")
             )
-            return bang.command(now - t_mow0, st.x_m, st.y_m, st.heading_rad, state)
+            return bang.command(now - self.t_mow0, st.x_m, st.y_m, st.heading_rad, state)
 
-        reply = request(self.sock, "mow", timeout=10.0)
+        return drive
+
+    def _mow_request(self) -> dict[str, Any]:
+        """What ``mow`` is asked with (every mowing area)."""
+        return {}
+
+    def _mow_tick(self, now: float) -> None:
+        """Once per bench loop while mowing (a plan that changes as it goes)."""
+
+    def _mow(self, world: Any, cfg: Any) -> dict[str, Any]:
+        from mowerhw.map import load as load_map
+
+        lawn_map = load_map(cfg.map.path)
+        self.map_bytes = Path(cfg.map.path).read_bytes()
+        self.t_mow0 = time.monotonic()
+        drive = self._mow_driver(lawn_map)
+        reply = request(self.sock, "mow", timeout=10.0, **self._mow_request())
         if not reply.get("ok"):
             raise RuntimeError(f"daemon refused mow: {reply}")
         cpu0, _ = self._proc_cpu_rss()
         self.cpu_s_total -= cpu0
-        t_mow0 = time.monotonic()
+        t_mow0 = self.t_mow0 = time.monotonic()
         self.mower.start_mow(drive)
         pending = list(self.faults)
         windows: list[tuple[float, float]] = []
@@ -447,6 +476,7 @@ class Bench:
                 self.results.append(res)
                 windows.append((res.t0, res.t0 + spec.duration_s + 15.0))
                 continue
+            self._mow_tick(now)
             due = [a for a in self._actions if a[0] <= now]
             if due:
                 self._actions = [a for a in self._actions if a[0] > now]
@@ -534,17 +564,22 @@ class Bench:
         self._cpu_rss_done = True
         return metrics
 
-    def _score_mow(self, world, t_mow0, windows, latencies, mow_s) -> dict[str, Any]:
+    def _true_signed_distance(self, world: Any, t: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """The true signed distance (positive inside) to where mowing is allowed at each
+        time: here the whole lawn."""
         from mowerhw.mow import LawnGeometry
 
+        true_geom = LawnGeometry(self.mower.true_outline(world.lawn.outline(1440)), [])
+        return true_geom.signed_distances(xy)
+
+    def _score_mow(self, world, t_mow0, windows, latencies, mow_s) -> dict[str, Any]:
         log_arr = self.mower.log_array()
         np.save(self.out / "truth.npy", log_arr)  # t, x, y, yaw, v, deck, phase (post-mortem)
         np.save(self.out / "poses.npy", np.array(self.pose_samples, dtype=np.float64))
         (self.out / "timeline.json").write_text(json.dumps(self.timeline))
         sel = log_arr[:, 6] == 2  # mowing phase
         t, x, y, deck = log_arr[sel, 0], log_arr[sel, 1], log_arr[sel, 2], log_arr[sel, 5] > 0
-        true_geom = LawnGeometry(self.mower.true_outline(world.lawn.outline(1440)), [])
-        s_true = true_geom.signed_distances(np.column_stack([x, y]))
+        s_true = self._true_signed_distance(world, t, np.column_stack([x, y]))
         first_permit = t[np.argmax(deck)] if deck.any() else math.inf
         in_fault = np.zeros(t.size, bool)
         for a, b in windows:

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from drivers.imu.mock import MockImuState
 from drivers.threaded import ThreadedDevice
 from mowerhw.common.geometry import quat_to_rotmat
-from mowerhw.sim.motion import Truth, camera_xy_world, start_frame
+from mowerhw.sim.motion import Truth, camera_xy_world
 from mowerhw.sim.sensors import SensorSuite
 from mowerhw.sim.world import World
 
@@ -58,7 +58,7 @@ class RealTimeMower(ThreadedDevice):
         self.truth = teach_truth
         if not world.terrain.flat:
             raise ValueError("the real-time bench drives on flat ground only")
-        self.frame = start_frame(world)
+        self.frame = teach_truth.frame  # the world frame: the body frame where teach starts
         self.sensors = sensors or world.scenario.sensors
         self.rng = np.random.default_rng([seed, 40])
         self.r_ib = quat_to_rotmat(np.asarray(q_bi, dtype=np.float64)).T  # body → IMU frame

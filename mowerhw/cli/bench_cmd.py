@@ -29,7 +29,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="seconds of mowing (default 120)",
     )
     p.add_argument("--seed", type=seed_number, default=7, help="which simulated yard (default 7)")
-    p.add_argument("--scenario", default="paper", choices=("paper",), help="yard type")
+    p.add_argument(
+        "--scenario",
+        default="paper",
+        choices=("paper", "garden"),
+        help="yard type: paper (one lawn, mowed from the dock on its edge) or garden (two "
+        "lawns, a path with the dock and a bed across an edge, taught with marks in one drive, "
+        "then the front lawn and the back lawn mowed in turn)",
+    )
     p.add_argument(
         "--fault",
         action="append",
@@ -63,6 +70,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from mowerhw.bench import Bench, FaultSpec
+    from mowerhw.bench.garden import GardenBench
 
     try:
         faults = [FaultSpec.parse(f) for f in args.fault]
@@ -71,7 +79,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         return 2
     if not args.json:
         print("bench: teaching then mowing in real time; this takes a few minutes", file=sys.stderr)
-    bench = Bench(
+    kind = GardenBench if args.scenario == "garden" else Bench
+    bench = kind(
         duration_s=args.duration,
         seed=args.seed,
         scenario=args.scenario,

@@ -208,6 +208,12 @@ SHAPES: dict[str, tuple[list[tuple[float, float]], float]] = {
     ),
     "strip": ([(0, 0), (32, 0), (32, 4), (0, 4)], 1.2),
     "rectangle": ([(0, 0), (12, 0), (12, 8), (0, 8)], 1.5),
+    # two lawns joined by a path (mowerhw.sim.garden)
+    "garden": (
+        [(0, 0), (8, 0), (8, 2), (12, 2), (12, 0), (20, 0), (20, 6), (12, 6), (12, 4), (8, 4)]
+        + [(8, 6), (0, 6)],
+        0.5,
+    ),
 }
 
 

@@ -204,10 +204,22 @@ SCENARIOS: dict[str, Scenario] = {
         description="a 10° hillside, MPU-6050, 3–5 % speed scale error, slip three times a "
         "minute, 30 % frames recognising nothing",
     ),
+    # Two lawns joined by a path, taught in one drive (mowerhw.sim.garden; issue 17's bench).
+    "garden": Scenario(
+        name="garden",
+        perimeter_m=0.0,
+        shape="garden",
+        n_landmarks=36,
+        speed_mps=0.45,
+        landmark_distance_m=(1.5, 6.0),
+        landmark_height_m=(0.3, 2.5),
+        max_range_m=30.0,
+        description="two 8 × 6 m lawns joined by a 2 m path, 36 landmarks, VN-100",
+    ),
 }
 
-#: the presets of the matrix (all but the scaling one)
-MATRIX = [name for name in SCENARIOS if name != "large"]
+#: the presets of the matrix (all but the scaling one and the two-lawn garden of the bench)
+MATRIX = [name for name in SCENARIOS if name not in ("large", "garden")]
 
 
 def with_sensors(scenario: Scenario, sensors: SensorSuite) -> Scenario:
