@@ -405,7 +405,14 @@ class RuntimeCore:
             return f"teach is {self.teach_state or 'not started'}; mark once it is recording"
         if self.t_imu_newest is None:
             return "no IMU sample yet: mark once the IMU is read"
-        return pipe.teacher.mark(self.t_imu_newest, kind, name)
+        problem = pipe.teacher.mark(self.t_imu_newest, kind, name)
+        if not problem:
+            log.info(
+                "teach: marked %s at t=%.2f s",
+                " ".join(filter(None, (kind, name))),
+                self.t_imu_newest,
+            )
+        return problem
 
     def begin_finish_teach(self) -> TeachPipeline | str:
         """The teach chain to finish (loop closure, boundary: off the loop), or why not."""

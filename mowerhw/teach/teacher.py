@@ -216,6 +216,11 @@ class Teacher:
     #: landmarks the smoother refines: seen in at least this many frames, σ below this
     SMOOTHER_MIN_FRAMES = 5
     SMOOTHER_MAX_SIGMA_M = 1.0
+    #: the smoother keeps a camera frame once the mower has moved or turned this much since
+    #: the last one it kept (the odometry between is preintegrated): its sparse solve grows
+    #: much faster than the number of poses, and frames 5 cm apart add little but cost
+    SMOOTHER_FRAME_STEP_M = 0.2
+    SMOOTHER_FRAME_TURN_RAD = 0.12
 
     def __init__(
         self,
@@ -691,10 +696,10 @@ class Teacher:
         """Smooth the whole drive (:mod:`mowerhw.teach.smoother`) and apply it (in place)."""
         if not self.cfg.loop_closure:
             return LoopClosure(False, "disabled in the configuration")
-        frames = self._frames
+        frames = self._smoother_frames()
         if len(frames) < 3:
             return LoopClosure(False, "too few camera frames while driving")
-        problem, lm_ids, reobserved = self._smoother_problem(landmarks)
+        problem, lm_ids, reobserved = self._smoother_problem(landmarks, frames)
         if problem is None:
             return LoopClosure(False, "no landmark was mapped")
         try:
@@ -708,7 +713,7 @@ class Teacher:
                 for b in np.flatnonzero(bad).tolist():
                     landmarks[lm_ids[b]]["rms"] = float("inf")
                 keep = {lid: landmarks[lid] for j, lid in enumerate(lm_ids) if not bad[j]}
-                problem2, lm_ids2, reobserved2 = self._smoother_problem(keep)
+                problem2, lm_ids2, reobserved2 = self._smoother_problem(keep, frames)
                 if problem2 is not None:
                     out = smooth(problem2)
                     problem, lm_ids, reobserved = problem2, lm_ids2, reobserved2
@@ -759,12 +764,37 @@ class Teacher:
             "bias_walk_cov": np.tile(np.eye(3) * walk_var, (nseg - 1, 1, 1)),
         }
 
-    def _smoother_problem(
-        self, landmarks: dict[int, dict[str, Any]]
-    ) -> tuple[SmootherProblem | None, list[int], int]:
-        """Poses at frames (the filter's), odometry between them, bearings, initial map."""
-        c = self.cfg
+    def _smoother_frames(self) -> list[tuple[Any, ...]]:
+        """The camera frames the smoother keeps: the first, then one each time the mower has
+        moved :data:`SMOOTHER_FRAME_STEP_M` or turned :data:`SMOOTHER_FRAME_TURN_RAD` since
+        the last one kept, and the last."""
         frames = self._frames
+        if len(frames) < 3:
+            return list(frames)
+        pos = np.array([f[3] for f in frames])
+        q = np.array([f[4] for f in frames])  # q_wb (w, x, y, z)
+        yaw = np.unwrap(
+            np.arctan2(
+                2 * (q[:, 0] * q[:, 3] + q[:, 1] * q[:, 2]), 1 - 2 * (q[:, 2] ** 2 + q[:, 3] ** 2)
+            )
+        )
+        kept = [0]
+        for k in range(1, len(frames) - 1):
+            j = kept[-1]
+            moved = float(np.linalg.norm(pos[k] - pos[j]))
+            if moved >= self.SMOOTHER_FRAME_STEP_M or abs(yaw[k] - yaw[j]) >= (
+                self.SMOOTHER_FRAME_TURN_RAD
+            ):
+                kept.append(k)
+        kept.append(len(frames) - 1)
+        return [frames[k] for k in kept]
+
+    def _smoother_problem(
+        self, landmarks: dict[int, dict[str, Any]], frames: list[tuple[Any, ...]]
+    ) -> tuple[SmootherProblem | None, list[int], int]:
+        """Poses at ``frames`` (the filter's), odometry between them, bearings, initial
+        map."""
+        c = self.cfg
         # Only landmarks the smoother can locate: seen often enough, and already roughly
         # known. A landmark seen twice makes the normal equations (nearly) singular, and
         # its marginal covariance numerically meaningless; it is not mapped anyway.
