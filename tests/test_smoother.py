@@ -36,3 +36,58 @@ def test_preintegration_of_a_constant_turn():
     num = rotmat_log(f.dR.T @ g.dR) / eps
     assert np.allclose(num, f.j_rb[:, 2], atol=1e-5)
     assert np.allclose((g.dp - f.dp) / eps, f.j_pb[:, 2], atol=1e-4)
+
+
+@pytest.mark.parametrize(("landmarks", "seen"), [(4, 10), (60, 2)])  # dense, sparse product
+def test_the_landmark_schur_solve_matches_a_direct_solve(
+    landmarks: int, seen: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Eliminating the landmarks gives the direct solution and the landmarks' marginal
+    covariances (diagonal blocks of the inverse), on a random system of the smoother's shape:
+    pose–landmark and pose–pose couplings, none between two landmarks."""
+    import scipy.sparse as sp
+
+    from mowerhw.teach.smoother import _Layout, _LandmarkSchur
+
+    rng = np.random.default_rng(landmarks)
+    lay = _Layout(k=12, n=landmarks, nseg=2)
+    rows = []
+    for _ in range(seen * landmarks):  # a bearing: one pose, one landmark
+        j = np.zeros(lay.size)
+        p, i = 6 * rng.integers(0, lay.k - 1), lay.lm0 + 3 * rng.integers(0, landmarks)
+        j[p : p + 6] = rng.normal(size=6)
+        j[i : i + 3] = rng.normal(size=3)
+        rows.append(j)
+    for p in range(lay.k - 2):  # odometry: consecutive poses, a bias, the scale
+        for _ in range(6):
+            j = np.zeros(lay.size)
+            j[6 * p : 6 * p + 12] = rng.normal(size=12)
+            j[lay.bias0 : lay.size] = rng.normal(size=lay.size - lay.bias0) * 0.1
+            rows.append(j)
+    for i in range(lay.lm0, lay.size):  # weak priors: every variable constrained
+        j = np.zeros(lay.size)
+        j[i] = 0.1
+        rows.append(j)
+    jac = np.array(rows)
+    a = jac.T @ jac
+    b = rng.normal(size=lay.size)
+    damp = np.full(lay.size, 1e-3)
+    dense = []
+    product = _LandmarkSchur._m_a_lr
+
+    def spy(self: _LandmarkSchur) -> np.ndarray:
+        out = product(self)
+        per_col = np.diff(self.a_rl.tocsc().indptr)
+        r, c = self.a_rl.shape
+        dense.append(r * r * c / self.DENSE_SPEEDUP < np.sum(per_col.astype(float) ** 2))
+        return out
+
+    monkeypatch.setattr(_LandmarkSchur, "_m_a_lr", spy)
+    got = _LandmarkSchur(sp.csc_matrix(a), lay, damp).solve(b)
+    assert dense == [landmarks == 4]
+    assert np.allclose(got, np.linalg.solve(a + np.diag(damp), b), rtol=1e-8, atol=1e-10)
+    cov = _LandmarkSchur(sp.csc_matrix(a), lay, np.zeros(lay.size)).landmark_covariances()
+    inv = np.linalg.inv(a)
+    for i in range(landmarks):
+        s = lay.lm0 + 3 * i
+        assert np.allclose(cov[i], inv[s : s + 3, s : s + 3], rtol=1e-6, atol=1e-12)
