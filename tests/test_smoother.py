@@ -47,7 +47,7 @@ def test_the_landmark_schur_solve_matches_a_direct_solve(
     pose–landmark and pose–pose couplings, none between two landmarks."""
     import scipy.sparse as sp
 
-    from mowerhw.teach.smoother import _Layout, _LandmarkSchur
+    from mowerhw.teach.smoother import _LandmarkSchur, _Layout
 
     rng = np.random.default_rng(landmarks)
     lay = _Layout(k=12, n=landmarks, nseg=2)
