@@ -32,6 +32,10 @@ from mowerhw.runtime.control_protocol import request
 
 #: the share of the mowing time spent on the front lawn before the bench asks for the back one
 FRONT_SHARE = 0.45
+#: scoring against the back lawn starts this long after the daemon acknowledged the switch
+#: (its next decision reaching the mower's controller on CAN); until then the front lawn,
+#: still a lawn, counts. How long the deck really ran on after the switch is measured apart.
+SWITCH_GRACE_S = 0.1
 WAYPOINT_REACHED_M = 0.35
 COVERAGE_CELL_M = 0.5
 
@@ -56,7 +60,9 @@ class RouteThenCover:
         self.cover = BangBangMower(inward, self.rng, speed_mps=self.speed, start_after_s=0.0)
         self.phase = "route"
 
-    def command(self, t: float, x: float, y: float, yaw: float, state: str, deck: bool):
+    def command(
+        self, t: float, x: float, y: float, yaw: float, state: str, deck: bool
+    ) -> tuple[float, float]:
         if state == "UNKNOWN" or self.phase == "wait":
             return 0.0, 0.0
         if self.phase == "route":
@@ -122,7 +128,7 @@ class GardenBench(Bench):
         """Each taught zone against the track driven around it; the dock against the truth."""
         taught = {a.name: a.polygon for a in lawn_map.all_areas()}
         taught.update({k.name: k.polygon for k in lawn_map.keepouts})
-        zones = {}
+        zones: dict[str, dict[str, float] | None] = {}
         for name in ("front", "back", "path", "bed"):
             if name not in taught:
                 zones[name] = None
@@ -159,21 +165,23 @@ class GardenBench(Bench):
         }
         plan.go("front", self._route("front"), self.inward["front"])
         ctl = self.controller
-        last = [None]
+        last: list[float | None] = [None]
 
         def drive(now: float, _xy: Any, _yaw: float) -> tuple[float, float]:
             st = ctl.state.status
-            if last[0] is not None and st is not None:
-                dt = now - last[0]
+            before = last[0]
+            if before is not None and st is not None:
+                dt = now - before
                 self.state_s[st.state] = self.state_s.get(st.state, 0.0) + dt
             last[0] = now
             if st is None or ctl.why_not(now) in ("ISB timeout", "heartbeat timeout"):
                 return 0.0, 0.0  # the daemon is silent: stand
             if not math.isfinite(st.x_m) or not math.isfinite(st.heading_rad):
                 return 0.0, 0.0
-            return plan.command(
+            v, w = plan.command(
                 now - self.t_mow0, st.x_m, st.y_m, st.heading_rad, st.state, ctl.deck_running
             )
+            return float(v), float(w)
 
         return drive
 
@@ -185,7 +193,7 @@ class GardenBench(Bench):
             reply = request(self.sock, "mow", timeout=10.0, areas=["back"])
             if not reply.get("ok"):
                 raise RuntimeError(f"the daemon refused mow --area back: {reply}")
-            self.switch_at = now
+            self.switch_at = time.monotonic()  # acknowledged: the daemon mows back only now
             self.garden_ctl.go("back", self._route("back"), self.inward["back"])
 
     def _regions(self) -> tuple[Any, Any, Any]:
@@ -195,10 +203,13 @@ class GardenBench(Bench):
         back = shapely.Polygon(self._true_zone("back")).difference(bed)
         return front, back, bed
 
+    def _scoring_switch(self) -> float:
+        return self.switch_at + SWITCH_GRACE_S if self.switch_at is not None else math.inf
+
     def _true_signed_distance(self, world: Any, t: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Against the lawn being mowed at the time (the front one, then the back one)."""
         front, back, _ = self._regions()
-        switch = self.switch_at if self.switch_at is not None else math.inf
+        switch = self._scoring_switch()
         pts = shapely.points(xy)
         out = np.empty(len(xy))
         for region, sel in ((front, t < switch), (back, t >= switch)):
@@ -206,7 +217,9 @@ class GardenBench(Bench):
             out[sel] = np.where(shapely.contains(region, pts[sel]), d, -d)
         return out
 
-    def _score_mow(self, world, t_mow0, windows, latencies, mow_s) -> dict[str, Any]:
+    def _score_mow(  # type: ignore[no-untyped-def]
+        self, world, t_mow0, windows, latencies, mow_s
+    ) -> dict[str, Any]:
         metrics = super()._score_mow(world, t_mow0, windows, latencies, mow_s)
         log_arr = self.mower.log_array()
         sel = log_arr[:, 6] == 2
@@ -220,12 +233,16 @@ class GardenBench(Bench):
         entries = int(np.count_nonzero(in_bed[1:] & ~in_bed[:-1]) + int(in_bed[:1].sum()))
         dt = 1.0 / self.mower.STEP_HZ
         switch = self.switch_at if self.switch_at is not None else math.inf
+        after = (t >= switch) & ~deck
+        ran_on = float(t[np.argmax(after)] - switch) if after.any() else None
         metrics["garden"] = {
             "keepout_entries_while_permitted": entries,
             "keepout_steps_permitted_any_depth": int(np.count_nonzero(deck & (depth_in_bed > 0))),
             "time_in_transit_s": round(self.state_s.get("TRANSIT", 0.0), 1),
             "time_by_state_s": {k: round(v, 1) for k, v in sorted(self.state_s.items())},
             "back_lawn_asked_at_s": round(switch - t_mow0, 1) if math.isfinite(switch) else None,
+            # acknowledged → the deck stopped in the front lawn, now transit (as the truth saw)
+            "deck_ran_on_after_switch_ms": round(1e3 * ran_on, 1) if ran_on is not None else None,
             "mowing_s": {
                 "front": round(float(np.count_nonzero(deck & (t < switch))) * dt, 1),
                 "back": round(float(np.count_nonzero(deck & (t >= switch))) * dt, 1),
@@ -270,13 +287,21 @@ def _coverage(region: Any, xy: np.ndarray) -> float:
     return round(float(np.count_nonzero(hit & inside) / np.count_nonzero(inside)), 3)
 
 
-def _figure(path: Any, bench: GardenBench, t, xy, deck, switch_s: float | None) -> None:
+def _figure(
+    path: Any,
+    bench: GardenBench,
+    t: np.ndarray,
+    xy: np.ndarray,
+    deck: np.ndarray,
+    switch_s: float | None,
+) -> None:
     """The run: true zones (thin), taught zones (dashed), the mower's path with the deck
     running (green) or halted (grey), the dock."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     fig, ax = plt.subplots(figsize=(11, 4.8), dpi=110)
     colours = {"mow": "tab:green", "nav": "tab:blue", "keepout": "tab:red"}
@@ -289,8 +314,11 @@ def _figure(path: Any, bench: GardenBench, t, xy, deck, switch_s: float | None) 
         ring = bench._true_zone(name)
         ring = np.vstack([ring, ring[:1]])
         ax.plot(ring[:, 0], ring[:, 1], "-", color="k", lw=0.5)
-    ax.plot(xy[~deck, 0], xy[~deck, 1], ".", ms=0.6, color="0.6", label="deck halted")
-    ax.plot(xy[deck, 0], xy[deck, 1], ".", ms=0.6, color="tab:green", label="deck running")
+    ax.plot(xy[~deck, 0], xy[~deck, 1], ".", ms=1.0, color="0.55", label="deck halted")
+    ax.plot(xy[deck, 0], xy[deck, 1], ".", ms=1.0, color="tab:olive", label="deck running")
+    for _, name, poly in taught:
+        c = shapely.Polygon(poly).representative_point()
+        ax.annotate(name, (c.x, c.y), fontsize=8, color="k", ha="center", alpha=0.8)
     dock = np.asarray(bench.lawn_map.dock_position)[:2]
     ax.plot(dock[0], dock[1], "ks", ms=6, label="dock")
     ax.set_aspect("equal")
@@ -300,7 +328,10 @@ def _figure(path: Any, bench: GardenBench, t, xy, deck, switch_s: float | None) 
     if switch_s is not None:
         title += f" (back asked for at {switch_s:.0f} s)"
     ax.set_title(title + "; thin black: true tracks")
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, markerscale=8)
+    legend = ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
+    for handle in legend.legend_handles:  # the path's dots drawn visibly in the legend
+        if isinstance(handle, Line2D) and handle.get_marker() == ".":
+            handle.set_markersize(8)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

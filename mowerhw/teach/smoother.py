@@ -501,7 +501,8 @@ class _LandmarkSchur:
         x = sla.solve_triangular(self.chol[0], self.m.toarray(), lower=True, check_finite=False)
         n = self.ll_inv.shape[0]
         x3 = x.reshape(x.shape[0], n, 3)
-        return self.ll_inv + np.einsum("rni,rnj->nij", x3, x3)
+        cov: FloatArray = self.ll_inv + np.einsum("rni,rnj->nij", x3, x3)
+        return cov
 
 
 def _landmark_covariances(a: sp.csc_matrix, lay: _Layout, n: int) -> FloatArray:
