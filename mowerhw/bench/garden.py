@@ -33,8 +33,9 @@ from mowerhw.runtime.control_protocol import request
 #: the share of the mowing time spent on the front lawn before the bench asks for the back one
 FRONT_SHARE = 0.45
 #: scoring against the back lawn starts this long after the daemon acknowledged the switch
-#: (its next decision reaching the mower's controller on CAN); until then the front lawn,
-#: still a lawn, counts. How long the deck really ran on after the switch is measured apart.
+#: (its next decision reaching the mower's controller on CAN); in between neither a running
+#: nor a stopped deck is scored (the switch is in flight). How long the deck really ran on
+#: after the switch is measured apart.
 SWITCH_GRACE_S = 0.1
 WAYPOINT_REACHED_M = 0.35
 COVERAGE_CELL_M = 0.5
@@ -212,9 +213,10 @@ class GardenBench(Bench):
         switch = self._scoring_switch()
         pts = shapely.points(xy)
         out = np.empty(len(xy))
-        for region, sel in ((front, t < switch), (back, t >= switch)):
+        for region, sel in ((front, t < switch - SWITCH_GRACE_S), (back, t >= switch)):
             d = shapely.distance(region.boundary, pts[sel])
             out[sel] = np.where(shapely.contains(region, pts[sel]), d, -d)
+        out[(t >= switch - SWITCH_GRACE_S) & (t < switch)] = np.nan  # not scored (in flight)
         return out
 
     def _score_mow(  # type: ignore[no-untyped-def]
