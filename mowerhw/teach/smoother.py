@@ -468,9 +468,10 @@ class _LandmarkSchur:
         rows = a[self.rest]
         self.a_rl = rows[:, self.lm]
         self.m = self.a_rl @ self.d_inv  # A_rl A_ll⁻¹
-        s = rows[:, self.rest].toarray() - self._m_a_lr()
+        s = rows[:, self.rest].toarray()  # dense: the reduced system fills in anyway
+        s -= self._m_a_lr()
         s[np.diag_indices_from(s)] += damp[self.rest]
-        self.chol = sla.cho_factor(s, lower=True, check_finite=False)
+        self.chol = sla.cho_factor(s, lower=True, overwrite_a=True, check_finite=False)
         if not np.all(np.isfinite(self.chol[0])):
             raise np.linalg.LinAlgError("reduced system not finite")
 
