@@ -25,7 +25,8 @@ def _map(rng: np.random.Generator, n: int = 40) -> tuple[LawnMap, np.ndarray, np
 
 
 def _view(pts: np.ndarray, p: np.ndarray, yaw: float, rng: np.random.Generator, sigma: float):
-    r_wb = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]])
+    c, s = math.cos(yaw), math.sin(yaw)
+    r_wb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     b = (pts - p) @ r_wb  # body frame
     b = b / np.linalg.norm(b, axis=1, keepdims=True) + rng.normal(0, sigma, b.shape)
     return b / np.linalg.norm(b, axis=1, keepdims=True)

@@ -158,8 +158,8 @@ class GlobalRelocalizer:
         points2d, points3d, which = [], [], []
         for i, rot in enumerate(self._rots):
             sel = np.flatnonzero(cam == i)
-            c = b[sel] @ rot.T
-            points2d.append(c[:, :2] / c[:, 2:3])
+            in_cam = b[sel] @ rot.T
+            points2d.append(in_cam[:, :2] / in_cam[:, 2:3])
             points3d.append(self.points[cols[sel]])
             which.append(sel)
         exts = [poselib.CameraPose() for _ in self._rots]
@@ -198,10 +198,10 @@ class GlobalRelocalizer:
         pairs: dict[int, int] = {}
         used: set[int] = set()
         for k in inl.tolist():
-            r, c = int(rows[k]), int(cols[k])
-            if r not in pairs and c not in used:
-                pairs[r] = c
-                used.add(c)
+            track_row, lm_row = int(rows[k]), int(cols[k])
+            if track_row not in pairs and lm_row not in used:
+                pairs[track_row] = lm_row
+                used.add(lm_row)
         if len(pairs) < self.min_inliers:
             return done(f"{len(pairs)} inliers (need {self.min_inliers})")
         tilt = math.acos(float(np.clip(r_wb[2, 2], -1.0, 1.0)))
