@@ -59,7 +59,7 @@ def main() -> None:
     world, truth = taught.run.world, taught.run.truth
     frame = truth.frame
     renderer = OmniRenderer(world, args.seed + 1000)
-    reloc = GlobalRelocalizer(lawn_map, seed=args.seed)
+    reloc = GlobalRelocalizer(lawn_map)
     lawn = shapely.Polygon(world.lawn.outline(720)).buffer(-0.3)
     rng = np.random.default_rng([args.seed, 18])
     frames = max(2, round(args.seconds / FRAME_S))
@@ -81,7 +81,7 @@ def main() -> None:
         outcome: dict[str, object] = {"accepted": False}
         for k in range(frames):
             tracks = fe.process(k * FRAME_S, renderer.render(float(x), float(y), psi))
-            res = reloc.locate(tracks.bearings, tracks.descriptors)
+            res = reloc.locate(tracks.bearings)
             frame_ms.append(res.ms)
             single_n += 1
             if not res.ok:

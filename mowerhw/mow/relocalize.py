@@ -1,23 +1,28 @@
 """Global relocalization: the mower's pose from one frame, with no prior (issue 18).
 
-For a mower switched on in the middle of the lawn, or carried there: the map's landmarks are
-recognised by their ORB descriptors and the pose is solved from the bearings to them.
+For a mower switched on in the middle of the lawn, or carried there. Measured first (pixel
+level, paper scenario): recognising landmarks by their ORB descriptors does not work on a
+lawn's landmarks — the board corners look alike, and a board seen from its other side gives
+nearly the inverted descriptor, so only 2–5 of ~100 descriptor candidates per frame were right
+(RANSAC over them: 11 answers in 542 frames, 7 of them wrong). What does tell places apart is
+the *geometry*: where, around the mower and how high, the landmarks appear. So:
 
-1. **Candidates** — every track's descriptors against every map landmark's descriptor set
-   (Hamming distance, the least over both sets). A track keeps up to :data:`TOP_K` landmarks
-   within ``max_hamming`` and within :data:`RATIO` of its best: with look-alike landmarks the
-   single best is often wrong, and RANSAC sorts the right one out.
-2. **Absolute pose** — RANSAC over those correspondences with PoseLib's generalized absolute
-   pose solver (P3P minimal samples, local optimisation, then bundle refinement): the
-   omnidirectional camera is given to it as a rig of :data:`VIRTUAL_CAMERAS` pinhole cameras
-   sharing its centre, turned 360°/n apart about the vertical, each taking the bearings nearest
-   its axis (a pinhole camera cannot hold a bearing 90° off its axis; the rig can hold all).
-3. **Plausibility** — the mower upright (tilt under :data:`MAX_TILT_RAD`) at about the taught
-   camera height, with at least ``min_inliers`` inliers spread in azimuth (not all from one
-   side: a degenerate geometry).
+1. **Search** — a grid of positions over the map's areas (every :attr:`grid_m`) at the dock's
+   camera height, the mower upright. At each position a landmark's elevation does not depend
+   on the heading, its azimuth shifts with it: every (observed bearing, landmark) pair whose
+   elevations agree within :attr:`elevation_tol_rad` votes for a heading (landmark azimuth −
+   observed azimuth), and the votes of all pairs of all positions are counted in heading bins
+   at once (numpy, no loop per landmark).
+2. **Refine** — the best distinct (position, heading) hypotheses are refined: observed bearings
+   associated with the nearest predicted landmark (a tightening angle), the 6-DoF pose fitted
+   to them (robust least squares over the angular residuals), inliers counted at
+   :attr:`inlier_angle_rad`.
+3. **Unique or nothing** — the best hypothesis is taken only with at least
+   :attr:`min_inliers` inliers spread around the mower, upright, and clearly ahead of the best
+   hypothesis elsewhere (more than 0.5 m or 10° away: a look-alike place): the runner-up must
+   have at most :attr:`ambiguity_ratio` of its inliers. Otherwise no answer, with the reason.
 
-Whether to *trust* a pose (the same answer over more than one frame, agreeing with the motion
-in between) is the caller's decision (:class:`RelocalizationVote`).
+Whether to *trust* an answer (the same pose from more than one frame) is the caller's.
 """
 
 from __future__ import annotations
@@ -27,33 +32,31 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import shapely
 from numpy.typing import NDArray
+from scipy.optimize import least_squares
 
-from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, stack_sets
 from mowerhw.map import LawnMap
 
 FloatArray = NDArray[np.float64]
 
-TOP_K = 3
-RATIO = 1.3  # a candidate's distance at most this times the track's best
-VIRTUAL_CAMERAS = 6
 MAX_TILT_RAD = math.radians(15.0)
-MAX_HEIGHT_ERROR_M = 0.3
 MIN_AZIMUTH_SPREAD_RAD = math.radians(90.0)
-
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
+DISTINCT_M = 0.5
+DISTINCT_RAD = math.radians(10.0)
 
 
 @dataclass(frozen=True)
 class Relocalization:
-    """One frame's answer: ``r_wb``, ``p_wb`` (body in the map's world frame) and the inlier
-    correspondences (track row, map landmark id), or why none."""
+    """One frame's answer: ``r_wb``, ``p_wb`` (body in the map's world frame), the inlier
+    pairs (observation row, map landmark id) and the runner-up's inliers, or why none."""
 
     ok: bool
     r_wb: FloatArray = field(default_factory=lambda: np.eye(3))
     p_wb: FloatArray = field(default_factory=lambda: np.zeros(3))
     inliers: list[tuple[int, int]] = field(default_factory=list)
-    candidates: int = 0
+    runner_up: int = 0
+    hypotheses: int = 0
     ms: float = 0.0
     why: str = ""
 
@@ -62,165 +65,202 @@ class Relocalization:
         return math.atan2(self.r_wb[1, 0], self.r_wb[0, 0])
 
 
-def _rig() -> tuple[list[FloatArray], FloatArray]:
-    """Rotations body → virtual camera (z along the camera's axis, y down) and the axes."""
-    rots, axes = [], []
-    for k in range(VIRTUAL_CAMERAS):
-        a = 2 * math.pi * k / VIRTUAL_CAMERAS
-        z = np.array([math.cos(a), math.sin(a), 0.0])
-        y = np.array([0.0, 0.0, -1.0])
-        x = np.cross(y, z)
-        rots.append(np.vstack([x, y, z]))
-        axes.append(z)
-    return rots, np.array(axes)
+def _yaw_matrix(yaw: float) -> FloatArray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _wrap(a: FloatArray | float) -> FloatArray | float:
+    return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
 
 
 class GlobalRelocalizer:
-    """Recognises the map's landmarks in one frame and solves the pose (module doc)."""
+    """The pose from one frame's bearings and the map's landmarks (module doc)."""
 
     def __init__(
         self,
         lawn_map: LawnMap,
-        max_hamming: int = 60,
+        grid_m: float = 0.25,
+        yaw_bin_rad: float = math.radians(4.0),
+        elevation_tol_rad: float = math.radians(3.0),
         inlier_angle_rad: float = math.radians(1.0),
         min_inliers: int = 8,
-        seed: int = 0,
+        ambiguity_ratio: float = 0.7,
+        max_range_m: float = 30.0,
+        hypotheses: int = 8,
     ) -> None:
-        lms = [lm for lm in lawn_map.landmarks if lm.descriptor]
-        self.ids = np.array([lm.id for lm in lms], dtype=np.int64)
-        self.points = np.array([lm.xyz for lm in lms], dtype=np.float64).reshape(-1, 3)
-        sets = [
-            np.frombuffer(lm.descriptor or b"", np.uint8).reshape(-1, DESCRIPTOR_BYTES)
-            for lm in lms
-        ]
-        self.stacked, self.owner = (
-            stack_sets(sets) if sets else (np.zeros((0, 32), np.uint8), np.zeros(0, np.int64))
-        )
-        self.max_hamming = max_hamming
-        self.inlier_angle = inlier_angle_rad
+        self.ids = np.array([lm.id for lm in lawn_map.landmarks], dtype=np.int64)
+        self.points = np.array([lm.xyz for lm in lawn_map.landmarks], dtype=np.float64)
+        self.points = self.points.reshape(-1, 3)
+        self.grid_m = grid_m
+        self.yaw_bin = yaw_bin_rad
+        self.n_bins = int(math.ceil(2 * math.pi / yaw_bin_rad))
+        self.elevation_tol_rad = elevation_tol_rad
+        self.inlier_angle_rad = inlier_angle_rad
         self.min_inliers = min_inliers
-        # the camera's height in the map: the dock pose's (where teaching started)
+        self.ambiguity_ratio = ambiguity_ratio
+        self.max_range_m = max_range_m
+        self.n_hypotheses = hypotheses
         self.height = float(lawn_map.dock_position[2])
-        self.dock_xy = np.asarray(lawn_map.dock_position[:2], dtype=np.float64)
-        self.seed = seed
-        self._rots, self._axes = _rig()
+        region = lawn_map.lawn_polygon()
+        for area in lawn_map.all_areas():  # navigation areas too: the mower may be there
+            region = region.union(shapely.Polygon(area.polygon))
+        region = region.buffer(0.5)
+        minx, miny, maxx, maxy = region.bounds
+        gx, gy = np.meshgrid(np.arange(minx, maxx, grid_m), np.arange(miny, maxy, grid_m))
+        inside = shapely.contains_xy(region, gx, gy)
+        self.grid = np.column_stack([gx[inside], gy[inside]])  # (P, 2)
+        d = self.points[None, :, :2] - self.grid[:, None, :]  # (P, N, 2)
+        self._azimuth = np.arctan2(d[..., 1], d[..., 0])
+        horizontal = np.hypot(d[..., 0], d[..., 1])
+        self._elevation = np.arctan2(self.points[None, :, 2] - self.height, horizontal)
+        self._in_range = horizontal <= max_range_m
 
-    # ------------------------------------------------------------------------ candidates
+    # ---------------------------------------------------------------------------- search
 
-    def candidates(
-        self, descriptors: tuple[NDArray[np.uint8], ...]
+    def _votes(self, azimuth: FloatArray, elevation: FloatArray) -> NDArray[np.int64]:
+        """(P, bins) count of elevation-compatible (observation, landmark) pairs per heading."""
+        p_n, n = self._azimuth.shape
+        votes = np.zeros(p_n * self.n_bins, dtype=np.int64)
+        for k in range(azimuth.size):  # one observation at a time: (P, N) each
+            ok = (np.abs(self._elevation - elevation[k]) < self.elevation_tol_rad) & self._in_range
+            pi, ni = np.nonzero(ok)
+            yaw = (self._azimuth[pi, ni] - azimuth[k]) % (2 * math.pi)
+            b = (yaw / self.yaw_bin).astype(np.int64) % self.n_bins
+            # one vote per observation per (position, bin)
+            np.add.at(votes, np.unique(pi * self.n_bins + b), 1)
+        return votes.reshape(p_n, self.n_bins)
+
+    def _hypotheses(self, votes: NDArray[np.int64]) -> list[tuple[float, float, float]]:
+        """The best (x, y, yaw) of distinct places, best first."""
+        smooth = votes + np.roll(votes, -1, axis=1)  # a heading near a bin edge
+        order = np.argsort(smooth.ravel())[::-1]
+        out: list[tuple[float, float, float]] = []
+        for flat in order[: 50 * self.n_hypotheses].tolist():
+            p, b = divmod(flat, self.n_bins)
+            x, y = self.grid[p]
+            yaw = float(_wrap((b + 1.0) * self.yaw_bin))
+            if any(
+                math.hypot(x - hx, y - hy) < 2 * self.grid_m and abs(_wrap(yaw - hyaw)) < 0.3
+                for hx, hy, hyaw in out
+            ):
+                continue
+            out.append((float(x), float(y), yaw))
+            if len(out) == self.n_hypotheses:
+                break
+        return out
+
+    # ---------------------------------------------------------------------------- refine
+
+    def _predict(self, r_wb: FloatArray, p_wb: FloatArray) -> FloatArray:
+        d = (self.points - p_wb) @ r_wb  # body frame
+        out: FloatArray = d / np.linalg.norm(d, axis=1, keepdims=True)
+        return out
+
+    def _associate(
+        self, obs: FloatArray, r_wb: FloatArray, p_wb: FloatArray, angle: float
     ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """(track row, landmark row) pairs worth trying, at most :data:`TOP_K` per track."""
-        if not descriptors or self.stacked.shape[0] == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        query, track = stack_sets(
-            [np.asarray(d, np.uint8).reshape(-1, DESCRIPTOR_BYTES) for d in descriptors]
-        )
-        if query.shape[0] == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        # Hamming distance of every query descriptor to every map descriptor, then the least
-        # per (track, landmark)
-        dist = _POPCOUNT[np.bitwise_xor(query[:, None, :], self.stacked[None, :, :])].sum(axis=2)
-        n_tracks, n_lm = len(descriptors), self.ids.size
-        best = np.full((n_tracks, n_lm), np.iinfo(np.int32).max, dtype=np.int64)
-        np.minimum.at(best, (track[:, None], self.owner[None, :]), dist)
-        rows, cols = [], []
-        k = min(TOP_K, n_lm)
-        order = np.argsort(best, axis=1)[:, :k]
-        top = np.take_along_axis(best, order, axis=1)
-        ok = (top <= self.max_hamming) & (top <= RATIO * top[:, :1])
-        for r in range(n_tracks):
-            for j in np.flatnonzero(ok[r]).tolist():
-                rows.append(r)
-                cols.append(int(order[r, j]))
-        return np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        """Each observation's nearest predicted landmark within ``angle``, one-to-one."""
+        pred = self._predict(r_wb, p_wb)
+        rng = np.linalg.norm(self.points[:, :2] - p_wb[:2], axis=1) <= self.max_range_m
+        cos = obs @ pred.T
+        cos[:, ~rng] = -1.0
+        best = np.argmax(cos, axis=1)
+        ok = cos[np.arange(obs.shape[0]), best] >= math.cos(angle)
+        rows, cols = np.flatnonzero(ok), best[ok]
+        # one observation per landmark: the closest
+        keep: dict[int, int] = {}
+        for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
+            if c not in keep or cos[r, c] > cos[keep[c], c]:
+                keep[c] = r
+        cols = np.array(sorted(keep), dtype=np.int64)
+        rows = np.array([keep[c] for c in cols.tolist()], dtype=np.int64)
+        return rows, cols
 
-    # ------------------------------------------------------------------------------ pose
+    def _fit(
+        self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], x0: FloatArray
+    ) -> FloatArray:
+        """(x, y, yaw) fitted to the pairs, robustly, the mower upright at the dock's camera
+        height: three unknowns, not six — a free tilt and height let a wrong place explain
+        many bearings by chance."""
 
-    def locate(
-        self, bearings: FloatArray, descriptors: tuple[NDArray[np.uint8], ...]
-    ) -> Relocalization:
-        """The pose from one frame's body-frame bearings and their tracks' descriptors."""
-        import poselib
+        def residual(x: FloatArray) -> FloatArray:
+            pred = self._predict_rows(_yaw_matrix(x[2]), np.array([x[0], x[1], self.height]), cols)
+            out: FloatArray = np.cross(obs[rows], pred).ravel()
+            return out
 
+        sol = least_squares(residual, x0, loss="huber", f_scale=0.01, max_nfev=50)
+        fitted: FloatArray = sol.x
+        return fitted
+
+    def _predict_rows(self, r_wb: FloatArray, p_wb: FloatArray, cols: NDArray[np.int64]):
+        d = (self.points[cols] - p_wb) @ r_wb
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def _refine(
+        self, obs: FloatArray, hyp: tuple[float, float, float]
+    ) -> tuple[FloatArray, FloatArray, NDArray[np.int64], NDArray[np.int64]]:
+        state = np.array(hyp, dtype=np.float64)
+        for angle in (math.radians(6.0), math.radians(3.0), 1.5 * self.inlier_angle_rad):
+            rows, cols = self._associate(obs, *self._pose(state), angle)
+            if rows.size < 3:
+                break
+            state = self._fit(obs, rows, cols, state)
+        r_wb, p_wb = self._pose(state)
+        rows, cols = self._associate(obs, r_wb, p_wb, self.inlier_angle_rad)
+        return r_wb, p_wb, rows, cols
+
+    def _pose(self, state: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return _yaw_matrix(float(state[2])), np.array([state[0], state[1], self.height])
+
+    # ---------------------------------------------------------------------------- answer
+
+    def locate(self, bearings: FloatArray) -> Relocalization:
+        """The pose from one frame's body-frame unit bearings (module doc)."""
         t0 = time.perf_counter()
-        rows, cols = self.candidates(descriptors)
-        n = int(rows.size)
+        obs = np.asarray(bearings, dtype=np.float64).reshape(-1, 3)
+        obs = obs / np.linalg.norm(obs, axis=1, keepdims=True)
 
-        def done(why: str) -> Relocalization:
-            return Relocalization(False, candidates=n, ms=1e3 * (time.perf_counter() - t0), why=why)
+        def done(why: str, n: int = 0) -> Relocalization:
+            ms = 1e3 * (time.perf_counter() - t0)
+            return Relocalization(False, hypotheses=n, ms=ms, why=why)
 
-        if n < max(4, self.min_inliers):
-            return done(f"{n} candidate matches (need {max(4, self.min_inliers)})")
-        b = np.asarray(bearings, dtype=np.float64)[rows]
-        b /= np.linalg.norm(b, axis=1, keepdims=True)
-        cam = np.argmax(b @ self._axes.T, axis=1)
-        points2d, points3d, which = [], [], []
-        for i, rot in enumerate(self._rots):
-            sel = np.flatnonzero(cam == i)
-            in_cam = b[sel] @ rot.T
-            points2d.append(in_cam[:, :2] / in_cam[:, 2:3])
-            points3d.append(self.points[cols[sel]])
-            which.append(sel)
-        exts = [poselib.CameraPose() for _ in self._rots]
-        for ext, rot in zip(exts, self._rots, strict=True):
-            ext.R = rot
-            ext.t = np.zeros(3)
-        cameras = [
-            {"model": "SIMPLE_PINHOLE", "width": 2, "height": 2, "params": [1.0, 0.0, 0.0]}
-            for _ in self._rots
-        ]
-        thr = math.tan(self.inlier_angle)
-        pose, info = poselib.estimate_generalized_absolute_pose(
-            points2d,
-            points3d,
-            exts,
-            cameras,
-            {
-                "max_reproj_error": thr,
-                "max_iterations": 2000,
-                "success_prob": 0.9999,
-                "seed": self.seed,
-            },
-            {},
-        )
-        r_bw = np.asarray(pose.R, dtype=np.float64)
-        r_wb = r_bw.T
-        p_wb = -r_wb @ np.asarray(pose.t, dtype=np.float64)
-        mask = (
-            np.concatenate([np.asarray(m, bool) for m in info.get("inliers", [])])
-            if info.get("inliers")
-            else np.zeros(0, bool)
-        )
-        order = np.concatenate(which) if which else np.zeros(0, np.int64)
-        inl = order[mask] if mask.size == order.size else np.zeros(0, np.int64)
-        # one landmark per track and one track per landmark among the inliers
-        pairs: dict[int, int] = {}
-        used: set[int] = set()
-        for k in inl.tolist():
-            track_row, lm_row = int(rows[k]), int(cols[k])
-            if track_row not in pairs and lm_row not in used:
-                pairs[track_row] = lm_row
-                used.add(lm_row)
-        if len(pairs) < self.min_inliers:
-            return done(f"{len(pairs)} inliers (need {self.min_inliers})")
+        if obs.shape[0] < self.min_inliers or self.points.shape[0] < self.min_inliers:
+            return done(f"{obs.shape[0]} bearings, {self.points.shape[0]} landmarks")
+        azimuth = np.arctan2(obs[:, 1], obs[:, 0])
+        elevation = np.arctan2(obs[:, 2], np.hypot(obs[:, 0], obs[:, 1]))
+        hyps = self._hypotheses(self._votes(azimuth, elevation))
+        scored = []
+        for hyp in hyps:
+            r_wb, p_wb, rows, cols = self._refine(obs, hyp)
+            scored.append((int(rows.size), r_wb, p_wb, rows, cols))
+        scored.sort(key=lambda s: -s[0])
+        best = scored[0]
+        n_best, r_wb, p_wb, rows, cols = best
+        runner = 0
+        for n, r2, p2, *_ in scored[1:]:
+            far = np.linalg.norm(p2[:2] - p_wb[:2]) > DISTINCT_M
+            turned = abs(_wrap(math.atan2(r2[1, 0], r2[0, 0]) - math.atan2(r_wb[1, 0], r_wb[0, 0])))
+            if far or turned > DISTINCT_RAD:
+                runner = max(runner, n)
+        if n_best < self.min_inliers:
+            return done(f"{n_best} inliers (need {self.min_inliers})", len(hyps))
+        if runner > self.ambiguity_ratio * n_best:
+            return done(f"ambiguous: {n_best} inliers here, {runner} at another place", len(hyps))
         tilt = math.acos(float(np.clip(r_wb[2, 2], -1.0, 1.0)))
         if tilt > MAX_TILT_RAD:
-            return done(f"not upright: tilted {math.degrees(tilt):.0f}°")
-        # about the dock's height, give or take a 15 % grade between here and there
-        allowed = MAX_HEIGHT_ERROR_M + 0.15 * float(np.hypot(*(p_wb[:2] - self.dock_xy)))
-        if abs(float(p_wb[2]) - self.height) > allowed:
-            return done(f"camera {p_wb[2] - self.height:+.2f} m above the dock's height")
-        to_lm = self.points[list(pairs.values())] - p_wb
+            return done(f"not upright: tilted {math.degrees(tilt):.0f}°", len(hyps))
+        to_lm = self.points[cols] - p_wb
         az = np.sort(np.arctan2(to_lm[:, 1], to_lm[:, 0]))
         gaps = np.diff(np.concatenate([az, az[:1] + 2 * math.pi]))
         if 2 * math.pi - gaps.max() < MIN_AZIMUTH_SPREAD_RAD:
-            return done("inliers all on one side")
+            return done("inliers all on one side", len(hyps))
         return Relocalization(
             True,
             r_wb,
             p_wb,
-            [(r, int(self.ids[c])) for r, c in pairs.items()],
-            n,
+            [(int(r), int(self.ids[c])) for r, c in zip(rows, cols, strict=True)],
+            runner,
+            len(hyps),
             1e3 * (time.perf_counter() - t0),
         )
