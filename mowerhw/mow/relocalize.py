@@ -94,7 +94,7 @@ class GlobalRelocalizer:
         self.points = self.points.reshape(-1, 3)
         self.grid_m = grid_m
         self.yaw_bin = yaw_bin_rad
-        self.n_bins = int(math.ceil(2 * math.pi / yaw_bin_rad))
+        self.n_bins = math.ceil(2 * math.pi / yaw_bin_rad)
         self.elevation_tol_rad = elevation_tol_rad
         self.inlier_angle_rad = inlier_angle_rad
         self.min_inliers = min_inliers
@@ -120,7 +120,7 @@ class GlobalRelocalizer:
 
     def _votes(self, azimuth: FloatArray, elevation: FloatArray) -> NDArray[np.int64]:
         """(P, bins) count of elevation-compatible (observation, landmark) pairs per heading."""
-        p_n, n = self._azimuth.shape
+        p_n = self._azimuth.shape[0]
         votes = np.zeros(p_n * self.n_bins, dtype=np.int64)
         for k in range(azimuth.size):  # one observation at a time: (P, N) each
             ok = (np.abs(self._elevation - elevation[k]) < self.elevation_tol_rad) & self._in_range
@@ -141,7 +141,7 @@ class GlobalRelocalizer:
             x, y = self.grid[p]
             yaw = float(_wrap((b + 1.0) * self.yaw_bin))
             if any(
-                math.hypot(x - hx, y - hy) < 2 * self.grid_m and abs(_wrap(yaw - hyaw)) < 0.3
+                math.hypot(x - hx, y - hy) < 2 * self.grid_m and abs(float(_wrap(yaw - hyaw))) < 0.3
                 for hx, hy, hyaw in out
             ):
                 continue
@@ -193,9 +193,12 @@ class GlobalRelocalizer:
         fitted: FloatArray = sol.x
         return fitted
 
-    def _predict_rows(self, r_wb: FloatArray, p_wb: FloatArray, cols: NDArray[np.int64]):
+    def _predict_rows(
+        self, r_wb: FloatArray, p_wb: FloatArray, cols: NDArray[np.int64]
+    ) -> FloatArray:
         d = (self.points[cols] - p_wb) @ r_wb
-        return d / np.linalg.norm(d, axis=1, keepdims=True)
+        out: FloatArray = d / np.linalg.norm(d, axis=1, keepdims=True)
+        return out
 
     def _refine(
         self, obs: FloatArray, hyp: tuple[float, float, float]
@@ -235,12 +238,12 @@ class GlobalRelocalizer:
             r_wb, p_wb, rows, cols = self._refine(obs, hyp)
             scored.append((int(rows.size), r_wb, p_wb, rows, cols))
         scored.sort(key=lambda s: -s[0])
-        best = scored[0]
-        n_best, r_wb, p_wb, rows, cols = best
+        n_best, r_wb, p_wb, rows, cols = scored[0]
+        yaw_best = math.atan2(r_wb[1, 0], r_wb[0, 0])
         runner = 0
-        for n, r2, p2, *_ in scored[1:]:
-            far = np.linalg.norm(p2[:2] - p_wb[:2]) > DISTINCT_M
-            turned = abs(_wrap(math.atan2(r2[1, 0], r2[0, 0]) - math.atan2(r_wb[1, 0], r_wb[0, 0])))
+        for n, r2, p2, _, _ in scored[1:]:
+            far = float(np.linalg.norm(p2[:2] - p_wb[:2])) > DISTINCT_M
+            turned = abs(float(_wrap(math.atan2(r2[1, 0], r2[0, 0]) - yaw_best)))
             if far or turned > DISTINCT_RAD:
                 runner = max(runner, n)
         if n_best < self.min_inliers:
