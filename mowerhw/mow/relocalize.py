@@ -42,8 +42,8 @@ FloatArray = NDArray[np.float64]
 
 MAX_TILT_RAD = math.radians(15.0)
 MIN_AZIMUTH_SPREAD_RAD = math.radians(90.0)
-DISTINCT_M = 0.5
-DISTINCT_RAD = math.radians(10.0)
+DISTINCT_M = 1.0
+DISTINCT_RAD = math.radians(15.0)
 
 
 @dataclass(frozen=True)
@@ -204,7 +204,7 @@ class GlobalRelocalizer:
         self, obs: FloatArray, hyp: tuple[float, float, float]
     ) -> tuple[FloatArray, FloatArray, NDArray[np.int64], NDArray[np.int64]]:
         state = np.array(hyp, dtype=np.float64)
-        for angle in (math.radians(6.0), math.radians(3.0), 1.5 * self.inlier_angle_rad):
+        for angle in (*np.radians([8.0, 5.0, 3.0, 2.0]), 1.5 * self.inlier_angle_rad):
             rows, cols = self._associate(obs, *self._pose(state), angle)
             if rows.size < 3:
                 break
@@ -236,12 +236,24 @@ class GlobalRelocalizer:
         scored = []
         for hyp in hyps:
             r_wb, p_wb, rows, cols = self._refine(obs, hyp)
-            scored.append((int(rows.size), r_wb, p_wb, rows, cols))
-        scored.sort(key=lambda s: -s[0])
-        n_best, r_wb, p_wb, rows, cols = scored[0]
+            # the angular residual of the inliers breaks ties between nearby local optima
+            spread = (
+                float(
+                    np.mean(
+                        np.linalg.norm(
+                            np.cross(obs[rows], self._predict_rows(r_wb, p_wb, cols)), axis=1
+                        )
+                    )
+                )
+                if rows.size
+                else 1.0
+            )
+            scored.append((int(rows.size), r_wb, p_wb, rows, cols, spread))
+        scored.sort(key=lambda s: (-s[0], s[5]))
+        n_best, r_wb, p_wb, rows, cols, _ = scored[0]
         yaw_best = math.atan2(r_wb[1, 0], r_wb[0, 0])
         runner = 0
-        for n, r2, p2, _, _ in scored[1:]:
+        for n, r2, p2, *_ in scored[1:]:
             far = float(np.linalg.norm(p2[:2] - p_wb[:2])) > DISTINCT_M
             turned = abs(float(_wrap(math.atan2(r2[1, 0], r2[0, 0]) - yaw_best)))
             if far or turned > DISTINCT_RAD:
