@@ -213,6 +213,40 @@ class GlobalRelocalizer:
         rows, cols = self._associate(obs, r_wb, p_wb, self.inlier_angle_rad)
         return r_wb, p_wb, rows, cols
 
+    #: the local search around the chosen place: ± this far and turned, in these steps
+    POLISH_M, POLISH_STEP_M = 0.5, 0.1
+    POLISH_RAD, POLISH_STEP_RAD = math.radians(4.0), math.radians(1.0)
+
+    def _polish(self, obs: FloatArray, state: FloatArray) -> FloatArray:
+        """Refinement from one start can stop in a local optimum a few decimetres off (two
+        frames then agree on the same wrong pose). Every pose of a fine grid around it is
+        scored at once — observations within the inlier angle of a predicted landmark —
+        and the best is refined again."""
+        d = np.arange(-self.POLISH_M, self.POLISH_M + 1e-9, self.POLISH_STEP_M)
+        dyaw = np.arange(-self.POLISH_RAD, self.POLISH_RAD + 1e-9, self.POLISH_STEP_RAD)
+        gx, gy, gyaw = np.meshgrid(state[0] + d, state[1] + d, state[2] + dyaw, indexing="ij")
+        poses = np.column_stack([gx.ravel(), gy.ravel(), gyaw.ravel()])  # (K, 3)
+        rel = (
+            self.points[None, :, :]
+            - np.c_[poses[:, :2], np.full(len(poses), self.height)][:, None, :]
+        )  # (K, N, 3) world
+        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+        body = np.stack(
+            [c * rel[..., 0] + s * rel[..., 1], -s * rel[..., 0] + c * rel[..., 1], rel[..., 2]],
+            axis=-1,
+        )
+        body /= np.linalg.norm(body, axis=-1, keepdims=True)
+        cos = np.einsum("knj,mj->kmn", body, obs).max(axis=2)  # (K, M): best landmark per obs
+        hit = cos >= math.cos(self.inlier_angle_rad)
+        score = hit.sum(axis=1) + np.where(hit, cos, 0.0).sum(axis=1) * 1e-3
+        best = poses[int(np.argmax(score))]
+        for angle in (math.radians(2.0), 1.5 * self.inlier_angle_rad):
+            rows, cols = self._associate(obs, *self._pose(best), angle)
+            if rows.size < 3:
+                break
+            best = self._fit(obs, rows, cols, best)
+        return best
+
     def _pose(self, state: FloatArray) -> tuple[FloatArray, FloatArray]:
         return _yaw_matrix(float(state[2])), np.array([state[0], state[1], self.height])
 
@@ -251,6 +285,12 @@ class GlobalRelocalizer:
             scored.append((int(rows.size), r_wb, p_wb, rows, cols, spread))
         scored.sort(key=lambda s: (-s[0], s[5]))
         n_best, r_wb, p_wb, rows, cols, _ = scored[0]
+        yaw0 = math.atan2(r_wb[1, 0], r_wb[0, 0])
+        state = self._polish(obs, np.array([p_wb[0], p_wb[1], yaw0]))
+        r2, p2 = self._pose(state)
+        rows2, cols2 = self._associate(obs, r2, p2, self.inlier_angle_rad)
+        if rows2.size >= n_best:
+            n_best, r_wb, p_wb, rows, cols = int(rows2.size), r2, p2, rows2, cols2
         yaw_best = math.atan2(r_wb[1, 0], r_wb[0, 0])
         runner = 0
         for n, r2, p2, *_ in scored[1:]:
