@@ -239,7 +239,7 @@ class GlobalRelocalizer:
         cos = np.einsum("knj,mj->kmn", body, obs).max(axis=2)  # (K, M): best landmark per obs
         hit = cos >= math.cos(self.inlier_angle_rad)
         score = hit.sum(axis=1) + np.where(hit, cos, 0.0).sum(axis=1) * 1e-3
-        best = poses[int(np.argmax(score))]
+        best: FloatArray = poses[int(np.argmax(score))]
         for angle in (math.radians(2.0), 1.5 * self.inlier_angle_rad):
             rows, cols = self._associate(obs, *self._pose(best), angle)
             if rows.size < 3:
