@@ -214,10 +214,15 @@ class GlobalRelocalizer:
         return r_wb, p_wb, rows, cols
 
     #: the local search around the chosen place: ± this far and turned, in these steps
-    POLISH_M, POLISH_STEP_M = 0.5, 0.1
+    POLISH_M, POLISH_STEP_M = 0.5, 0.05
     POLISH_RAD, POLISH_STEP_RAD = math.radians(4.0), math.radians(1.0)
+    #: the soft score's angular scale: a bearing counts exp(−θ²/2σ²) towards its landmark
+    SOFT_SIGMA_RAD = math.radians(0.4)
+    #: a pose this far from the best that scores nearly as well: the place is not pinned down
+    LOCAL_AMBIGUITY_M = 0.15
+    LOCAL_AMBIGUITY_RATIO = 0.9
 
-    def _polish(self, obs: FloatArray, state: FloatArray) -> FloatArray:
+    def _polish(self, obs: FloatArray, state: FloatArray) -> tuple[FloatArray, float]:
         """Refinement from one start can stop in a local optimum a few decimetres off (two
         frames then agree on the same wrong pose). Every pose of a fine grid around it is
         scored at once — observations within the inlier angle of a predicted landmark —
@@ -237,15 +242,18 @@ class GlobalRelocalizer:
         )
         body /= np.linalg.norm(body, axis=-1, keepdims=True)
         cos = np.einsum("knj,mj->kmn", body, obs).max(axis=2)  # (K, M): best landmark per obs
-        hit = cos >= math.cos(self.inlier_angle_rad)
-        score = hit.sum(axis=1) + np.where(hit, cos, 0.0).sum(axis=1) * 1e-3
-        best: FloatArray = poses[int(np.argmax(score))]
+        theta2 = 2.0 * (1.0 - np.clip(cos, -1.0, 1.0))  # ≈ θ² for small angles
+        score = np.exp(-theta2 / (2 * self.SOFT_SIGMA_RAD**2)).sum(axis=1)
+        k = int(np.argmax(score))
+        best: FloatArray = poses[k]
+        away = np.hypot(poses[:, 0] - best[0], poses[:, 1] - best[1]) > self.LOCAL_AMBIGUITY_M
+        rival = float(score[away].max() / score[k]) if away.any() and score[k] > 0 else 0.0
         for angle in (math.radians(2.0), 1.5 * self.inlier_angle_rad):
             rows, cols = self._associate(obs, *self._pose(best), angle)
             if rows.size < 3:
                 break
             best = self._fit(obs, rows, cols, best)
-        return best
+        return best, rival
 
     def _pose(self, state: FloatArray) -> tuple[FloatArray, FloatArray]:
         return _yaw_matrix(float(state[2])), np.array([state[0], state[1], self.height])
@@ -286,7 +294,7 @@ class GlobalRelocalizer:
         scored.sort(key=lambda s: (-s[0], s[5]))
         n_best, r_wb, p_wb, rows, cols, _ = scored[0]
         yaw0 = math.atan2(r_wb[1, 0], r_wb[0, 0])
-        state = self._polish(obs, np.array([p_wb[0], p_wb[1], yaw0]))
+        state, rival = self._polish(obs, np.array([p_wb[0], p_wb[1], yaw0]))
         r2, p2 = self._pose(state)
         rows2, cols2 = self._associate(obs, r2, p2, self.inlier_angle_rad)
         if rows2.size >= n_best:
@@ -302,6 +310,11 @@ class GlobalRelocalizer:
             return done(f"{n_best} inliers (need {self.min_inliers})", len(hyps))
         if runner > self.ambiguity_ratio * n_best:
             return done(f"ambiguous: {n_best} inliers here, {runner} at another place", len(hyps))
+        if rival > self.LOCAL_AMBIGUITY_RATIO:
+            return done(
+                f"not pinned down: a pose {self.LOCAL_AMBIGUITY_M} m away fits {rival:.0%} as well",
+                len(hyps),
+            )
         tilt = math.acos(float(np.clip(r_wb[2, 2], -1.0, 1.0)))
         if tilt > MAX_TILT_RAD:
             return done(f"not upright: tilted {math.degrees(tilt):.0f}°", len(hyps))
