@@ -216,17 +216,29 @@ class GlobalRelocalizer:
     #: the local search around the chosen place: ± this far and turned, in these steps
     POLISH_M, POLISH_STEP_M = 0.5, 0.05
     POLISH_RAD, POLISH_STEP_RAD = math.radians(4.0), math.radians(1.0)
-    #: the soft score's angular scale: a bearing counts exp(−θ²/2σ²) towards its landmark
+    #: the soft score's angular scale: a bearing counts exp(−θ²/2σ²) towards its landmark;
+    #: on the polish grid a wider one (a grid pose is up to half a step off)
     SOFT_SIGMA_RAD = math.radians(0.4)
+    GRID_SIGMA_RAD = math.radians(1.0)
+    POLISH_CANDIDATES = 5
     #: a pose this far from the best that scores nearly as well: the place is not pinned down
     LOCAL_AMBIGUITY_M = 0.15
     LOCAL_AMBIGUITY_RATIO = 0.9
 
+    def soft_score(self, obs: FloatArray, state: FloatArray, sigma: float | None = None) -> float:
+        """Σ over bearings of exp(−θ²/2σ²), θ the angle to the nearest predicted landmark."""
+        cos = (obs @ self._predict(*self._pose(state)).T).max(axis=1)
+        theta2 = 2.0 * (1.0 - np.clip(cos, -1.0, 1.0))
+        sig = self.SOFT_SIGMA_RAD if sigma is None else sigma
+        return float(np.exp(-theta2 / (2 * sig**2)).sum())
+
     def _polish(self, obs: FloatArray, state: FloatArray) -> tuple[FloatArray, float]:
         """Refinement from one start can stop in a local optimum a few decimetres off (two
-        frames then agree on the same wrong pose). Every pose of a fine grid around it is
-        scored at once — observations within the inlier angle of a predicted landmark —
-        and the best is refined again."""
+        frames then agree on the same wrong pose), where the true pose explains the bearings
+        much better at sub-degree precision. Every pose of a fine grid around it is scored
+        at once (soft score at the grid's precision), the best few are refined, and the one
+        with the best sharp soft score is kept; with it, how well the best pose more than
+        :data:`LOCAL_AMBIGUITY_M` away does (the ratio of their grid scores)."""
         d = np.arange(-self.POLISH_M, self.POLISH_M + 1e-9, self.POLISH_STEP_M)
         dyaw = np.arange(-self.POLISH_RAD, self.POLISH_RAD + 1e-9, self.POLISH_STEP_RAD)
         gx, gy, gyaw = np.meshgrid(state[0] + d, state[1] + d, state[2] + dyaw, indexing="ij")
@@ -243,16 +255,28 @@ class GlobalRelocalizer:
         body /= np.linalg.norm(body, axis=-1, keepdims=True)
         cos = np.einsum("knj,mj->kmn", body, obs).max(axis=2)  # (K, M): best landmark per obs
         theta2 = 2.0 * (1.0 - np.clip(cos, -1.0, 1.0))  # ≈ θ² for small angles
-        score = np.exp(-theta2 / (2 * self.SOFT_SIGMA_RAD**2)).sum(axis=1)
-        k = int(np.argmax(score))
-        best: FloatArray = poses[k]
+        score = np.exp(-theta2 / (2 * self.GRID_SIGMA_RAD**2)).sum(axis=1)
+        order = np.argsort(score)[::-1]
+        starts: list[FloatArray] = []
+        for k in order.tolist():
+            if all(np.hypot(*(poses[k, :2] - q[:2])) > 2 * self.POLISH_STEP_M for q in starts):
+                starts.append(poses[k])
+            if len(starts) == self.POLISH_CANDIDATES:
+                break
+        refined = []
+        for start in starts:
+            cand = start
+            for angle in (math.radians(2.0), 1.5 * self.inlier_angle_rad):
+                rows, cols = self._associate(obs, *self._pose(cand), angle)
+                if rows.size < 3:
+                    break
+                cand = self._fit(obs, rows, cols, cand)
+            refined.append((self.soft_score(obs, cand), cand))
+        refined.sort(key=lambda r: -r[0])
+        best: FloatArray = refined[0][1]
+        k = int(order[0])
         away = np.hypot(poses[:, 0] - best[0], poses[:, 1] - best[1]) > self.LOCAL_AMBIGUITY_M
         rival = float(score[away].max() / score[k]) if away.any() and score[k] > 0 else 0.0
-        for angle in (math.radians(2.0), 1.5 * self.inlier_angle_rad):
-            rows, cols = self._associate(obs, *self._pose(best), angle)
-            if rows.size < 3:
-                break
-            best = self._fit(obs, rows, cols, best)
         return best, rival
 
     def _pose(self, state: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -295,10 +319,10 @@ class GlobalRelocalizer:
         n_best, r_wb, p_wb, rows, cols, _ = scored[0]
         yaw0 = math.atan2(r_wb[1, 0], r_wb[0, 0])
         state, rival = self._polish(obs, np.array([p_wb[0], p_wb[1], yaw0]))
-        r2, p2 = self._pose(state)
-        rows2, cols2 = self._associate(obs, r2, p2, self.inlier_angle_rad)
-        if rows2.size >= n_best:
-            n_best, r_wb, p_wb, rows, cols = int(rows2.size), r2, p2, rows2, cols2
+        if self.soft_score(obs, state) >= self.soft_score(obs, np.array([p_wb[0], p_wb[1], yaw0])):
+            r_wb, p_wb = self._pose(state)
+            rows, cols = self._associate(obs, r_wb, p_wb, self.inlier_angle_rad)
+            n_best = int(rows.size)
         yaw_best = math.atan2(r_wb[1, 0], r_wb[0, 0])
         runner = 0
         for n, r2, p2, *_ in scored[1:]:
