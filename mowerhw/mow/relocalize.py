@@ -273,10 +273,12 @@ class GlobalRelocalizer:
                 cand = self._fit(obs, rows, cols, cand)
             refined.append((self.soft_score(obs, cand), cand))
         refined.sort(key=lambda r: -r[0])
-        best: FloatArray = refined[0][1]
-        k = int(order[0])
-        away = np.hypot(poses[:, 0] - best[0], poses[:, 1] - best[1]) > self.LOCAL_AMBIGUITY_M
-        rival = float(score[away].max() / score[k]) if away.any() and score[k] > 0 else 0.0
+        top, best = refined[0]
+        # the rival: the best refined optimum elsewhere, judged at the same sharp precision
+        others = [
+            sc for sc, c in refined[1:] if np.hypot(*(c[:2] - best[:2])) > self.LOCAL_AMBIGUITY_M
+        ]
+        rival = max(others) / top if others and top > 0 else 0.0
         return best, rival
 
     def _pose(self, state: FloatArray) -> tuple[FloatArray, FloatArray]:
