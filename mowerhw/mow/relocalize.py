@@ -14,13 +14,18 @@ the *geometry*: where, around the mower and how high, the landmarks appear. So:
    observed azimuth), and the votes of all pairs of all positions are counted in heading bins
    at once (numpy, no loop per landmark).
 2. **Refine** — the best distinct (position, heading) hypotheses are refined: observed bearings
-   associated with the nearest predicted landmark (a tightening angle), the 6-DoF pose fitted
-   to them (robust least squares over the angular residuals), inliers counted at
+   associated with the nearest predicted landmark (a tightening angle), (x, y, heading) fitted
+   to them (robust least squares over the angular residuals; three unknowns, not six: a free
+   tilt and height let a wrong place explain many bearings by chance), inliers counted at
    :attr:`inlier_angle_rad`.
-3. **Unique or nothing** — the best hypothesis is taken only with at least
-   :attr:`min_inliers` inliers spread around the mower, upright, and clearly ahead of the best
-   hypothesis elsewhere (more than 0.5 m or 10° away: a look-alike place): the runner-up must
-   have at most :attr:`ambiguity_ratio` of its inliers. Otherwise no answer, with the reason.
+3. **Polish** — a refinement can stop in a local optimum a few decimetres off, where the true
+   pose explains the bearings far better at sub-degree precision: every pose of a 5 cm / 1°
+   grid around the best is scored at once (soft score, σ 1°), the best few are refined and
+   the one with the best sharp soft score (σ 0.4°) is kept (:meth:`GlobalRelocalizer._polish`).
+4. **Unique or nothing** — an answer only with at least :attr:`min_inliers` inliers spread
+   around the mower, if no place more than 1 m or 15° away has :attr:`ambiguity_ratio` of its
+   inliers (a look-alike place), and no refined optimum more than 0.15 m away scores 90 % as
+   well (not pinned down). Otherwise no answer, with the reason.
 
 Whether to *trust* an answer (the same pose from more than one frame) is the caller's.
 """
