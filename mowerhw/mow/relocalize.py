@@ -45,7 +45,6 @@ from mowerhw.map import LawnMap
 
 FloatArray = NDArray[np.float64]
 
-MAX_TILT_RAD = math.radians(15.0)
 MIN_AZIMUTH_SPREAD_RAD = math.radians(90.0)
 DISTINCT_M = 1.0
 DISTINCT_RAD = math.radians(15.0)
@@ -346,9 +345,6 @@ class GlobalRelocalizer:
                 f"not pinned down: a pose {self.LOCAL_AMBIGUITY_M} m away fits {rival:.0%} as well",
                 len(hyps),
             )
-        tilt = math.acos(float(np.clip(r_wb[2, 2], -1.0, 1.0)))
-        if tilt > MAX_TILT_RAD:
-            return done(f"not upright: tilted {math.degrees(tilt):.0f}°", len(hyps))
         to_lm = self.points[cols] - p_wb
         az = np.sort(np.arctan2(to_lm[:, 1], to_lm[:, 0]))
         gaps = np.diff(np.concatenate([az, az[:1] + 2 * math.pi]))
