@@ -20,7 +20,7 @@ the *geometry*: where, around the mower and how high, the landmarks appear. So:
    :attr:`inlier_angle_rad`.
 3. **Polish** — a refinement can stop in a local optimum a few decimetres off, where the true
    pose explains the bearings far better at sub-degree precision: every pose of a 5 cm / 1°
-   grid around the best is scored at once (soft score, σ 1°), the best few are refined and
+   grid around the best is scored at once (soft score, σ 1°), the best ten are refined and
    the one with the best sharp soft score (σ 0.4°) is kept (:meth:`GlobalRelocalizer._polish`).
 4. **Unique or nothing** — an answer only with at least :attr:`min_inliers` inliers spread
    around the mower, if no place more than 1 m or 15° away has :attr:`ambiguity_ratio` of its
@@ -224,7 +224,7 @@ class GlobalRelocalizer:
     #: on the polish grid a wider one (a grid pose is up to half a step off)
     SOFT_SIGMA_RAD = math.radians(0.4)
     GRID_SIGMA_RAD = math.radians(1.0)
-    POLISH_CANDIDATES = 5
+    POLISH_CANDIDATES = 10
     #: a pose this far from the best that scores nearly as well: the place is not pinned down
     LOCAL_AMBIGUITY_M = 0.15
     LOCAL_AMBIGUITY_RATIO = 0.9
