@@ -134,12 +134,13 @@ class GardenBench(Bench):
             if name not in taught:
                 zones[name] = None
                 continue
-            err = _boundary_errors(taught[name], self._true_zone(name))
+            true = self._true_zone(name)
+            err = _boundary_errors(taught[name], true)
             zones[name] = {
                 "rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
                 "max_m": round(float(err.max()), 4),
                 "area_m2": round(float(shapely.Polygon(taught[name]).area), 2),
-                "true_area_m2": round(float(shapely.Polygon(self._true_zone(name)).area), 2),
+                "true_area_m2": round(float(shapely.Polygon(true).area), 2),
             }
         dock = np.asarray(lawn_map.dock_position, dtype=np.float64)[:2]
         return {

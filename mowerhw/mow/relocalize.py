@@ -41,6 +41,7 @@ import shapely
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from mowerhw.common.geometry import yaw_rotation
 from mowerhw.map import LawnMap
 
 FloatArray = NDArray[np.float64]
@@ -67,11 +68,6 @@ class Relocalization:
     @property
     def yaw(self) -> float:
         return math.atan2(self.r_wb[1, 0], self.r_wb[0, 0])
-
-
-def _yaw_matrix(yaw: float) -> FloatArray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _wrap(a: FloatArray | float) -> FloatArray | float:
@@ -106,9 +102,8 @@ class GlobalRelocalizer:
         self.max_range_m = max_range_m
         self.n_hypotheses = hypotheses
         self.height = float(lawn_map.dock_position[2])
-        region = lawn_map.lawn_polygon()
-        for area in lawn_map.all_areas():  # navigation areas too: the mower may be there
-            region = region.union(shapely.Polygon(area.polygon))
+        # every area, navigation areas too: the mower may be anywhere in them
+        region = shapely.union_all([shapely.Polygon(a.polygon) for a in lawn_map.all_areas()])
         region = region.buffer(0.5)
         minx, miny, maxx, maxy = region.bounds
         gx, gy = np.meshgrid(np.arange(minx, maxx, grid_m), np.arange(miny, maxy, grid_m))
@@ -156,8 +151,12 @@ class GlobalRelocalizer:
 
     # ---------------------------------------------------------------------------- refine
 
-    def _predict(self, r_wb: FloatArray, p_wb: FloatArray) -> FloatArray:
-        d = (self.points - p_wb) @ r_wb  # body frame
+    def _predict(
+        self, r_wb: FloatArray, p_wb: FloatArray, cols: NDArray[np.int64] | None = None
+    ) -> FloatArray:
+        """Unit bearings (body frame) of the landmarks (those of ``cols``, else all)."""
+        pts = self.points if cols is None else self.points[cols]
+        d = (pts - p_wb) @ r_wb
         out: FloatArray = d / np.linalg.norm(d, axis=1, keepdims=True)
         return out
 
@@ -189,20 +188,13 @@ class GlobalRelocalizer:
         many bearings by chance."""
 
         def residual(x: FloatArray) -> FloatArray:
-            pred = self._predict_rows(_yaw_matrix(x[2]), np.array([x[0], x[1], self.height]), cols)
+            pred = self._predict(*self._pose(x), cols)
             out: FloatArray = np.cross(obs[rows], pred).ravel()
             return out
 
         sol = least_squares(residual, x0, loss="huber", f_scale=0.01, max_nfev=50)
         fitted: FloatArray = sol.x
         return fitted
-
-    def _predict_rows(
-        self, r_wb: FloatArray, p_wb: FloatArray, cols: NDArray[np.int64]
-    ) -> FloatArray:
-        d = (self.points[cols] - p_wb) @ r_wb
-        out: FloatArray = d / np.linalg.norm(d, axis=1, keepdims=True)
-        return out
 
     def _refine(
         self, obs: FloatArray, hyp: tuple[float, float, float]
@@ -286,7 +278,7 @@ class GlobalRelocalizer:
         return best, rival
 
     def _pose(self, state: FloatArray) -> tuple[FloatArray, FloatArray]:
-        return _yaw_matrix(float(state[2])), np.array([state[0], state[1], self.height])
+        return yaw_rotation(float(state[2])), np.array([state[0], state[1], self.height])
 
     # ---------------------------------------------------------------------------- answer
 
@@ -312,9 +304,7 @@ class GlobalRelocalizer:
             spread = (
                 float(
                     np.mean(
-                        np.linalg.norm(
-                            np.cross(obs[rows], self._predict_rows(r_wb, p_wb, cols)), axis=1
-                        )
+                        np.linalg.norm(np.cross(obs[rows], self._predict(r_wb, p_wb, cols)), axis=1)
                     )
                 )
                 if rows.size

@@ -40,6 +40,7 @@ from mowerhw.common.geometry import (
     quat_multiply,
     quat_rotate,
     quat_to_rotmat,
+    quat_to_yaw,
     rotmat_log,
 )
 from mowerhw.config import Config, TeachConfig, with_imu_noise
@@ -772,12 +773,7 @@ class Teacher:
         if len(frames) < 3:
             return list(frames)
         pos = np.array([f[3] for f in frames])
-        q = np.array([f[4] for f in frames])  # q_wb (w, x, y, z)
-        yaw = np.unwrap(
-            np.arctan2(
-                2 * (q[:, 0] * q[:, 3] + q[:, 1] * q[:, 2]), 1 - 2 * (q[:, 2] ** 2 + q[:, 3] ** 2)
-            )
-        )
+        yaw = np.unwrap(quat_to_yaw(np.array([f[4] for f in frames])))
         kept = [0]
         for k in range(1, len(frames) - 1):
             j = kept[-1]
