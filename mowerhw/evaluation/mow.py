@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -43,7 +43,7 @@ from mowerhw.mow import LawnGeometry, Localizer
 from mowerhw.mow.gate import PermitGate
 from mowerhw.sim import make_world
 from mowerhw.sim.controller import BangBangMower
-from mowerhw.sim.handling import HandlingEvent, handled
+from mowerhw.sim.handling import HandlingEvent, Kidnap, handled
 from mowerhw.sim.plant import MowerPlant
 from mowerhw.sim.render import OmniRenderer
 from mowerhw.sim.sensors import mower_speed_scale
@@ -68,6 +68,11 @@ class MowOutcome:
     lawn_map: LawnMap
     landmarks_w: FloatArray
     halts_by_reason: dict[str, int] = field(default_factory=dict)
+    #: (K, 3, 3) covariance of the estimate's (x, y, heading); the localizer's global
+    #: relocalizations so far, and whether it was searching for its pose, per sample
+    cov_xy_yaw: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    relocalizations: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    searching: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
 
 
 def run_mow(
@@ -81,6 +86,9 @@ def run_mow(
     mow_seed: int | None = None,
     level: str = "bearing",
     handling: list[HandlingEvent] | None = None,
+    start: tuple[float, float, float] | None = None,
+    no_prior: bool = False,
+    kidnaps: list[Kidnap] | None = None,
 ) -> MowOutcome:
     """Mow a simulated yard (the world of ``scenario``/``seed``) with the given map.
 
@@ -98,7 +106,11 @@ def run_mow(
         vision_dropout=vision_dropout,
         renderer=renderer,
     )
+    if start is not None:
+        plant.place((start[0], start[1]), start[2])
     loc = Localizer(lawn_map, config)
+    if no_prior:
+        loc.lose("since the start (no prior pose)")
     vision = None
     if renderer is not None:
         fe_cfg = config.frontend if isinstance(config, Config) else FrontendConfig()
@@ -121,6 +133,9 @@ def run_mow(
     state = np.zeros(n + 1, dtype=np.int8)
     sigma = np.zeros(n + 1)
     reason = np.empty(n + 1, dtype=object)
+    cov3 = np.zeros((n + 1, 3, 3))
+    relocalized = np.zeros(n + 1, np.int64)
+    searching = np.zeros(n + 1, bool)
     reasons: Counter[str] = Counter()
     out = plant.first_output()
     loc.imu(*out.imu)
@@ -129,8 +144,11 @@ def run_mow(
     wall0 = time.perf_counter()
     gate = PermitGate.from_config(config if isinstance(config, Config) else None, False)
     safety = SafetyMonitor(config.safety if isinstance(config, Config) else SafetyConfig())
-    events = handling or []
+    moves = sorted(kidnaps or [], key=lambda e: e.at_s)
+    kidnapped_at: list[float] = []
+    events = list(handling or [])
     safety_reason = np.empty(n + 1, dtype=object)
+    lifted = False
     for k in range(n + 1):
         cont = loc.containment()
         arrivals = {"imu": loc.t_imu, "speed": loc.t_speed, "camera": loc.t_camera}
@@ -140,6 +158,15 @@ def run_mow(
         safety.switches(plant.t, *switches)
         stop = safety.halt(plant.t)
         safety_reason[k] = stop[0] if stop else ""
+        if (stop is not None and stop[0] == Reason.LIFTED) and not lifted:
+            loc.lose("since it was lifted")  # the runtime's wiring (RuntimeCore.lifted)
+        lifted = stop is not None and stop[0] == Reason.LIFTED
+        if moves and plant.t >= moves[0].at_s and prev_permit and not plant.carried:
+            move = replace(moves.pop(0), at_s=plant.t)  # mid-mow: while the deck runs
+            plant.carry(move.to_map_xy, move.to_heading, move.carry_s)
+            kidnapped_at.append(plant.t)
+            if (lift := move.lift()) is not None:
+                events.append(lift)
         deck, why = (False, stop[0]) if stop else (res.permit, res.reason)
         x, q = loc.ekf.x, loc.ekf.q
         yaw = float(np.arctan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2)))
@@ -147,6 +174,9 @@ def run_mow(
         est[k, :3], est[k, 3:] = x, q
         permit[k], state[k], sigma[k] = deck, STATE_CODE[res.state], cont.sigma_m
         reason[k] = why
+        cov3[k] = loc.pose().covariance[np.ix_([0, 1, 5], [0, 1, 5])]
+        relocalized[k] = loc.counters.relocalizations
+        searching[k] = loc.searching
         if prev_permit and not deck:
             reasons[why] += 1
         prev_permit = deck
@@ -198,6 +228,8 @@ def run_mow(
     }
     if vision_dropout is not None:
         metrics["vision_dropout"] = _dropout_timeline(vision_dropout, t_arr, permit, reason, sigma)
+    if kidnaps:
+        metrics["kidnapped_at_s"] = kidnapped_at
     if events:
         metrics["handling"] = [_handling_result(e, t_arr, permit, safety_reason) for e in events]
     if vision is not None:
@@ -222,6 +254,9 @@ def run_mow(
         lawn_map,
         plant.landmarks_w,
         dict(reasons),
+        cov3,
+        relocalized,
+        searching,
     )
 
 

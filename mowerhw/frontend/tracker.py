@@ -30,6 +30,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -40,6 +41,9 @@ from mowerhw.common.geometry import quat_to_rotmat
 from mowerhw.config import FrontendConfig
 from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, OrbDescriber, hamming
 from mowerhw.frontend.epipolar import epipolar_inliers
+
+if TYPE_CHECKING:  # the answer's type only: tracking never relocalizes
+    from mowerhw.mow.relocalize import Relocalization
 
 FloatArray = NDArray[np.float64]
 
@@ -58,6 +62,9 @@ class FrameTracks:
     #: the frame so that association never reads the tracker's state (which the worker
     #: thread changes on the next frame)
     descriptors: tuple[NDArray[np.uint8], ...] = ()
+    #: a global relocalization from this frame's bearings, when the mow chain asked for one
+    #: (it runs where the tracking runs: :meth:`mowerhw.vision.MowVision.track`)
+    relocalization: Relocalization | None = None
 
 
 @dataclass

@@ -41,7 +41,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mowerhw.common.geometry import rotmat_to_quat, yaw_rotation
+from mowerhw.common.geometry import quat_to_yaw, rotmat_to_quat, yaw_rotation, yaw_to_quat
 from mowerhw.config import Config, ContainmentConfig, MowConfig, stale_limits_s, with_imu_noise
 from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.estimation.posefit import fit_pose_to_bearings
@@ -55,6 +55,14 @@ from mowerhw.mow.containment import (
     Reason,
 )
 from mowerhw.mow.ekf import EkfState, LocalizerNoise, WorldPoseEKF
+from mowerhw.mow.recovery import (
+    ACCEPT_SIGMA_M,
+    ACCEPT_SIGMA_RAD,
+    Pose2D,
+    Probation,
+    RelocalizationSearch,
+)
+from mowerhw.mow.relocalize import Relocalization
 
 FloatArray = NDArray[np.float64]
 
@@ -87,6 +95,10 @@ class LocalizerCounters:
     speed_stale_steps: int = 0  # IMU steps propagated without a fresh ground speed
     frames_without_imu: int = 0  # frames refused: no IMU sample near their time
     imu_gaps: int = 0  # IMU intervals longer than GAP_S (propagated in sub-steps)
+    searches: int = 0  # times the pose was given up and searched for (no prior, kidnap, …)
+    relocalizations: int = 0  # global relocalizations accepted
+    checks_passed: int = 0  # re-localizations that passed the consistency check
+    checks_failed: int = 0  # … that did not (the pose was searched for again)
 
 
 @dataclass
@@ -152,6 +164,7 @@ class Localizer:
         self._fault = ""
         self._area_changes = 0  # mow_only calls (part of :attr:`version`)
         self._lockout_since: float | None = None
+        self._episode_since: float | None = None  # first lock-out since the last fix (refits too)
         self._inflated = False
         self._lost_inflated = False
         self._frames_needed = 0  # more than localized_after_frames after an IMU gap
@@ -162,6 +175,9 @@ class Localizer:
         self._since = "since start"
         self.calibrating = True
         self.last_rejected = np.zeros(0, np.int64)  # map ids the last frame's χ² gate refused
+        self.search: RelocalizationSearch | None = None  # no trustworthy pose: searching
+        self.relocalizes = False  # a relocalizer answers searches (use_relocalizer)
+        self.probation: Probation | None = None  # a re-localization being checked
         if start_pose is None:
             start_pose = (self.map.dock_position, self.map.dock_quaternion)
         self.reinitialise(start_pose)
@@ -214,6 +230,92 @@ class Localizer:
         if calibrate:
             self._standstill = StandstillCalibrator()
         self.require_frames(frames_needed)
+        if self.relocalizes:
+            self.lose("to check the resumed pose against the landmarks", near=True)
+        else:
+            self._on_probation("resume")
+
+    # --------------------------------------------------------------- losing the pose (§18)
+
+    #: good frames a global relocalization needs before the deck may run (4 Hz: 2.5 s)
+    AFTER_RELOCALIZATION_FRAMES = 10
+
+    def use_relocalizer(self) -> None:
+        """A relocalizer will answer :meth:`search_near` (pixel level: the vision asks it):
+        from now on every pose this filter starts from — the dock or the start pose, a
+        resumed pose, the pose of a lock-out — is checked by it before the filter trusts
+        it (:meth:`lose` with ``near``), and a lock-out searches instead of refitting."""
+        self.relocalizes = True
+        if self.search is None:
+            self.lose("to check the start pose against the landmarks", near=True)
+
+    def lose(self, why: str, near: bool = False) -> None:
+        """Give the pose up (no prior at start, lifted, carried, a re-localization that did
+        not check out): halt at once, and search for the pose with the global relocalizer's
+        answers (:meth:`relocalization`). ``why`` completes "searching for the pose …";
+        ``near``: first around the filter's own pose (a prior worth checking)."""
+        self.search = RelocalizationSearch(why, self.t_imu, near)
+        self.probation = None
+        self._good_frames = 0
+        self._lockout_since = self._episode_since = None
+        self.counters.searches += 1
+
+    @property
+    def searching(self) -> bool:
+        """The pose is given up: frames are for :meth:`relocalization`, not updates."""
+        return self.search is not None
+
+    def search_near(self) -> tuple[float, float, float] | None:
+        """Where the search looks: the filter's (x, y, heading) while it checks a prior,
+        None while it searches everywhere (only while :attr:`searching`)."""
+        if self.search is None or not self.search.near:
+            return None
+        p = self._pose2d(self.ekf.snapshot_view())
+        return p.x, p.y, p.yaw
+
+    def relocalization(self, t: float, answer: Relocalization) -> bool:
+        """A global relocalizer's answer from the frame taken at ``t``; True when it is
+        accepted (it agrees with the previous answer through the odometry between them,
+        :class:`mowerhw.mow.recovery.RelocalizationSearch`): the filter restarts there,
+        on probation."""
+        if self.search is None:
+            return False
+        odometry_then = self._pose2d(self._state_at(t))
+        search = self.search
+        accepted = search.offer(t, answer, odometry_then)
+        if accepted is None:
+            search.widen(t)
+            return False
+        now = accepted.compose(odometry_then.between(self._pose2d(self.ekf.snapshot_view())))
+        z = float(answer.p_wb[2])
+        self.search = None
+        self.counters.relocalizations += 1
+        self.reinitialise(
+            (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)), ACCEPT_SIGMA_M, ACCEPT_SIGMA_RAD
+        )
+        if search.near:  # the prior confirmed: as many frames as it would have needed
+            self.require_frames(self._frames_needed, "since the prior pose was confirmed")
+        else:
+            self.require_frames(self.AFTER_RELOCALIZATION_FRAMES, "since a global relocalization")
+        self._on_probation("local" if search.near else "global")
+        return True
+
+    def _on_probation(self, kind: str) -> None:
+        need = max(self.cfg.localized_after_frames, self._frames_needed)
+        self.probation = Probation(kind, None, need)
+
+    @staticmethod
+    def _pose2d(state: EkfState) -> Pose2D:
+        return Pose2D(float(state.x[0]), float(state.x[1]), float(quat_to_yaw(state.q)))
+
+    def _state_at(self, t: float) -> EkfState:
+        """The filter's state at ``t`` (from the history for a past time, else now)."""
+        if self.t_imu is not None and t < self.t_imu:
+            hist = self._history
+            k = next((i for i in range(len(hist) - 1, -1, -1) if hist[i].t1 <= t), None)
+            if k is not None:
+                return hist[k].state
+        return self.ekf.snapshot_view()
 
     def inject_fault(self) -> None:
         """Fault injection (``runtime.fault_injection`` only): the filter's state becomes
@@ -240,6 +342,7 @@ class Localizer:
             c.frames,
             c.faults,
             self._resets,
+            c.searches,
             self._injected,
             self._area_changes,
         )
@@ -302,7 +405,7 @@ class Localizer:
         rows, u = rows[keep], u[keep] / norms[keep, None]
         self.counters.frames += 1
         self.t_camera = float(t) if self.t_camera is None else max(self.t_camera, float(t))
-        if self.t_imu is None:
+        if self.t_imu is None or self.search is not None:
             return
         if t > self.t_imu + self.stale_s["imu"]:
             # the IMU is silent (unplugged): extrapolating to the frame would dead-reckon at
@@ -455,11 +558,15 @@ class Localizer:
         agree = out.used >= 0.5 * rows.size or (
             out.used >= 2 * c.min_landmarks and self.sigma_xy() < self.CONFIDENT_SIGMA_M
         )
-        if out.used >= c.min_landmarks and agree:
+        fix = out.used >= c.min_landmarks and agree
+        if self.probation is not None:
+            self._check(t, out.nis, out.accepted, fix)
+        if fix:
             self.counters.frames_with_fix += 1
             self._good_frames += 1
             self.t_fix = t if self.t_fix is None else max(self.t_fix, t)
             self._lockout_since = None
+            self._episode_since = None
             self._inflated = False
             self._lost_inflated = False
             if self._fault and self._good_frames >= c.localized_after_frames:
@@ -468,8 +575,28 @@ class Localizer:
         if rows.size >= c.min_landmarks:  # it sees landmarks but believes too few of them
             self._lockout(t, rows, u)
 
+    def _check(self, t: float, nis: FloatArray, accepted: NDArray[np.bool_], fix: bool) -> None:
+        """One frame of the consistency check after a re-localization."""
+        assert self.probation is not None
+        verdict = self.probation.frame(t, nis, accepted, fix)
+        if verdict == "passed":
+            self.counters.checks_passed += 1
+            self.probation = None
+        elif verdict == "failed":
+            self.counters.checks_failed += 1
+            p = self.probation
+            self.lose(f"since the {p.kind} re-localization did not check out ({p.last})")
+
     def _lockout(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
         c = self.cfg
+        if self._episode_since is None:
+            self._episode_since = t
+        if t - self._episode_since >= self.SEARCH_AFTER_LOCKOUTS * c.lockout_s:
+            self.lose(
+                f"since a lock-out: the landmarks in view disagreed with the pose for "
+                f"{t - self._episode_since:.1f} s"
+            )
+            return
         if self._lockout_since is None:
             self._lockout_since = t
             self.counters.lockouts += 1
@@ -484,8 +611,15 @@ class Localizer:
                 f"estimate for {waited:.1f} s)"
             )
             self.counters.inflations += 1
+            self._on_probation("lock-out")
         elif waited >= 2 * c.lockout_s:
-            self._refit(rows, u)
+            if self.relocalizes:
+                self.lose(f"since a lock-out of {waited:.1f} s", near=True)
+            else:
+                self._refit(rows, u)
+
+    #: a lock-out this many times ``lockout_s`` long: the pose is given up and searched for
+    SEARCH_AFTER_LOCKOUTS = 4
 
     def _refit(self, rows: NDArray[np.int64], u: FloatArray) -> None:
         """Re-initialise from one frame: fit the pose to the bearings of known landmarks,
@@ -508,6 +642,7 @@ class Localizer:
             return  # no credible fit either: stay halted, try again next frame
         self.counters.reinitialisations += 1
         self.reinitialise((best.t_wb, rotmat_to_quat(best.r_wb)), 0.2, math.radians(5.0))
+        self._on_probation("refit")
 
     def _check_fault(self) -> None:
         if self.ekf.finite():
@@ -522,6 +657,7 @@ class Localizer:
             self.ekf.x = self.map.dock_position.copy()
             self.ekf.q = self.map.dock_quaternion.copy()
         self.reinitialise(None, 1.0, math.radians(30.0))
+        self._on_probation("fault restart")
 
     # ----------------------------------------------------------------------------- outputs
 
@@ -531,12 +667,7 @@ class Localizer:
         """Every map landmark as the filter expects to see it in a frame taken at ``t``
         (default: now): map ids, unit bearings (body frame) and the covariance of a measured
         bearing about each (tangent basis of the prediction). For re-identification."""
-        state = None
-        if t is not None and self.t_imu is not None and t < self.t_imu:
-            hist = self._history
-            k = next((i for i in range(len(hist) - 1, -1, -1) if hist[i].t1 <= t), None)
-            if k is not None:
-                state = hist[k].state
+        state = None if t is None else self._state_at(t)
         rows = np.arange(self.ids.size)
         h, cov = self.ekf.predict_bearings(
             rows, self.landmarks, self.cfg.bearing_sigma_rad, state=state
@@ -565,7 +696,12 @@ class Localizer:
     @property
     def localized(self) -> bool:
         need = max(self.cfg.localized_after_frames, self._frames_needed)
-        return self._good_frames >= need and not self._fault
+        return (
+            self._good_frames >= need
+            and not self._fault
+            and self.search is None
+            and self.probation is None
+        )
 
     def sigma_xy(self) -> float:
         """Largest standard deviation of the horizontal position (m)."""
@@ -593,6 +729,19 @@ class Localizer:
             return Reason.NOT_LOCALIZED, "no IMU sample yet"
         if self._fault:
             return Reason.FAULT, self._fault
+        if self.search is not None:
+            return Reason.NOT_LOCALIZED, self.search.describe()
+        if self._lockout_since is not None:
+            # bearings of several landmarks disagree with the pose: carried elsewhere, or the
+            # pose is wrong — halt at once, not only when the last fix is too old
+            return Reason.UNCERTAIN, (
+                f"the landmarks in view disagree with the pose (since "
+                f"{self.t_imu - self._lockout_since:.1f} s)"
+            )
+        if self.probation is not None and self._good_frames >= max(
+            self.cfg.localized_after_frames, self._frames_needed
+        ):
+            return Reason.NOT_LOCALIZED, self.probation.describe()
         if not self.localized:
             need = max(self.cfg.localized_after_frames, self._frames_needed)
             return Reason.NOT_LOCALIZED, f"{self._good_frames}/{need} landmark fixes {self._since}"
@@ -611,6 +760,8 @@ class Localizer:
             "t": p.t,
             "localized": self.localized,
             "calibrating": self.calibrating,
+            "searching": self.search.describe() if self.search is not None else "",
+            "checking": self.probation.describe() if self.probation is not None else "",
             "position": p.position.tolist(),
             "sigma_xy_m": self.sigma_xy(),
             "gyro_bias": self.ekf.bg.tolist(),

@@ -149,7 +149,8 @@ class Replay:
             if target is not None:
                 serial, pipe = target
                 image = decode_jpeg(msg["data"])
-                tracks = pipe.vision.track(t, image, pipe.vision.prepare(t))
+                vision = pipe.vision
+                tracks = vision.track(t, image, vision.prepare(t), vision.wants_search())
                 self.core.tracks(serial, tracks)
         else:
             return

@@ -216,9 +216,16 @@ class Daemon:
                 continue
             serial, pipe = target
             try:
-                r = pipe.vision.prepare(frame.t)
+                r, search = pipe.vision.prepare(frame.t), pipe.vision.wants_search()
                 tracks: FrameTracks = await loop.run_in_executor(
-                    self._frontend_pool, track_frame, self._worker, serial, pipe.vision, frame, r
+                    self._frontend_pool,
+                    track_frame,
+                    self._worker,
+                    serial,
+                    pipe.vision,
+                    frame,
+                    r,
+                    search,
                 )
             except FrontendWorkerDied:
                 raise  # crash-only: the task dies, the deck halts, the process ends (exit 1)

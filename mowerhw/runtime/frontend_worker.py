@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from mowerhw.common.samples import FrameSample
 from mowerhw.frontend import FrameTracks
+from mowerhw.mow.relocalize import SearchRequest
 from mowerhw.runtime.process import die_with_parent
 from mowerhw.vision.base import VisionBase
 
@@ -70,8 +71,9 @@ class FrontendWorkerDied(RuntimeError):
 
 
 class FrontendWorker:
-    """``track(key, frontend_args, t, image, r)`` in the child: one FrontEnd per ``key`` (the
-    chain's serial: a new chain starts a new front end, as it does on a thread)."""
+    """``track(key, args, t, image, r, search)`` in the child: one FrontEnd (and, for a mow
+    chain, one global relocalizer) per ``key`` (the chain's serial: a new chain starts a new
+    front end, as it does on a thread)."""
 
     def __init__(self) -> None:
         self._proc: subprocess.Popen[bytes] | None = None
@@ -97,10 +99,11 @@ class FrontendWorker:
     def track(
         self,
         key: Any,
-        frontend_args: tuple[Any, ...],
+        args: tuple[tuple[Any, ...], tuple[Any, ...] | None],
         t: float,
         image: NDArray[np.uint8],
         r_prev_cur: Any,
+        search: SearchRequest | None = None,
     ) -> FrameTracks:
         """The frame's tracks (blocking: call it off the event loop); RuntimeError if the
         front end failed on it, :class:`FrontendWorkerDied` if the process is gone."""
@@ -109,9 +112,9 @@ class FrontendWorker:
             assert proc.stdin is not None and proc.stdout is not None
             try:
                 if key != self._key:
-                    _write(proc.stdin, ("reset", frontend_args))
+                    _write(proc.stdin, ("reset", *args))
                     self._key = key
-                _write(proc.stdin, ("frame", t, np.ascontiguousarray(image), r_prev_cur))
+                _write(proc.stdin, ("frame", t, np.ascontiguousarray(image), r_prev_cur, search))
                 kind, body = _read(proc.stdout)
             except (OSError, EOFError, pickle.PickleError) as exc:
                 proc.kill()
@@ -129,36 +132,54 @@ class FrontendWorker:
 
 
 def track_frame(
-    worker: FrontendWorker | None, key: Any, vision: VisionBase, frame: FrameSample, r: Any
+    worker: FrontendWorker | None,
+    key: Any,
+    vision: VisionBase,
+    frame: FrameSample,
+    r: Any,
+    search: SearchRequest | None = None,
 ) -> FrameTracks:
-    """A frame's tracks for ``vision``'s chain (``key``: its serial): in ``worker``'s
-    process, or on this thread without one (blocking: call it off the event loop)."""
+    """A frame's tracks for ``vision``'s chain (``key``: its serial), with a relocalization
+    if ``search`` asks for one: in ``worker``'s process, or on this thread without one
+    (blocking: call it off the event loop)."""
     if worker is None:
-        return vision.track(frame.t, frame.image, r)
+        return vision.track(frame.t, frame.image, r, search)
     t = frame.t + vision.time_shift_s
-    return vision.tracked(worker.track(key, vision.frontend_args, t, frame.image, r))
+    args = (vision.frontend_args, vision.search_args)
+    return vision.tracked(worker.track(key, args, t, frame.image, r, search))
 
 
 def main() -> None:  # pragma: no cover - the child; exercised through FrontendWorker
+    from dataclasses import replace
+
     import cv2
 
     from mowerhw.frontend import FrontEnd
+    from mowerhw.mow.relocalize import GlobalRelocalizer
 
     cv2.setNumThreads(1)
     with os.fdopen(0, "rb") as inp, os.fdopen(1, "wb") as out:
         frontend: FrontEnd | None = None
+        search_args: tuple[Any, ...] | None = None
+        relocalizer: GlobalRelocalizer | None = None
         while True:
             try:
                 msg = _read(inp)
             except EOFError:
                 return
             if msg[0] == "reset":
-                frontend = FrontEnd(*msg[1])
+                frontend, search_args, relocalizer = FrontEnd(*msg[1]), msg[2], None
                 continue
-            _, t, image, r = msg
+            _, t, image, r, search = msg
             try:
                 assert frontend is not None, "a frame before the front end was set up"
-                _write(out, ("tracks", frontend.process(t, image, r)))
+                tracks = frontend.process(t, image, r)
+                if search is not None and search_args is not None:
+                    if relocalizer is None:  # built on first use (MBs)
+                        relocalizer = GlobalRelocalizer(*search_args)
+                    found = relocalizer.locate(tracks.bearings, search.near)
+                    tracks = replace(tracks, relocalization=found)
+                _write(out, ("tracks", tracks))
             except Exception as exc:
                 _write(out, ("error", f"{type(exc).__name__}: {exc}"))
 

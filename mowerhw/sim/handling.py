@@ -71,3 +71,21 @@ def handled(
             if since < BUMP_JOLT_S:
                 fx -= BUMP_ACCEL_MPS2
     return (fx, fy, fz), (lifted, bumped, False)
+
+
+@dataclass(frozen=True)
+class Kidnap:
+    """The mower picked up at ``at_s`` (the first moment from then on that the deck runs),
+    carried for ``carry_s`` and put down at ``to_map_xy``
+    (simulator map frame) facing ``to_heading`` (issue 18). ``lifted``: the lift shows on the
+    accelerometer and the lift switch (a lift event for the carry); without, only the camera
+    can tell (a mower pushed along, or a lift its sensors missed)."""
+
+    at_s: float
+    carry_s: float
+    to_map_xy: tuple[float, float]
+    to_heading: float
+    lifted: bool = True
+
+    def lift(self) -> HandlingEvent | None:
+        return HandlingEvent("lift", self.at_s, self.carry_s) if self.lifted else None

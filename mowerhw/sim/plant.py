@@ -108,7 +108,29 @@ class MowerPlant:
         self._pending: list[tuple[float, Any]] = []  # (delivery time, frame), taken in order
         self._speed_every = round(self.rates.imu_hz / self.rates.speed_hz)
         self._frame_every = round(self.rates.imu_hz / self.rates.camera_hz)
+        self._carry: tuple[float, float, FloatArray, FloatArray, float, float] | None = None
         self._update_pose()
+
+    def place(self, map_xy: tuple[float, float], heading: float) -> None:
+        """Stand the mower at ``map_xy`` (simulator map frame) facing ``heading`` (before the
+        first output: a start away from the dock)."""
+        self.map_xy = np.asarray(map_xy, dtype=np.float64).reshape(2).copy()
+        self.map_heading = float(heading)
+        self._update_pose()
+
+    def carry(self, to_map_xy: tuple[float, float], to_heading: float, duration_s: float) -> None:
+        """Someone picks the mower up now and puts it down at ``to_map_xy`` (map frame) facing
+        ``to_heading`` after ``duration_s`` (a kidnap, issue 18): the pose moves there evenly,
+        the gyro sees the turn, the wheels stop (ground speed 0), the commands are ignored."""
+        t0 = self.t
+        turn = math.remainder(to_heading - self.map_heading, 2 * math.pi)
+        xy1 = np.asarray(to_map_xy, dtype=np.float64).reshape(2)
+        self._carry = (t0, t0 + duration_s, self.map_xy.copy(), xy1, self.map_heading, turn)
+        self.v = 0.0  # lifted: the wheels stop (no jolt: the lift's own force is the event's)
+
+    @property
+    def carried(self) -> bool:
+        return self._carry is not None
 
     # -- truth --------------------------------------------------------------------------------
 
@@ -144,6 +166,8 @@ class MowerPlant:
         """Advance one IMU interval towards the commanded (v, ω) within the acceleration limits;
         return what the sensors reported."""
         dt = self.dt
+        if self._carry is not None:
+            return self._carried_step()
         dv, dw = self.max_accel * dt, self.max_yaw_accel * dt
         v_cmd = float(np.clip(v_cmd, self.v - dv, self.v + dv))
         w_cmd = float(np.clip(w_cmd, self.w - dw, self.w + dw))
@@ -168,6 +192,22 @@ class MowerPlant:
         else:
             self.map_xy = self.map_xy + vh * dt * np.array([math.cos(psi), math.sin(psi)])
         self.map_heading = psi + w_cmd * dt
+        return self._sense(v_cmd)
+
+    def _carried_step(self) -> PlantOutput:
+        assert self._carry is not None
+        t0, t1, xy0, xy1, h0, turn = self._carry
+        a = min(1.0, (self.t + self.dt - t0) / (t1 - t0))
+        self.map_xy = xy0 + a * (xy1 - xy0)
+        self.map_heading = h0 + a * turn
+        self.w = turn / (t1 - t0) if a < 1.0 else 0.0
+        if a >= 1.0:
+            self._carry = None
+        return self._sense(0.0)
+
+    def _sense(self, v_cmd: float) -> PlantOutput:
+        """The new pose's truth and the sensors' readings for the interval just moved."""
+        dt = self.dt
         rot_prev = self.rot
         self._update_pose()
         self._v_prev, self.v = self.v, v_cmd

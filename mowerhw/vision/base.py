@@ -15,6 +15,7 @@ from mowerhw.common.geometry import quat_to_rotmat
 from mowerhw.config import FrontendConfig
 from mowerhw.frontend import FrameTracks, FrontEnd, RotationHistory
 from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, hamming
+from mowerhw.mow.relocalize import SearchRequest
 
 FloatArray = NDArray[np.float64]
 #: radians per pixel of the omni camera near the horizon (Table I: ~470 px/rad there)
@@ -60,6 +61,8 @@ class VisionBase:
         #: what the front end is built from (a runtime may run an equal one elsewhere)
         self.frontend_args = (camera, tuple(np.asarray(q_bc, dtype=float).tolist()), self.cfg, seed)
         self.frontend = FrontEnd(*self.frontend_args)
+        #: what a global relocalizer is built from, where the tracking runs (mow: the map)
+        self.search_args: tuple[Any, ...] | None = None
         self.camera = camera
         self.r_bc = quat_to_rotmat(np.asarray(q_bc, dtype=np.float64))
         self.rotations = RotationHistory()
@@ -79,7 +82,12 @@ class VisionBase:
 
     def frame(self, t: float, image: NDArray[np.uint8]) -> FrameTracks:
         """One image, start to end: :meth:`prepare`, :meth:`track`, :meth:`use`."""
-        return self.use(self.track(t, image, self.prepare(t)))
+        return self.use(self.track(t, image, self.prepare(t), self.wants_search()))
+
+    def wants_search(self) -> SearchRequest | None:
+        """Whether the next frame's tracking should also relocalize, and where (call on the
+        estimator's thread, with :meth:`prepare`)."""
+        return None
 
     def prepare(self, t: float) -> FloatArray | None:
         """The gyro's body rotation from the previous frame to the one taken at ``t`` (call on
@@ -92,12 +100,22 @@ class VisionBase:
         return r
 
     def track(
-        self, t: float, image: NDArray[np.uint8], r_prev_cur: FloatArray | None
+        self,
+        t: float,
+        image: NDArray[np.uint8],
+        r_prev_cur: FloatArray | None,
+        search: SearchRequest | None = None,
     ) -> FrameTracks:
         """Detection and tracking, the costly part: touches only the front end, so a runtime
         may run it on a worker thread (one frame at a time). ``t`` is the camera's capture
-        time; the tracks carry it on the IMU's clock (``timeshift_cam_imu`` applied)."""
-        return self.tracked(self.frontend.process(t + self.time_shift_s, image, r_prev_cur))
+        time; the tracks carry it on the IMU's clock (``timeshift_cam_imu`` applied).
+        ``search``: relocalize from the tracks too (:meth:`wants_search`)."""
+        tracks = self.frontend.process(t + self.time_shift_s, image, r_prev_cur)
+        return self.tracked(tracks if search is None else self.searched(tracks, search))
+
+    def searched(self, tracks: FrameTracks, search: SearchRequest) -> FrameTracks:
+        """The tracks with a relocalization from their bearings (mow only)."""
+        return tracks
 
     def tracked(self, tracks: FrameTracks) -> FrameTracks:
         """Count a frame's tracks (however they were made)."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -15,6 +16,7 @@ from mowerhw.frontend import FrameTracks
 from mowerhw.frontend.association import Candidates, associate
 from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, stack_sets
 from mowerhw.mow.localizer import Localizer
+from mowerhw.mow.relocalize import GlobalRelocalizer, SearchRequest
 from mowerhw.vision.base import BAN_S, RAD_PER_PX, VisionBase
 
 FloatArray = NDArray[np.float64]
@@ -53,13 +55,39 @@ class MowVision(VisionBase):
         # the last frame's associations: track ids, map ids, pixels
         self.last_associated = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
         self.last_bearings = np.zeros((0, 3))
+        self.search_args = (localizer.map,)
+        self._relocalizer: GlobalRelocalizer | None = None  # built on first use (MBs)
+        localizer.use_relocalizer()  # every start pose is checked, kidnaps are searched
 
     def estimator_rate(self, gyro: FloatArray) -> FloatArray:
         return self.loc.corrected_rate(gyro)
 
+    def wants_search(self) -> SearchRequest | None:
+        """While the localizer has given its pose up, every frame is searched."""
+        return SearchRequest(self.loc.search_near()) if self.loc.searching else None
+
+    def searched(self, tracks: FrameTracks, search: SearchRequest) -> FrameTracks:
+        if self._relocalizer is None:
+            self._relocalizer = GlobalRelocalizer(*self.search_args)
+        found = self._relocalizer.locate(tracks.bearings, search.near)
+        return replace(tracks, relocalization=found)
+
     def use(self, tracks: FrameTracks) -> FrameTracks:
-        """Associations of the tracks with map landmarks → the Localizer."""
+        """Associations of the tracks with map landmarks → the Localizer; while it searches
+        for its pose, the frame's global relocalization instead, and when that is accepted
+        its inliers become the first associations."""
         t = tracks.t
+        if self.loc.searching:
+            self.landmark_of.clear()
+            answer = tracks.relocalization
+            if answer is None or not self.loc.relocalization(t, answer):
+                self.loc.bearings(t, np.zeros(0, np.int64), np.zeros((0, 3)))
+                none = np.zeros(0, np.int64)
+                self.last_associated = (none, none, np.zeros((0, 2)))
+                self.last_bearings = np.zeros((0, 3))
+                self._t_last = t
+                return tracks
+            self.landmark_of = {int(tracks.ids[r]): lid for r, lid in answer.inliers}
         live = set(tracks.ids.tolist())
         for tid in [k for k in self.landmark_of if k not in live]:
             del self.landmark_of[tid]

@@ -1,0 +1,275 @@
+"""Starting anywhere and being carried elsewhere, at pixel level (issue 18), scored on truth.
+
+Both run the closed loop of :func:`mowerhw.evaluation.mow.run_mow` (rendered frames, the
+front end, :class:`mowerhw.vision.MowVision`, the localizer, the gate, the safety functions):
+
+* :func:`start_runs` — the mower stands at a random pose inside the lawn and the localizer has
+  no prior: it searches (global relocalization), accepts, checks, and only then may permit;
+* :func:`kidnap_runs` — the mower mows from the dock, is lifted mid-mow and carried 5–20 m
+  to a random pose, and put down: the lift halts the deck, the localizer gives its pose up,
+  searches, and mowing goes on only after an accepted relocalization. The walk is 5–20 m
+  long (its duration); where it ends is a random pose inside the lawn (the displacement,
+  reported, is what the lawn allows).
+
+Scored per run: when the pose was accepted and how far off it was then, permits while the
+pose was more than :data:`WRONG_M` off (the dangerous case), missed halts (permits truly
+outside), and the NEES of (x, y, heading) in the :data:`NEES_S` after every accepted
+relocalization against the χ²₃ bounds of the runs' average.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from mowerhw.common.geometry import quat_to_yaw
+from mowerhw.config import Config
+from mowerhw.evaluation.mow import MowOutcome, run_mow
+from mowerhw.map import LawnMap
+from mowerhw.sim import make_world
+from mowerhw.sim.handling import Kidnap
+
+FloatArray = NDArray[np.float64]
+
+WRONG_M = 0.15
+SUCCESS_M, SUCCESS_RAD = 0.10, math.radians(3.0)
+NEES_S = 10.0
+CARRY_MPS = 1.5  # walking with a mower in the arms
+MOW_BEFORE_S = 15.0  # mowing from the dock before the kidnap
+AFTER_S = 20.0  # simulated after the mower is put down
+
+
+def _pct(a: list[float], q: float) -> float | None:
+    return round(float(np.percentile(a, q)), 3) if a else None
+
+
+def _inside(scenario: str, seed: int, margin_m: float) -> shapely.Polygon:
+    world = make_world(scenario, seed)
+    return shapely.Polygon(world.lawn.outline(720)).buffer(-margin_m)
+
+
+def random_pose(lawn: shapely.Polygon, rng: np.random.Generator) -> tuple[float, float, float]:
+    """A uniform position inside ``lawn`` (simulator map frame) and a uniform heading."""
+    minx, miny, maxx, maxy = lawn.bounds
+    while True:
+        x, y = rng.uniform(minx, maxx), rng.uniform(miny, maxy)
+        if lawn.contains(shapely.Point(x, y)):
+            return float(x), float(y), float(rng.uniform(-math.pi, math.pi))
+
+
+def _errors(out: MowOutcome) -> tuple[FloatArray, FloatArray]:
+    """Per sample: horizontal position error (m) and heading error (rad)."""
+    err = np.linalg.norm(out.est[:, :2] - out.true_xy, axis=1)
+    yaw = quat_to_yaw(out.est[:, 3:])
+    dyaw = (yaw - out.true_yaw + math.pi) % (2 * math.pi) - math.pi
+    return err, np.abs(dyaw)
+
+
+def _nees(out: MowOutcome) -> list[FloatArray]:
+    """The NEES of (x, y, heading) over :data:`NEES_S` after each accepted relocalization."""
+    err = np.column_stack(
+        [
+            out.est[:, 0] - out.true_xy[:, 0],
+            out.est[:, 1] - out.true_xy[:, 1],
+            (quat_to_yaw(out.est[:, 3:]) - out.true_yaw + math.pi) % (2 * math.pi) - math.pi,
+        ]
+    )
+    dt = float(out.t[1] - out.t[0])
+    n = round(NEES_S / dt)
+    series = []
+    for k in np.flatnonzero(np.diff(out.relocalizations) > 0) + 1:
+        seg = slice(k, min(k + n, out.t.size))
+        e, cov = err[seg], out.cov_xy_yaw[seg]
+        series.append(np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0]))
+    return series
+
+
+def nees_summary(series: list[FloatArray], dt: float) -> dict[str, Any]:
+    """Average NEES over the runs in 0.5 s bins after acceptance, against the two-sided 95 %
+    χ² bounds of an average of M three-dimensional NEES."""
+    if not series:
+        return {"relocalizations": 0}
+    per_bin = round(0.5 / dt)
+    bins = max(len(s) for s in series) // per_bin
+    rows = []
+    for b in range(bins):
+        lo_k, hi_k = b * per_bin, (b + 1) * per_bin
+        vals = [float(np.mean(s[lo_k:hi_k])) for s in series if s.size >= hi_k]
+        m = len(vals)
+        lo, hi = chi2.ppf([0.025, 0.975], 3 * m) / m
+        rows.append((b * 0.5, float(np.mean(vals)), float(lo), float(hi), m))
+    inside = [lo <= v <= hi for _, v, lo, hi, _ in rows]
+    every = np.concatenate(series)
+    return {
+        "relocalizations": len(series),
+        "mean_nees": round(float(np.mean(every)), 2),
+        "expected": 3.0,
+        "bins_within_95pct_bounds": f"{sum(inside)}/{len(inside)}",
+        "by_time_s": [
+            {"t": t, "avg_nees": round(v, 2), "bounds": [round(lo, 2), round(hi, 2)], "runs": m}
+            for t, v, lo, hi, m in rows
+        ],
+    }
+
+
+def start_runs(
+    lawn_map: LawnMap,
+    scenario: str,
+    seed: int,
+    starts: int,
+    config: Config | None = None,
+    seconds: float = 12.0,
+    progress: Callable[[int, dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
+    """``starts`` random starts with no prior (module doc)."""
+    lawn = _inside(scenario, seed, 0.3)
+    rng = np.random.default_rng([seed, 18, 1])
+    runs, series, dt = [], [], 0.01
+    for i in range(starts):
+        pose = random_pose(lawn, rng)
+        out = run_mow(
+            lawn_map,
+            scenario,
+            seed,
+            seconds,
+            config,
+            mow_seed=seed * 1000 + i,
+            level="pixel",
+            start=pose,
+            no_prior=True,
+        )
+        dt = float(out.t[1] - out.t[0])
+        err, yaw_err = _errors(out)
+        acc = np.flatnonzero(out.relocalizations > 0)
+        first_permit = np.flatnonzero(out.permit)
+        run: dict[str, Any] = {
+            "start": [round(v, 3) for v in pose],
+            "accepted_s": round(float(out.t[acc[0]]), 2) if acc.size else None,
+            "error_m": round(float(err[acc[0]]), 4) if acc.size else None,
+            "yaw_error_deg": round(math.degrees(float(yaw_err[acc[0]])), 3) if acc.size else None,
+            "first_permit_s": (
+                round(float(out.t[first_permit[0]]), 2) if first_permit.size else None
+            ),
+            "permits_wrong": int(np.sum(out.permit & (err > WRONG_M))),
+            "missed_halts": out.metrics["missed_halts"],
+            "searches": out.metrics["localizer"]["searches"],
+            "relocalizations": int(out.relocalizations[-1]),
+        }
+        runs.append(run)
+        series += _nees(out)
+        if progress is not None:
+            progress(i, run)
+    ok = [
+        r
+        for r in runs
+        if r["accepted_s"] is not None
+        and r["accepted_s"] <= 5.0
+        and r["error_m"] < SUCCESS_M
+        and math.radians(r["yaw_error_deg"]) < SUCCESS_RAD
+    ]
+    times = [r["accepted_s"] for r in runs if r["accepted_s"] is not None]
+    return {
+        "scenario": scenario,
+        "seed": seed,
+        "starts": starts,
+        "map_landmarks": len(lawn_map.landmarks),
+        "success_rate": round(len(ok) / max(1, starts), 3),
+        "accepted": len(times),
+        "accepted_wrong_over_0.15m": sum(
+            1 for r in runs if r["error_m"] is not None and r["error_m"] > WRONG_M
+        ),
+        "time_to_relocalize_s": {"median": _pct(times, 50), "p95": _pct(times, 95)},
+        "permit_samples_while_wrong_over_0.15m": sum(r["permits_wrong"] for r in runs),
+        "missed_halts": sum(r["missed_halts"] for r in runs),
+        "nees": nees_summary(series, dt),
+        "runs": runs,
+    }
+
+
+def kidnap_runs(
+    lawn_map: LawnMap,
+    scenario: str,
+    seed: int,
+    runs: int,
+    config: Config | None = None,
+    lifted: bool = True,
+    progress: Callable[[int, dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
+    """``runs`` kidnaps mid-mow: a 5–20 m walk (at :data:`CARRY_MPS`), put down at a
+    random pose inside the lawn (module doc)."""
+    lawn = _inside(scenario, seed, 0.5)
+    rng = np.random.default_rng([seed, 18, 2])
+    out_runs, series, dt = [], [], 0.01
+    for i in range(runs):
+        mow_seed = seed * 1000 + i
+        # carried along a 5–20 m walk (its length sets the carry's duration) and put down
+        # at a random pose inside the lawn: the displacement is what the lawn allows
+        to = random_pose(lawn, rng)
+        walk = float(rng.uniform(5.0, 20.0))
+        carry_s = walk / CARRY_MPS
+        kidnap = Kidnap(MOW_BEFORE_S, carry_s, (to[0], to[1]), to[2], lifted)
+        out = run_mow(
+            lawn_map,
+            scenario,
+            seed,
+            MOW_BEFORE_S + carry_s + AFTER_S,
+            config,
+            mow_seed=mow_seed,
+            level="pixel",
+            kidnaps=[kidnap],
+        )
+        dt = float(out.t[1] - out.t[0])
+        err, _ = _errors(out)
+        if not out.metrics["kidnapped_at_s"]:  # the deck never ran after MOW_BEFORE_S
+            out_runs.append({"walk_m": round(walk, 2), "kidnapped": False})
+            continue
+        t_k = float(out.metrics["kidnapped_at_s"][0])
+        at = int(np.searchsorted(out.t, t_k))
+        down = int(np.searchsorted(out.t, t_k + carry_s))
+        moved = float(np.hypot(*(out.true_xy[down] - out.true_xy[at])))
+        halted = np.flatnonzero(~out.permit[at:])
+        reloc = np.flatnonzero(out.relocalizations[down:] > out.relocalizations[at])
+        permit_after = np.flatnonzero(out.permit[down:])
+        run: dict[str, Any] = {
+            "walk_m": round(walk, 2),
+            "kidnapped_at_s": round(t_k, 2),
+            "displaced_m": round(moved, 2),
+            "carry_s": round(carry_s, 2),
+            "time_to_halt_s": round(float(halted[0]) * dt, 3) if halted.size else None,
+            "time_to_relocalize_s": round(float(reloc[0]) * dt, 2) if reloc.size else None,
+            "time_to_permit_s": (
+                round(float(permit_after[0]) * dt, 2) if permit_after.size else None
+            ),
+            "permits_during_carry": int(out.permit[at:down].sum()),
+            "permits_wrong_after": int(np.sum(out.permit[at:] & (err[at:] > WRONG_M))),
+            "missed_halts": out.metrics["missed_halts"],
+            "searches": out.metrics["localizer"]["searches"],
+        }
+        out_runs.append(run)
+        series += _nees(out)
+        if progress is not None:
+            progress(i, run)
+    done = [r for r in out_runs if r.get("kidnapped", True)]
+    halts = [r["time_to_halt_s"] for r in done if r["time_to_halt_s"] is not None]
+    relocs = [r["time_to_relocalize_s"] for r in done if r["time_to_relocalize_s"] is not None]
+    return {
+        "scenario": scenario,
+        "seed": seed,
+        "runs": runs,
+        "lift_seen": lifted,
+        "kidnapped_while_mowing": len(done),
+        "time_to_halt_s": {"median": _pct(halts, 50), "max": max(halts) if halts else None},
+        "relocalized": len(relocs),
+        "time_to_relocalize_s": {"median": _pct(relocs, 50), "p95": _pct(relocs, 95)},
+        "missed_halts": sum(r["missed_halts"] for r in done),
+        "permits_during_carry": sum(r["permits_during_carry"] for r in done),
+        "wrong_relocalizations_permitted": sum(1 for r in done if r["permits_wrong_after"]),
+        "nees": nees_summary(series, dt),
+        "per_run": out_runs,
+    }

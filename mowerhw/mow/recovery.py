@@ -1,0 +1,191 @@
+"""Trusting a pose again (issue 18): accepting a global relocalization, and the consistency
+check every re-localization passes before the deck may run.
+
+* :class:`RelocalizationSearch` — while the localizer has no trustworthy pose (started with
+  no prior, kidnapped, a re-localization that did not check out), each answer of
+  :class:`mowerhw.mow.relocalize.GlobalRelocalizer` is compared with the previous one moved
+  by the odometry in between (the filter keeps propagating while it searches: its pose is
+  meaningless, its *motion* is not). Two answers that agree within :data:`AGREE_M` and
+  :data:`AGREE_RAD` are accepted: a pose that explains enough inliers in more than one frame
+  and agrees with the IMU/odometry motion between them.
+* :class:`Probation` — after any re-localization (resume after a restart, refit after a
+  lock-out, global), the filter is not trusted until ``frames_needed`` consecutive frames are
+  *consistent*: a fix whose bearings' median normalised innovation (NIS, 2 degrees of freedom
+  each) stays below :data:`MEDIAN_NIS_MAX`, three times the χ²₂ median, and of which at least
+  :data:`ACCEPTED_FRACTION` passed the χ² gate. A re-localization that cannot show that within
+  :data:`PROBATION_S` is dropped (the localizer searches again).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mowerhw.mow.relocalize import Relocalization
+
+FloatArray = NDArray[np.float64]
+
+#: two answers agree when the second is this close to the first moved by the odometry
+AGREE_M = 0.10
+AGREE_RAD = math.radians(3.0)
+#: plus this share of the distance driven between them (odometry scale error)
+AGREE_PER_M = 0.05
+#: an answer older than this is not paired with a new one (s)
+PAIR_S = 3.0
+#: a search near a prior becomes global after this long without an accepted answer (s)
+LOCAL_S = 3.0
+#: σ of an accepted global pose (measured: single-frame answers 1–3 cm, < 1° off)
+ACCEPT_SIGMA_M = 0.05
+ACCEPT_SIGMA_RAD = math.radians(2.0)
+
+#: χ²₂ median ≈ 1.386; a consistent frame's median NIS stays below three times that
+MEDIAN_NIS_MAX = 3.0 * 1.386
+ACCEPTED_FRACTION = 0.6
+PROBATION_S = 10.0
+
+
+@dataclass(frozen=True)
+class Pose2D:
+    """A planar pose (m, m, rad): the search works in x, y and heading only."""
+
+    x: float
+    y: float
+    yaw: float
+
+    def compose(self, other: Pose2D) -> Pose2D:
+        """``self ∘ other``: ``other`` expressed in this pose's frame, taken to the world."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        return Pose2D(
+            self.x + c * other.x - s * other.y,
+            self.y + s * other.x + c * other.y,
+            wrap(self.yaw + other.yaw),
+        )
+
+    def inverse(self) -> Pose2D:
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        return Pose2D(-c * self.x - s * self.y, s * self.x - c * self.y, -self.yaw)
+
+    def between(self, other: Pose2D) -> Pose2D:
+        """The motion from this pose to ``other`` (in this pose's frame)."""
+        return self.inverse().compose(other)
+
+    def distance(self, other: Pose2D) -> float:
+        return math.hypot(self.x - other.x, self.y - other.y)
+
+    def turn(self, other: Pose2D) -> float:
+        return abs(wrap(self.yaw - other.yaw))
+
+
+def wrap(a: float) -> float:
+    """An angle in [−π, π)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@dataclass
+class _Answer:
+    t: float
+    pose: Pose2D  # the relocalizer's, in the map
+    odometry: Pose2D  # the filter's at the same time (its own, drifting frame)
+
+
+class RelocalizationSearch:
+    """Pairs relocalizer answers through the odometry (module doc)."""
+
+    def __init__(self, why: str, t: float | None, near: bool = False) -> None:
+        self.why = why
+        self.since = t
+        #: check the filter's own pose first (a prior: the dock, a resumed pose, a lock-out)
+        self.near = near
+        self.answers = 0
+        self.frames = 0
+        self.last_why = "no frame searched yet"
+        self._last: _Answer | None = None
+
+    def offer(self, t: float, answer: Relocalization, odometry: Pose2D) -> Pose2D | None:
+        """One frame's answer, with the filter's pose at its time; the accepted pose at
+        ``t`` (in the map) when it agrees with the previous answer, else None."""
+        self.frames += 1
+        if self.since is None:
+            self.since = t
+        if not answer.ok:
+            self.last_why = answer.why
+            return None
+        self.answers += 1
+        pose = Pose2D(float(answer.p_wb[0]), float(answer.p_wb[1]), answer.yaw)
+        prev, self._last = self._last, _Answer(t, pose, odometry)
+        if prev is None or not 0.0 < t - prev.t <= PAIR_S:
+            self.last_why = "one answer: waiting for a second that agrees"
+            return None
+        motion = prev.odometry.between(odometry)
+        predicted = prev.pose.compose(motion)
+        d, turn = predicted.distance(pose), predicted.turn(pose)
+        if d > AGREE_M + AGREE_PER_M * math.hypot(motion.x, motion.y) or turn > AGREE_RAD:
+            self.last_why = (
+                f"two answers disagree by {d:.2f} m, {math.degrees(turn):.1f}° "
+                f"after the odometry between them"
+            )
+            return None
+        return pose
+
+    def widen(self, t: float) -> bool:
+        """A local search that has not confirmed the prior within :data:`LOCAL_S` becomes
+        a global one (True when it just did)."""
+        if not self.near or self.since is None or t - self.since < LOCAL_S:
+            return False
+        self.near = False
+        self._last = None
+        self.why += f"; the pose near the prior was not confirmed in {LOCAL_S:.0f} s"
+        return True
+
+    def describe(self) -> str:
+        where = "near the prior" if self.near else "everywhere (global relocalization)"
+        return (
+            f"searching for the pose {where} {self.why}: "
+            f"{self.answers} answers in {self.frames} frames; last: {self.last_why}"
+        )
+
+
+class Probation:
+    """The consistency check after a re-localization (module doc)."""
+
+    def __init__(self, kind: str, t: float | None, frames_needed: int) -> None:
+        self.kind = kind
+        self.since = t
+        self.frames_needed = frames_needed
+        self.consistent = 0
+        self.frames = 0
+        self.last = "no frame yet"
+
+    def frame(
+        self, t: float, nis: FloatArray, accepted: NDArray[np.bool_], fix: bool
+    ) -> str | None:
+        """One frame's bearings after the update: "passed", "failed" (too long without
+        passing) or None (still on probation)."""
+        if self.since is None:
+            self.since = t
+        self.frames += 1
+        med = float(np.median(nis)) if nis.size else math.inf
+        share = float(np.mean(accepted)) if accepted.size else 0.0
+        if fix and med <= MEDIAN_NIS_MAX and share >= ACCEPTED_FRACTION:
+            self.consistent += 1
+        else:
+            self.consistent = 0
+            self.last = (
+                f"a frame with {accepted.size} bearings, {share:.0%} accepted, "
+                f"median NIS {med:.1f} (consistent: ≥ {ACCEPTED_FRACTION:.0%} accepted, "
+                f"median NIS ≤ {MEDIAN_NIS_MAX:.1f})"
+            )
+        if self.consistent >= self.frames_needed:
+            return "passed"
+        if t - self.since > PROBATION_S:
+            return "failed"
+        return None
+
+    def describe(self) -> str:
+        return (
+            f"checking the {self.kind} re-localization: {self.consistent}/{self.frames_needed} "
+            f"consistent frames in a row (last inconsistent: {self.last})"
+        )
