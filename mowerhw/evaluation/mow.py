@@ -148,7 +148,6 @@ def run_mow(
     kidnapped_at: list[float] = []
     events = list(handling or [])
     safety_reason = np.empty(n + 1, dtype=object)
-    lifted = False
     for k in range(n + 1):
         cont = loc.containment()
         arrivals = {"imu": loc.t_imu, "speed": loc.t_speed, "camera": loc.t_camera}
@@ -158,9 +157,8 @@ def run_mow(
         safety.switches(plant.t, *switches)
         stop = safety.halt(plant.t)
         safety_reason[k] = stop[0] if stop else ""
-        if (stop is not None and stop[0] == Reason.LIFTED) and not lifted:
-            loc.lose("since it was lifted")  # the runtime's wiring (RuntimeCore.lifted)
-        lifted = stop is not None and stop[0] == Reason.LIFTED
+        if stop is not None and stop[0] == Reason.LIFTED:
+            loc.lifted()  # as the runtime wires it
         if moves and plant.t >= moves[0].at_s and prev_permit and not plant.carried:
             move = replace(moves.pop(0), at_s=plant.t)  # mid-mow: while the deck runs
             plant.carry(move.to_map_xy, move.to_heading, move.carry_s)

@@ -246,7 +246,7 @@ def kidnap_runs(
             "time_to_permit_s": (
                 round(float(permit_after[0]) * dt, 2) if permit_after.size else None
             ),
-            "permits_during_carry": int(out.permit[at:down].sum()),
+            "permits_during_carry": int(out.permit[at + 1 : down].sum()),
             "permits_wrong_after": int(np.sum(out.permit[at:] & (err[at:] > WRONG_M))),
             "missed_halts": out.metrics["missed_halts"],
             "searches": out.metrics["localizer"]["searches"],

@@ -249,6 +249,20 @@ class Localizer:
         if self.search is None:
             self.lose("to check the start pose against the landmarks", near=True)
 
+    LIFTED = "since it was lifted"
+
+    def lifted(self) -> None:
+        """The safety functions say the mower is lifted (call it while they do): it may be
+        put down anywhere. With a relocalizer its pose is given up and searched for, no
+        answer accepted before it stands again; without (bearing level: every bearing names
+        its landmark), the lock-out path recovers."""
+        if not self.relocalizes:
+            return
+        if self.search is not None and self.search.why == self.LIFTED:
+            self.search.hold()
+            return
+        self.lose(self.LIFTED)
+
     def lose(self, why: str, near: bool = False) -> None:
         """Give the pose up (no prior at start, lifted, carried, a re-localization that did
         not check out): halt at once, and search for the pose with the global relocalizer's
@@ -301,7 +315,13 @@ class Localizer:
         return True
 
     def _on_probation(self, kind: str) -> None:
+        """Check the pose before trusting it; a check already running goes on with its own
+        deadline (a lock-out inside a check must not give it more time)."""
         need = max(self.cfg.localized_after_frames, self._frames_needed)
+        if self.probation is not None:
+            self.probation.consistent = 0
+            self.probation.frames_needed = need
+            return
         self.probation = Probation(kind, None, need)
 
     @staticmethod

@@ -130,6 +130,10 @@ class RelocalizationSearch:
             return None
         return pose
 
+    def hold(self) -> None:
+        """The mower is in the air: no answer from before pairs with one after."""
+        self._last = None
+
     def widen(self, t: float) -> bool:
         """A local search that has not confirmed the prior within :data:`LOCAL_S` becomes
         a global one (True when it just did)."""

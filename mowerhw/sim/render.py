@@ -209,7 +209,17 @@ class OmniRenderer:
         lm = self.world.landmarks_map
         centroid = self.world.lawn.outline(360).mean(axis=0)
         panels, textures = [], []
+        twin_of = self.world.twin_of
         for k in range(lm.shape[0]):
+            j = -1 if twin_of is None else int(twin_of[k])
+            if j >= 0:  # a look-alike: the same panel, turned half round the lawn's centre
+                p = panels[j]
+                turn = np.array([-1.0, -1.0, 1.0])
+                panels.append(
+                    Panel(lm[k].astype(np.float64), p.normal * turn, p.e1 * turn, p.e2, p.size)
+                )
+                textures.append(textures[j])
+                continue
             to_lawn = centroid - lm[k, :2]
             yaw = math.atan2(to_lawn[1], to_lawn[0]) + rng.uniform(-0.5, 0.5)
             if np.linalg.norm(to_lawn) < 1.0:

@@ -41,6 +41,9 @@ class Scenario:
     slope_deg: float = 0.0  # the ground rises this steeply in a random direction
     bumps_per_m2: float = 0.0  # bumps and dips of 3–8 cm, 0.3–0.6 m wide
     sensors: SensorSuite = field(default_factory=lambda: PAPER_SENSORS)
+    #: share of the landmarks that come as look-alike pairs: the same panel, turned half
+    #: round the centre of a (symmetric) lawn — a symmetric garden (issue 18)
+    twins: float = 0.0
     description: str = ""
 
 
@@ -216,10 +219,28 @@ SCENARIOS: dict[str, Scenario] = {
         max_range_m=30.0,
         description="two 8 × 6 m lawns joined by a 2 m path, 36 landmarks, VN-100",
     ),
+    # A symmetric garden where looks deceive (issue 18): a rectangular lawn, two thirds of the
+    # landmarks in identical pairs half round its centre. From (x, y, ψ) and from the same
+    # pose turned half round the centre, those twins look the same; only the other third
+    # tells the two apart. A wrong but confident match is likely here.
+    "look-alike": Scenario(
+        name="look-alike",
+        perimeter_m=0.0,
+        shape="rectangle",
+        n_landmarks=24,
+        speed_mps=0.45,
+        landmark_distance_m=(1.5, 6.0),
+        landmark_height_m=(0.3, 2.5),
+        max_range_m=30.0,
+        twins=2.0 / 3.0,
+        description="a 12 × 8 m rectangle, 24 landmarks, 16 of them in identical pairs half "
+        "round its centre (a symmetric garden)",
+    ),
 }
 
-#: the presets of the matrix (all but the scaling one and the two-lawn garden of the bench)
-MATRIX = [name for name in SCENARIOS if name not in ("large", "garden")]
+#: the presets of the matrix (all but the scaling one, the two-lawn garden of the bench and
+#: the look-alike garden of the relocalizer)
+MATRIX = [name for name in SCENARIOS if name not in ("large", "garden", "look-alike")]
 
 
 def with_sensors(scenario: Scenario, sensors: SensorSuite) -> Scenario:

@@ -35,6 +35,9 @@ class World:
     q_bc: tuple[float, float, float, float] = (0.0, 1.0, 0.0, 0.0)
     terrain: Terrain = field(default_factory=Terrain)
     beds: tuple[FloatArray, ...] = ()  # (M, 2) outlines, map frame
+    #: per landmark, the index of the landmark it is the look-alike twin of (the same
+    #: panel, turned half round the lawn's centre), or −1 (scenario ``twins``)
+    twin_of: NDArray[np.int64] | None = None
 
     @property
     def n_landmarks(self) -> int:
@@ -96,8 +99,15 @@ def make_world(scenario: Any, seed: int, n_landmarks: int | None = None) -> Worl
         lawn = random_lawn(rng, sc.perimeter_m, sc.n_harmonics, sc.amplitude)
     outline = lawn.outline(1440)
     n = sc.n_landmarks if n_landmarks is None else n_landmarks
-    xy = place_landmarks(rng, outline, sc.landmark_distance_m, n)
-    height = rng.uniform(*sc.landmark_height_m, size=n)
+    pairs = round(sc.twins * n / 2)
+    xy = place_landmarks(rng, outline, sc.landmark_distance_m, n - pairs)
+    height = rng.uniform(*sc.landmark_height_m, size=n - pairs)
+    twin_of = np.full(n, -1, dtype=np.int64)
+    if pairs:  # the first ``pairs`` landmarks get a twin half round the lawn's centre
+        centre = 0.5 * (outline.min(axis=0) + outline.max(axis=0))
+        xy = np.vstack([xy, 2 * centre - xy[:pairs]])
+        height = np.concatenate([height, height[:pairs]])
+        twin_of[n - pairs :] = np.arange(pairs)
     beds = place_beds(rng, outline, sc.beds) if sc.beds else []
     terrain = Terrain()
     if sc.slope_deg or sc.bumps_per_m2:
@@ -119,6 +129,7 @@ def make_world(scenario: Any, seed: int, n_landmarks: int | None = None) -> Worl
     tree_h = rng.uniform(1.5, 3.0, size=len(beds))
     xy = np.vstack([xy, trees])
     height = np.concatenate([height, tree_h])
+    twin_of = np.concatenate([twin_of, np.full(len(beds), -1, dtype=np.int64)])
     z = terrain.height(xy[:, 0], xy[:, 1]) + height
     landmarks = np.column_stack([xy, z])
     bed_outlines = tuple(
@@ -131,4 +142,5 @@ def make_world(scenario: Any, seed: int, n_landmarks: int | None = None) -> Worl
         landmarks,
         terrain=terrain,
         beds=bed_outlines,
+        twin_of=twin_of if pairs else None,
     )
