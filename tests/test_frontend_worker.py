@@ -35,3 +35,28 @@ def test_the_worker_process_tracks_as_the_thread_does():
             worker.track("chain-2", (args, None), 1.5, image, None)
     finally:
         worker.close()
+
+
+def test_the_worker_relocalizes_a_frame_when_asked() -> None:
+    """A mow chain's search runs where the tracking runs: the worker builds the relocalizer
+    from the map it is given and answers for the frames that ask (issue 18)."""
+    from mowerhw.map import Landmark, LawnMap
+    from mowerhw.mow.relocalize import SearchRequest
+
+    world = make_world("paper", 3)
+    renderer = OmniRenderer(world, 3)
+    args = (world.camera, tuple(float(v) for v in world.q_bc), FrontendConfig(), 0)
+    pts = world.landmarks_map - world.landmarks_map.mean(axis=0) * [1, 1, 0]
+    lms = [Landmark(i, pts[i], np.eye(3) * 1e-6) for i in range(len(pts))]
+    ring = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    boundary = np.c_[3 * np.cos(ring), 3 * np.sin(ring)]
+    lawn_map = LawnMap(boundary=boundary, landmarks=lms, camera=None, teach={})
+    worker = FrontendWorker()
+    try:
+        image = renderer.render(0.0, 0.0, 0.0)
+        plain = worker.track("chain-1", (args, (lawn_map,)), 0.0, image, None)
+        asked = worker.track("chain-1", (args, (lawn_map,)), 0.25, image, None, SearchRequest())
+        assert plain.relocalization is None
+        assert asked.relocalization is not None and asked.relocalization.ms > 0
+    finally:
+        worker.close()

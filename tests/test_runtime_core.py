@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from typing import Any
 
@@ -13,6 +14,7 @@ from mowerhw.common.samples import ImuSample, SpeedSample
 from mowerhw.config import default_config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import Landmark, LawnMap
+from mowerhw.mow.relocalize import Relocalization
 from mowerhw.recording.replay import replay_journal
 from mowerhw.runtime.core import RuntimeCore
 from mowerhw.runtime.journal import JournalDecoder, JournalEncoder
@@ -138,6 +140,16 @@ def test_the_journal_codec_round_trips_exactly(tmp_path: Any) -> None:
     rec = json.loads(json.dumps(enc.encode("tracks", {"tracks": tracks})))
     back = dec.tracks(rec["tracks"])
     assert np.array_equal(back.bearings, tracks.bearings) and back.t == tracks.t
+    assert back.relocalization is None
+    # a frame searched for the pose carries the answer (a replay must not search again)
+    found = Relocalization(
+        True, rng.normal(size=(3, 3)), rng.normal(size=3), [(0, 4), (1, 9)], 3, 8, 12.5, ""
+    )
+    searched = dataclasses.replace(tracks, relocalization=found)
+    rec = json.loads(json.dumps(enc.encode("tracks", {"tracks": searched})))
+    again_found = dec.tracks(rec["tracks"]).relocalization
+    assert again_found is not None and again_found.inliers == found.inliers
+    assert np.array_equal(again_found.r_wb, found.r_wb) and again_found.ms == found.ms
     assert [d.tolist() for d in back.descriptors] == [d.tolist() for d in tracks.descriptors]
     imu = ImuSample(0.1 + 1e-12, np.array([1e-7, -2.5, np.pi]), None, 12, 34)
     back_imu = dec.imu(json.loads(json.dumps(enc.encode("imu", {"s": imu})))["s"])

@@ -137,7 +137,11 @@ class Bench:
         record: str | Path | None = None,
         load: int = 0,
         estimator_delay_ms: float = 150.0,
+        start: str = "dock",
     ) -> None:
+        if start not in ("dock", "random"):
+            raise ValueError(f"start {start!r}: expected dock or random")
+        self.start = start  # random: mowing starts anywhere in the lawn, with no pose file
         self.record = Path(record) if record else None
         self.load = load  # CPU hogs beside the daemon: a loaded mower computer
         self.estimator_delay_ms = estimator_delay_ms
@@ -316,6 +320,8 @@ class Bench:
             else:
                 Path(cfg.map.path).write_bytes(self.given_map.read_bytes())
                 self._spawn("idle")
+            if self.start == "random":
+                metrics["start"] = self._carry_to_random_pose(world, cfg)
             metrics.update(self._mow(world, cfg))
         finally:
             cpu, rss = self._proc_cpu_rss()
@@ -336,6 +342,29 @@ class Bench:
         metrics["wall_s"] = round(time.monotonic() - t_wall0, 1)
         metrics["out_dir"] = str(self.out)
         return metrics
+
+    def _carry_to_random_pose(self, world: Any, cfg: Any) -> dict[str, Any]:
+        """``--start random``: the daemon stops, its pose file goes, the mower is carried to a
+        random pose at least 0.5 m inside the lawn (uniform position and heading) and the
+        daemon starts again: nothing tells it where the mower is."""
+        self._stop_daemon()
+        Path(cfg.runtime.pose_file).unlink(missing_ok=True)
+        lawn = shapely.Polygon(world.lawn.outline(720)).buffer(-0.5)
+        rng = np.random.default_rng([self.seed, 18])
+        minx, miny, maxx, maxy = lawn.bounds
+        while True:
+            x, y = rng.uniform(minx, maxx), rng.uniform(miny, maxy)
+            if lawn.contains(shapely.Point(x, y)):
+                break
+        heading = float(rng.uniform(-math.pi, math.pi))
+        xy, yaw = self.mower.place_on_map(float(x), float(y), heading)
+        self._spawn("idle")
+        return {
+            "kind": "random",
+            "true_xy": [round(float(v), 3) for v in xy],
+            "true_heading": round(yaw, 4),
+            "pose_file": "deleted",
+        }
 
     def _stop_daemon(self) -> None:
         if self.proc is not None and self.proc.poll() is None:

@@ -97,6 +97,21 @@ class RealTimeMower(ThreadedDevice):
             self.controller = controller
             self.phase = "mow"
 
+    def place_on_map(self, x: float, y: float, heading: float) -> tuple[FloatArray, float]:
+        """Stand the mower at (x, y, heading) of the simulator's map frame (carried there while
+        the daemon was stopped): its world pose."""
+        frame = self.frame
+        xy = frame.map_to_world(np.array([[x, y, 0.0]]))[0, :2]
+        yaw = math.remainder(heading - frame.yaw, 2 * math.pi)
+        with self._lock:
+            self.phase = "still"
+            self.xy, self.yaw = xy.copy(), float(yaw)
+            self.v = self.w = 0.0
+            self._imu_prev = None  # no turn between two IMU packets across the carry
+            self._hist.clear()
+            self._record(time.monotonic())
+        return xy, float(yaw)
+
     # ------------------------------------------------------------------------------ truth
 
     def _run(self) -> None:

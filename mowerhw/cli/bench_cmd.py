@@ -64,6 +64,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="during an estimator-delay fault the estimation process is blocked this long "
         "every 200 ms (default 150 ms, beyond the 80 ms lease)",
     )
+    p.add_argument(
+        "--start",
+        choices=("dock", "random"),
+        default="dock",
+        help="where mowing starts: at the dock (default), or random: the daemon is stopped, "
+        "its pose file deleted, the mower carried to a random pose inside the lawn and the "
+        "daemon started again there (it finds its pose by global relocalization)",
+    )
     p.add_argument("--json", action="store_true", help="print only the JSON object")
     p.set_defaults(handler=cmd_bench)
 
@@ -90,6 +98,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         record=args.record,
         load=args.load,
         estimator_delay_ms=args.estimator_delay,
+        start=args.start,
     )
     result = bench.run()
     print(strict_json(result, indent=None if args.json else 2))

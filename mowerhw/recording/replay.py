@@ -374,6 +374,8 @@ def replay_journal(
             pending = None
         elif kind == "speed":
             core.speed(dec.speed(rec["sample"]))
+        elif kind == "lifted":
+            core.lifted(bool(rec["lifted"]))
         elif kind == "camera_frame":
             core.camera_frame(rec["now"])
         elif kind == "tracks":

@@ -98,6 +98,7 @@ class RuntimeCore:
         self._next_pose_save = -math.inf
         self._pose_to_save: StartPose | None = None
         self._revealed_at: float | None = None
+        self.is_lifted = False  # the supervisor says the mower is lifted
 
     # ------------------------------------------------------------------------- journal
 
@@ -123,6 +124,7 @@ class RuntimeCore:
         )
         if self.pipeline is not None:
             self.pipeline.vision.imu(sample.t, gyro)  # the front end's derotation history
+        self._hold_pose()
         self._consume(sample.t)
         arrival = sample.host_time_ns * 1e-9 if sample.host_time_ns is not None else now
         d = self._decide(now, arrival)
@@ -139,6 +141,24 @@ class RuntimeCore:
             self.stream_notes["speed"] = (sample.t, sample.invalid_detail())
         self.counts["speed" if sample.valid else "speed_invalid"] += 1
         self.buffer.push(Stream.SPEED, sample)
+
+    def lifted(self, lifted: bool) -> None:
+        """The supervisor's safety functions say the mower is lifted (True), or not any
+        more: while it is, the localizer has no pose it may trust (it may be put down
+        anywhere) and searches for one once the mower stands again (issue 18)."""
+        self._log("lifted", lifted=lifted)
+        if lifted != self.is_lifted:
+            log.info(
+                "lifted: the pose is given up; it is searched for once the mower stands"
+                if lifted
+                else "standing again: searching for the pose"
+            )
+        self.is_lifted = lifted
+        self._hold_pose()
+
+    def _hold_pose(self) -> None:
+        if self.is_lifted and isinstance(self.pipeline, MowPipeline):
+            self.pipeline.localizer.lifted()
 
     def camera_frame(self, now: float) -> None:
         """A camera frame arrived (the camera is alive, whatever the front end makes of it)."""

@@ -123,6 +123,7 @@ class Daemon:
             threadsafe(loop, crash_only(self._on_speed, "speed sample", self._handler_failed)),
             threadsafe(loop, self.request_stop),
             self.recorder,
+            threadsafe(loop, crash_only(self.core.lifted, "lift notice", self._handler_failed)),
         )
         self.imu_dev = open_imu(
             self.cfg,

@@ -174,12 +174,14 @@ def open_output(
     on_speed: Callable[[SpeedSample], None],
     on_lost: Callable[[str], None],
     recorder: Recorder | None,
+    on_lifted: Callable[[bool], None] | None = None,
 ) -> DecisionOutput:
-    """Where decisions go, opened: the supervisor's ``link`` if there is one, else CAN."""
+    """Where decisions go, opened: the supervisor's ``link`` if there is one (it also says
+    when the mower is lifted: ``on_lifted``), else CAN."""
     out: DecisionOutput = (
         CanLink(cfg, on_speed, recorder)
         if link is None
-        else link.output(cfg, on_speed, on_lost, recorder)
+        else link.output(cfg, on_speed, on_lost, recorder, on_lifted)
     )
     out.open()
     return out

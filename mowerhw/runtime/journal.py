@@ -20,6 +20,7 @@ from mowerhw.common.samples import ImuSample, SpeedSample
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import LawnMap, from_document
 from mowerhw.mow.gate import Decision
+from mowerhw.mow.relocalize import Relocalization
 from mowerhw.runtime.pipelines import StartPose
 
 
@@ -80,6 +81,18 @@ class JournalEncoder:
                 "descriptors": base64.b64encode(
                     b"".join(np.ascontiguousarray(d, np.uint8).tobytes() for d in v.descriptors)
                 ).decode(),
+                "relocalization": self._value(v.relocalization),
+            }
+        if isinstance(v, Relocalization):
+            return {
+                "ok": v.ok,
+                "r_wb": _floats(v.r_wb),
+                "p_wb": _floats(v.p_wb),
+                "inliers": [[int(r), int(i)] for r, i in v.inliers],
+                "runner_up": v.runner_up,
+                "hypotheses": v.hypotheses,
+                "ms": v.ms,
+                "why": v.why,
             }
         if isinstance(v, LawnMap):
             if v.checksum in self._maps:
@@ -138,6 +151,21 @@ class JournalDecoder:
             np.asarray(d["ages"], dtype=np.int64),
             float(d["ms"]),
             tuple(descs),
+            self.relocalization(d.get("relocalization")),
+        )
+
+    def relocalization(self, d: dict[str, Any] | None) -> Relocalization | None:
+        if d is None:
+            return None
+        return Relocalization(
+            bool(d["ok"]),
+            np.asarray(d["r_wb"], dtype=np.float64).reshape(3, 3),
+            np.asarray(d["p_wb"], dtype=np.float64).reshape(3),
+            [(int(r), int(i)) for r, i in d["inliers"]],
+            int(d["runner_up"]),
+            int(d["hypotheses"]),
+            float(d["ms"]),
+            str(d["why"]),
         )
 
     def lawn_map(self, d: dict[str, Any]) -> LawnMap:

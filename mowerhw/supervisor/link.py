@@ -51,6 +51,7 @@ class SupervisorLink:
         self._closed = False
         self._frames: CanFrames | None = None
         self._on_lost: Callable[[str], None] | None = None
+        self._on_lifted: Callable[[bool], None] | None = None
 
     def output(
         self,
@@ -58,12 +59,15 @@ class SupervisorLink:
         on_speed: Callable[[SpeedSample], None],
         on_lost: Callable[[str], None],
         recorder: Recorder | None,
+        on_lifted: Callable[[bool], None] | None = None,
     ) -> SupervisorLink:
         """Bind the daemon's callbacks (thread-safe ones: they run on this link's threads).
         The supervisor forwards every CAN frame it receives; they are recorded and their
-        ground speed decoded here, as a one-process daemon does."""
+        ground speed decoded here, as a one-process daemon does. ``on_lifted``: the
+        supervisor's safety functions say the mower is lifted (True) or not any more."""
         self._frames = CanFrames(cfg, on_speed, recorder)
         self._on_lost = on_lost
+        self._on_lifted = on_lifted
         return self
 
     # ------------------------------------------------------------------ DecisionOutput
@@ -149,6 +153,8 @@ class SupervisorLink:
                 self._frames.handle(*body)
             elif kind == "status":
                 self.supervisor_status = body
+            elif kind == "lifted" and self._on_lifted is not None:
+                self._on_lifted(bool(body))
             elif kind == "stop":
                 self._lost("the supervisor asked to stop")
                 return

@@ -135,6 +135,7 @@ class Supervisor:
         self._send_lock = threading.Lock()
         self._rx: threading.Thread | None = None
         self._next_status = 0.0
+        self._lifted_told = False  # what the estimation side was last told about a lift
         self._next_watchdog = 0.0
 
     # -------------------------------------------------------------------------- child
@@ -342,8 +343,13 @@ class Supervisor:
             pass  # a dead child: its sentinel says so
 
     def _decide(self, now: float) -> None:
-        d = self.gate.decide(now, self._own_halt(now))
+        own = self._own_halt(now)
+        d = self.gate.decide(now, own)
         self._send_frames(d, now)
+        lifted = own is not None and own[0] == Reason.LIFTED
+        if lifted != self._lifted_told:  # the localizer gives its pose up while lifted
+            self._lifted_told = lifted
+            self._to_child(("lifted", lifted))
         if now >= self._next_status:
             self._next_status = now + STATUS_PERIOD_S
             self._to_child(("status", self.status(now)))
