@@ -121,6 +121,13 @@ class GlobalRelocalizer:
         horizontal = np.hypot(d[..., 0], d[..., 1])
         self._elevation = np.arctan2(self.points[None, :, 2] - self.height, horizontal)
         self._in_range = horizontal <= max_range_m
+        # every (position, landmark) pair in range, sorted by elevation: an observation's
+        # compatible pairs are one slice (the vote costs what it counts, not P × N)
+        pi, ni = np.nonzero(self._in_range)
+        order = np.argsort(self._elevation[pi, ni], kind="stable")
+        self._pair_elevation = self._elevation[pi, ni][order]
+        self._pair_position = pi[order]
+        self._pair_azimuth = self._azimuth[pi, ni][order]
 
     # ---------------------------------------------------------------------------- search
 
@@ -128,13 +135,18 @@ class GlobalRelocalizer:
         """(P, bins) count of elevation-compatible (observation, landmark) pairs per heading."""
         p_n = self._azimuth.shape[0]
         votes = np.zeros(p_n * self.n_bins, dtype=np.int64)
-        for k in range(azimuth.size):  # one observation at a time: (P, N) each
-            ok = (np.abs(self._elevation - elevation[k]) < self.elevation_tol_rad) & self._in_range
-            pi, ni = np.nonzero(ok)
-            yaw = (self._azimuth[pi, ni] - azimuth[k]) % (2 * math.pi)
-            b = (yaw / self.yaw_bin).astype(np.int64) % self.n_bins
-            # one vote per observation per (position, bin)
-            np.add.at(votes, np.unique(pi * self.n_bins + b), 1)
+        tol = self.elevation_tol_rad
+        lo = np.searchsorted(self._pair_elevation, elevation - tol, side="right")
+        hi = np.searchsorted(self._pair_elevation, elevation + tol, side="left")
+        for k in range(azimuth.size):  # one observation at a time: its compatible pairs
+            a, b = int(lo[k]), int(hi[k])
+            if a >= b:
+                continue
+            yaw = (self._pair_azimuth[a:b] - azimuth[k]) % (2 * math.pi)
+            bins = (yaw / self.yaw_bin).astype(np.int64) % self.n_bins
+            # one vote per observation per (position, bin): a fancy-indexed += adds once
+            # per distinct index, however often it repeats (unlike np.add.at)
+            votes[self._pair_position[a:b] * self.n_bins + bins] += 1
         return votes.reshape(p_n, self.n_bins)
 
     def _hypotheses(self, votes: NDArray[np.int64]) -> list[tuple[float, float, float]]:
@@ -246,9 +258,11 @@ class GlobalRelocalizer:
         dyaw = np.arange(-self.POLISH_RAD, self.POLISH_RAD + 1e-9, self.POLISH_STEP_RAD)
         gx, gy, gyaw = np.meshgrid(state[0] + d, state[1] + d, state[2] + dyaw, indexing="ij")
         poses = np.column_stack([gx.ravel(), gy.ravel(), gyaw.ravel()])  # (K, 3)
+        # the landmarks the camera could see from there (a large map: most are too far)
+        reach = self.max_range_m + self.POLISH_M
+        pts = self.points[np.hypot(*(self.points[:, :2] - state[:2]).T) <= reach]
         rel = (
-            self.points[None, :, :]
-            - np.c_[poses[:, :2], np.full(len(poses), self.height)][:, None, :]
+            pts[None, :, :] - np.c_[poses[:, :2], np.full(len(poses), self.height)][:, None, :]
         )  # (K, N, 3) world
         c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
         body = np.stack(
