@@ -73,6 +73,7 @@ class MowOutcome:
     cov_xy_yaw: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     relocalizations: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     searching: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    details: NDArray[Any] = field(default_factory=lambda: np.zeros(0, object))  # why halted
 
 
 def run_mow(
@@ -133,6 +134,7 @@ def run_mow(
     state = np.zeros(n + 1, dtype=np.int8)
     sigma = np.zeros(n + 1)
     reason = np.empty(n + 1, dtype=object)
+    detail = np.empty(n + 1, dtype=object)
     cov3 = np.zeros((n + 1, 3, 3))
     relocalized = np.zeros(n + 1, np.int64)
     searching = np.zeros(n + 1, bool)
@@ -161,7 +163,8 @@ def run_mow(
             loc.lifted()  # as the runtime wires it
         if moves and plant.t >= moves[0].at_s and prev_permit and not plant.carried:
             move = replace(moves.pop(0), at_s=plant.t)  # mid-mow: while the deck runs
-            plant.carry(move.to_map_xy, move.to_heading, move.carry_s)
+            x, y, heading = move.destination((float(plant.map_xy[0]), float(plant.map_xy[1])))
+            plant.carry((x, y), heading, move.carry_s)
             kidnapped_at.append(plant.t)
             if (lift := move.lift()) is not None:
                 events.append(lift)
@@ -172,6 +175,7 @@ def run_mow(
         est[k, :3], est[k, 3:] = x, q
         permit[k], state[k], sigma[k] = deck, STATE_CODE[res.state], cont.sigma_m
         reason[k] = why
+        detail[k] = "" if deck or stop else f"{why}: {cont.detail}"
         cov3[k] = loc.pose().covariance[np.ix_([0, 1, 5], [0, 1, 5])]
         relocalized[k] = loc.counters.relocalizations
         searching[k] = loc.searching
@@ -255,6 +259,7 @@ def run_mow(
         cov3,
         relocalized,
         searching,
+        detail,
     )
 
 

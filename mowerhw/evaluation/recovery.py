@@ -8,8 +8,8 @@ front end, :class:`mowerhw.vision.MowVision`, the localizer, the gate, the safet
 * :func:`kidnap_runs` — the mower mows from the dock, is lifted mid-mow and carried 5–20 m
   to a random pose, and put down: the lift halts the deck, the localizer gives its pose up,
   searches, and mowing goes on only after an accepted relocalization. The walk is 5–20 m
-  long (its duration); where it ends is a random pose inside the lawn (the displacement,
-  reported, is what the lawn allows).
+  long (its duration); it ends at a random pose inside the lawn at least 4 m from where
+  it began where the lawn allows (the displacement is reported).
 
 Scored per run: when the pose was accepted and how far off it was then, permits while the
 pose was more than :data:`WRONG_M` off (the dangerous case), missed halts (permits truly
@@ -43,6 +43,8 @@ NEES_S = 10.0
 CARRY_MPS = 1.5  # walking with a mower in the arms
 MOW_BEFORE_S = 15.0  # mowing from the dock before the kidnap
 AFTER_S = 20.0  # simulated after the mower is put down
+#: put down at least this far from where it was picked up, where the lawn allows (m)
+MIN_DISPLACEMENT_M = 4.0
 
 
 def _pct(a: list[float], q: float) -> float | None:
@@ -209,11 +211,20 @@ def kidnap_runs(
     for i in range(runs):
         mow_seed = seed * 1000 + i
         # carried along a 5–20 m walk (its length sets the carry's duration) and put down
-        # at a random pose inside the lawn: the displacement is what the lawn allows
-        to = random_pose(lawn, rng)
+        # at a random pose inside the lawn at least MIN_DISPLACEMENT_M from the pick-up
+        options = [random_pose(lawn, rng) for _ in range(20)]
         walk = float(rng.uniform(5.0, 20.0))
         carry_s = walk / CARRY_MPS
-        kidnap = Kidnap(MOW_BEFORE_S, carry_s, (to[0], to[1]), to[2], lifted)
+        to = options[0]
+        kidnap = Kidnap(
+            MOW_BEFORE_S,
+            carry_s,
+            (to[0], to[1]),
+            to[2],
+            lifted,
+            tuple(options[1:]),
+            min(MIN_DISPLACEMENT_M, walk),
+        )
         out = run_mow(
             lawn_map,
             scenario,

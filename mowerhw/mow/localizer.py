@@ -303,6 +303,7 @@ class Localizer:
         now = accepted.compose(odometry_then.between(self._pose2d(self.ekf.snapshot_view())))
         z = float(answer.p_wb[2])
         self.search = None
+        self.t_fix = t  # the answer is a landmark fix
         self.counters.relocalizations += 1
         self.reinitialise(
             (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)), ACCEPT_SIGMA_M, ACCEPT_SIGMA_RAD
@@ -407,8 +408,10 @@ class Localizer:
         if self.calibrating and v != 0.0:
             self._end_calibration()
 
-    def bearings(self, t: float, ids: ArrayLike, unit_xyz: ArrayLike) -> None:
-        """Unit bearings (body frame) of map landmarks ``ids`` seen in the frame taken at ``t``."""
+    def bearings(self, t: float, ids: ArrayLike, unit_xyz: ArrayLike, refused: int = 0) -> None:
+        """Unit bearings (body frame) of map landmarks ``ids`` seen in the frame taken at ``t``;
+        ``refused``: landmarks the vision had matched but found in this frame far from where
+        this filter predicts them (they count as disagreeing with the pose)."""
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         u = np.asarray(unit_xyz, dtype=np.float64).reshape(-1, 3)
         if ids.size != u.shape[0]:
@@ -433,12 +436,12 @@ class Localizer:
             self.counters.frames_without_imu += 1
             return
         if t < self.t_imu - 1e-9:
-            self._late_frame(float(t), rows, u)
+            self._late_frame(float(t), rows, u, refused)
         else:
             if t > self.t_imu:  # a frame slightly ahead of the IMU: extrapolate to it
                 self._step(self.t_imu, float(t), self._w_last)
                 self.t_imu = float(t)
-            self._frame_update(float(t), rows, u)
+            self._frame_update(float(t), rows, u, refused)
         self._check_fault()
 
     # ------------------------------------------------------------------------- internals
@@ -517,7 +520,12 @@ class Localizer:
             pos_var += (self.GAP_POS_RATE * (t1 - t0)) ** 2
             yaw_var += (self.GAP_YAW_RATE * (t1 - t0)) ** 2
         lost = self.t_fix is not None and t1 - self.t_fix > self.cfg.lost_after_s
-        if lost and not self._lost_inflated:  # let re-identification look wider
+        if lost and self.relocalizes and self.search is None and not self._lost_inflated:
+            # nothing recognised for long: a wider prior would let re-identification pair
+            # features with the wrong landmarks; the relocalizer searches instead
+            self._lost_inflated = True  # once per episode without a fix
+            self.lose(f"since no landmark fix for {t1 - (self.t_fix or t1):.1f} s", near=True)
+        elif lost and not self._lost_inflated:  # let re-identification look wider
             pos_var += 0.5**2
             yaw_var += math.radians(15.0) ** 2
             self._lost_inflated = True
@@ -532,7 +540,9 @@ class Localizer:
         late frame's re-propagation applies it again)."""
         self.ekf.widen(*widen)
 
-    def _late_frame(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
+    def _late_frame(
+        self, t: float, rows: NDArray[np.int64], u: FloatArray, refused: int = 0
+    ) -> None:
         """Apply a frame at its own time and re-propagate the IMU samples since (exact)."""
         hist = self._history
         k = next((i for i in range(len(hist) - 1, -1, -1) if hist[i].t1 <= t), None)
@@ -546,7 +556,7 @@ class Localizer:
             nxt = after[0]
             self._propagate(hist[k].t1, t, nxt.gyro, nxt.speed)
         resets = self._resets
-        self._frame_update(t, rows, u)
+        self._frame_update(t, rows, u, refused)
         if self._resets != resets:  # the update re-initialised the filter at t: replay since
             for j, st in enumerate(after):
                 t0 = t if j == 0 and t > st.t0 else st.t0
@@ -565,7 +575,9 @@ class Localizer:
                 st.t0, st.t1, st.gyro, st.speed, self.ekf.snapshot(), st.held, st.widen
             )
 
-    def _frame_update(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
+    def _frame_update(
+        self, t: float, rows: NDArray[np.int64], u: FloatArray, refused: int = 0
+    ) -> None:
         c = self.cfg
         out = self.ekf.update(rows, self.landmarks[rows], u, c.bearing_sigma_rad)
         self.last_rejected = self.ids[rows[~out.accepted]]
@@ -575,12 +587,17 @@ class Localizer:
         # while the filter is sure of itself, many do (the others are then mistaken
         # associations, not a wrong pose: measured on the bench, a well-tracking filter locked
         # out at 3 mm error when re-identification offered more wrong pairs than right ones)
-        agree = out.used >= 0.5 * rows.size or (
-            out.used >= 2 * c.min_landmarks and self.sigma_xy() < self.CONFIDENT_SIGMA_M
+        # (``refused``: matched landmarks the vision found far from their prediction — tracks
+        # that were right and moved, as when the mower is carried: never outvoted)
+        agree = out.used >= 0.5 * (rows.size + refused) or (
+            out.used >= 2 * c.min_landmarks
+            and self.sigma_xy() < self.CONFIDENT_SIGMA_M
+            and refused < out.used
         )
         fix = out.used >= c.min_landmarks and agree
         if self.probation is not None:
-            self._check(t, out.nis, out.accepted, fix)
+            accepted = np.concatenate([out.accepted, np.zeros(refused, bool)])
+            self._check(t, out.nis, accepted, fix)
         if fix:
             self.counters.frames_with_fix += 1
             self._good_frames += 1
@@ -592,8 +609,26 @@ class Localizer:
             if self._fault and self._good_frames >= c.localized_after_frames:
                 self._fault = ""
             return
-        if rows.size >= c.min_landmarks:  # it sees landmarks but believes too few of them
+        if rows.size + refused >= c.min_landmarks:  # it sees landmarks, believes too few
             self._lockout(t, rows, u)
+        if not self.relocalizes or self.search is not None:
+            return
+        # with a relocalizer: the pose is given up at once when most of the landmarks the
+        # vision had matched jumped away from it (carried or pushed: a kidnap the lift switch
+        # missed), or when the landmarks have disagreed with it for SEARCH_AFTER_S; the
+        # relocalizer checks the pose where it is first, then everywhere
+        if refused >= c.min_landmarks and refused >= 0.5 * (rows.size + refused):
+            self.lose(
+                f"since {refused} of {rows.size + refused} landmarks in view jumped away from "
+                f"where the pose puts them (carried or pushed?)",
+                near=True,
+            )
+        elif self._lockout_since is not None and t - self._lockout_since >= self.SEARCH_AFTER_S:
+            self.lose(
+                f"since the landmarks in view disagreed with the pose for "
+                f"{t - self._lockout_since:.1f} s",
+                near=True,
+            )
 
     def _check(self, t: float, nis: FloatArray, accepted: NDArray[np.bool_], fix: bool) -> None:
         """One frame of the consistency check after a re-localization."""
@@ -633,13 +668,12 @@ class Localizer:
             self.counters.inflations += 1
             self._on_probation("lock-out")
         elif waited >= 2 * c.lockout_s:
-            if self.relocalizes:
-                self.lose(f"since a lock-out of {waited:.1f} s", near=True)
-            else:
-                self._refit(rows, u)
+            self._refit(rows, u)
 
     #: a lock-out this many times ``lockout_s`` long: the pose is given up and searched for
     SEARCH_AFTER_LOCKOUTS = 4
+    #: with a relocalizer, a lock-out this long (s) gives the pose up at once (kidnap)
+    SEARCH_AFTER_S = 1.0
 
     def _refit(self, rows: NDArray[np.int64], u: FloatArray) -> None:
         """Re-initialise from one frame: fit the pose to the bearings of known landmarks,

@@ -86,6 +86,19 @@ class Kidnap:
     to_map_xy: tuple[float, float]
     to_heading: float
     lifted: bool = True
+    #: other places to put it down, (x, y, heading): the first at least
+    #: ``min_displacement_m`` from where it was picked up is taken (else the farthest)
+    alternatives: tuple[tuple[float, float, float], ...] = ()
+    min_displacement_m: float = 0.0
+
+    def destination(self, from_map_xy: tuple[float, float]) -> tuple[float, float, float]:
+        """Where it is put down, picked up at ``from_map_xy``."""
+        options = [(*self.to_map_xy, self.to_heading), *self.alternatives]
+        away = [math.dist(o[:2], from_map_xy) for o in options]
+        for o, d in zip(options, away, strict=True):
+            if d >= self.min_displacement_m:
+                return o
+        return options[max(range(len(options)), key=away.__getitem__)]
 
     def lift(self) -> HandlingEvent | None:
         return HandlingEvent("lift", self.at_s, self.carry_s) if self.lifted else None

@@ -93,14 +93,14 @@ class MowVision(VisionBase):
             del self.landmark_of[tid]
             self._refusals.pop(tid, None)
         prediction = self._predict(t)
-        self._confirm(tracks, prediction)
+        refused = self._confirm(tracks, prediction)
         free = np.array([int(i) not in self.landmark_of for i in tracks.ids], dtype=bool)
         if free.any():
             self._associate(tracks, np.flatnonzero(free), prediction)
         rows = np.array([int(i) in self.landmark_of for i in tracks.ids], dtype=bool)
         tids = tracks.ids[rows]
         lm = np.array([self.landmark_of[int(i)] for i in tids], dtype=np.int64)
-        self.loc.bearings(t, lm, tracks.bearings[rows])
+        self.loc.bearings(t, lm, tracks.bearings[rows], refused=refused)
         self.stats.observations += int(lm.size)
         self.last_associated = (tids, lm, tracks.pixels[rows])
         self.last_bearings = tracks.bearings[rows]
@@ -120,28 +120,32 @@ class MowVision(VisionBase):
         cov = cov + (self.sigma_px_rad**2 - self.loc.cfg.bearing_sigma_rad**2) * np.eye(2)
         return ids, pred, cov
 
-    def _confirm(self, tracks: FrameTracks, prediction: tuple) -> None:
+    def _confirm(self, tracks: FrameTracks, prediction: tuple) -> int:
         """Every frame, each associated track must still be where its landmark is predicted
         (χ² gate at the front end's precision); one that is not (it slid off the corner, was
-        occluded and jumped) loses the landmark, and the pair is not tried again."""
+        occluded and jumped — or the mower was carried) loses the landmark, and the pair is
+        not tried again. How many lost theirs (the localizer counts them as disagreeing)."""
         if not self.landmark_of:
-            return
+            return 0
         ids, pred, cov = prediction
         row_of = {int(i): k for k, i in enumerate(ids.tolist())}
         ks = [k for k, tid in enumerate(tracks.ids.tolist()) if tid in self.landmark_of]
         if not ks:
-            return
+            return 0
         rows = np.array([row_of[self.landmark_of[int(tracks.ids[k])]] for k in ks])
         b = tracks.bearings[ks]
         basis = tangent_basis(pred[rows])
         r = np.einsum("nk,nkj->nj", b - pred[rows], basis)
         d2 = np.einsum("ni,nij,nj->n", r, np.linalg.inv(cov[rows]), r)
+        refused = 0
         for k, dist2 in zip(ks, d2.tolist(), strict=True):
             if not dist2 <= self.gate:
                 tid = int(tracks.ids[k])
                 self._banned[(tid, self.landmark_of.pop(tid))] = tracks.t
                 self._refusals.pop(tid, None)
                 self.stats.dropped_associations += 1
+                refused += 1
+        return refused
 
     def _associate(self, tracks: FrameTracks, free: NDArray[np.int64], prediction: tuple) -> None:
         ids, pred, cov = prediction
