@@ -21,7 +21,7 @@ from typing import Any
 from mowerhw.config import Config
 from mowerhw.evaluation.pixel import run_teach_pixel
 from mowerhw.evaluation.recovery import kidnap_runs, start_runs
-from mowerhw.map import LawnMap
+from mowerhw.evaluation.teach import sim_map
 from mowerhw.map import load as load_map
 
 
@@ -51,7 +51,8 @@ def main() -> None:
         taught = run_teach_pixel(args.scenario, args.seed, cfg)
         if taught.result is None:
             raise SystemExit(f"teach failed: {taught.error}")
-        lawn_map = LawnMap.from_teach_result(taught.result)
+        # with the landmarks' true positions (the NEES in the map's frame)
+        lawn_map = sim_map(taught.result, args.scenario, args.seed, "pixel", taught.landmark_truth)
         if args.save_map:
             lawn_map.save(args.save_map)
     out: dict[str, Any] = {"scenario": args.scenario, "seed": args.seed}

@@ -21,6 +21,19 @@ Around the world-centric EKF (:mod:`mowerhw.mow.ekf`):
   and ignored.
 * **Faults**: a non-finite state restarts the filter at its last good pose with a wide
   uncertainty; containment reports FAULT until it is localized again.
+* **Losing the pose and finding it again** (issue 18, with a relocalizer: pixel level, where
+  :class:`mowerhw.vision.MowVision` calls :meth:`Localizer.use_relocalizer`): every pose the
+  filter starts from (the dock, a given or resumed pose) is first *checked* by the
+  relocalizer near it; the pose is *given up* (:meth:`Localizer.lose`: halt at once) when the
+  mower is lifted (:meth:`Localizer.lifted`), when most matched landmarks jump away from
+  their predictions (carried or pushed), after a lock-out of ``SEARCH_AFTER_S`` or no fix for
+  ``lost_after_s``; a search near the prior becomes global after 3 s. An answer is accepted
+  when two frames agree through the odometry between them
+  (:class:`mowerhw.mow.recovery.RelocalizationSearch`).
+* **Consistency check**: after every re-localization (accepted search, resume, refit,
+  lock-out, fault restart) the filter is on probation until enough consecutive frames are
+  consistent (:class:`mowerhw.mow.recovery.Probation`); one that cannot show it in 10 s is
+  given up and searched for.
 * **Containment**: UNKNOWN unless localized, all sensors fresh, the last landmark fix no older
   than ``mow.max_dead_reckoning_s``, and σ ≤ ``containment.sigma_max_m``; otherwise the table
   of :mod:`mowerhw.mow.containment`. The dead-reckoning limit is what halts first when the

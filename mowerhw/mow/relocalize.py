@@ -27,7 +27,10 @@ the *geometry*: where, around the mower and how high, the landmarks appear. So:
    inliers (a look-alike place), and no refined optimum more than 0.15 m away scores 90 % as
    well (not pinned down). Otherwise no answer, with the reason.
 
-Whether to *trust* an answer (the same pose from more than one frame) is the caller's.
+With a prior (``locate(bearings, near=(x, y, heading))``: the dock, a resumed pose, the pose
+before a lock-out) the grid vote is skipped and the refinement starts at the prior; the rest
+is the same. Whether to *trust* an answer (the same pose from more than one frame, through
+the odometry) is the caller's: :class:`mowerhw.mow.recovery.RelocalizationSearch`.
 """
 
 from __future__ import annotations
