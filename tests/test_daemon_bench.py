@@ -123,3 +123,15 @@ def test_recorded_run_replays_deterministically(yard_map, tmp_path) -> None:
     assert outs[0]["localizer"]["frames_with_fix"] > 0.5 * outs[0]["localizer"]["frames"]
     assert outs[0]["permit_fraction"] > 0.3
     print(outs[0]["speed_x_real_time"], outs[0]["permit_fraction"])
+
+
+def test_started_anywhere_with_no_pose_file_it_localizes_and_mows(yard_map, tmp_path) -> None:
+    """``mowerhw bench --start random``: the daemon is stopped, its pose file deleted, the
+    mower carried to a random pose inside the lawn; started again, the daemon checks the
+    dock pose, finds it wrong, searches the whole map, and mows (issue 18)."""
+    res = Bench(duration_s=25.0, seed=7, out_dir=tmp_path, map_path=yard_map, start="random").run()
+    assert res["start"]["pose_file"] == "deleted"
+    assert res["missed_halts"] == 0
+    assert res["relocalization"]["relocalizations"] >= 1
+    assert res["permit_fraction"] > 0.3, res["halts_by_reason"]
+    assert res["position_rmse_m"] < 0.05

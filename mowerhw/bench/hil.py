@@ -578,6 +578,10 @@ class Bench:
             sorted(_count(d["reason"] for d in latencies).items())  # type: ignore[arg-type]
         )
         metrics["daemon_counts"] = st.get("counts", {})
+        loc = st.get("localizer") or {}
+        metrics["relocalization"] = {  # issue 18: searches for the pose and their checks
+            k: loc.get(k) for k in ("searches", "relocalizations", "checks_passed", "checks_failed")
+        }
         metrics["daemon_restarts"] = self.restarts
         if self.rss_samples:
             metrics["rss_mb"] = {

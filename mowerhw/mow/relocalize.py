@@ -24,8 +24,10 @@ the *geometry*: where, around the mower and how high, the landmarks appear. So:
    the one with the best sharp soft score (σ 0.4°) is kept (:meth:`GlobalRelocalizer._polish`).
 4. **Unique or nothing** — an answer only with at least :attr:`min_inliers` inliers spread
    around the mower, if no place more than 1 m or 15° away has :attr:`ambiguity_ratio` of its
-   inliers (a look-alike place), and no refined optimum more than 0.15 m away scores 90 % as
-   well (not pinned down). Otherwise no answer, with the reason.
+   inliers unless it has :attr:`ambiguity_margin` fewer (a look-alike place: in a symmetric
+   garden the twin place explains every look-alike landmark, and only the others tell the
+   two apart), and no refined optimum more than 0.15 m away scores 90 % as well (not pinned
+   down). Otherwise no answer, with the reason.
 
 With a prior (``locate(bearings, near=(x, y, heading))``: the dock, a resumed pose, the pose
 before a lock-out) the grid vote is skipped and the refinement starts at the prior; the rest
@@ -96,6 +98,7 @@ class GlobalRelocalizer:
         inlier_angle_rad: float = math.radians(1.0),
         min_inliers: int = 8,
         ambiguity_ratio: float = 0.7,
+        ambiguity_margin: int = 6,
         max_range_m: float = 30.0,
         hypotheses: int = 8,
     ) -> None:
@@ -109,6 +112,7 @@ class GlobalRelocalizer:
         self.inlier_angle_rad = inlier_angle_rad
         self.min_inliers = min_inliers
         self.ambiguity_ratio = ambiguity_ratio
+        self.ambiguity_margin = ambiguity_margin
         self.max_range_m = max_range_m
         self.n_hypotheses = hypotheses
         self.height = float(lawn_map.dock_position[2])
@@ -356,7 +360,7 @@ class GlobalRelocalizer:
                 runner = max(runner, n)
         if n_best < self.min_inliers:
             return done(f"{n_best} inliers (need {self.min_inliers})", len(hyps))
-        if runner > self.ambiguity_ratio * n_best:
+        if runner > self.ambiguity_ratio * n_best and n_best - runner < self.ambiguity_margin:
             return done(f"ambiguous: {n_best} inliers here, {runner} at another place", len(hyps))
         if rival > self.LOCAL_AMBIGUITY_RATIO:
             return done(
