@@ -282,6 +282,9 @@ def kidnap_runs(
         moved = float(np.hypot(*(out.true_xy[down] - out.true_xy[at])))
         halted = np.flatnonzero(~out.permit[at:])
         reloc = np.flatnonzero(out.relocalizations[down:] > out.relocalizations[at])
+        first_reloc = np.flatnonzero(out.relocalizations[at:] > out.relocalizations[at])
+        after = at + int(first_reloc[0]) if first_reloc.size else out.t.size
+        stop = at + int(halted[0]) if halted.size else out.t.size
         permit_after = np.flatnonzero(out.permit[down:])
         run: dict[str, Any] = {
             "walk_m": round(walk, 2),
@@ -294,7 +297,14 @@ def kidnap_runs(
                 round(float(permit_after[0]) * dt, 2) if permit_after.size else None
             ),
             "permits_during_carry": int(out.permit[at + 1 : down].sum()),
-            "permits_wrong_after": int(np.sum(out.permit[at:] & (err[at:] > WRONG_M))),
+            # before the halt: the deck ran on while the kidnap was not yet seen
+            "permits_before_halt_over_0.15m": int(
+                np.sum(out.permit[at:stop] & (err[at:stop] > WRONG_M))
+            ),
+            # after a relocalization: the deck ran on a wrong pose (the dangerous case)
+            "permits_wrong_after_relocalization": int(
+                np.sum(out.permit[after:] & (err[after:] > WRONG_M))
+            ),
             "missed_halts": out.metrics["missed_halts"],
             "searches": out.metrics["localizer"]["searches"],
         }
@@ -318,7 +328,12 @@ def kidnap_runs(
         "time_to_relocalize_s": {"median": _pct(relocs, 50), "p95": _pct(relocs, 95)},
         "missed_halts": sum(r["missed_halts"] for r in done),
         "permits_during_carry": sum(r["permits_during_carry"] for r in done),
-        "wrong_relocalizations_permitted": sum(1 for r in done if r["permits_wrong_after"]),
+        "permit_samples_before_halt_over_0.15m": sum(
+            r["permits_before_halt_over_0.15m"] for r in done
+        ),
+        "wrong_relocalizations_permitted": sum(
+            1 for r in done if r["permits_wrong_after_relocalization"]
+        ),
         "nees": nees_summary(series, dt),
         "nees_in_map_frame": nees_summary(aligned, dt) if align is not None else None,
         "per_run": out_runs,

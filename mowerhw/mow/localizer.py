@@ -244,7 +244,7 @@ class Localizer:
             self._standstill = StandstillCalibrator()
         self.require_frames(frames_needed)
         if self.relocalizes:
-            self.lose("to check the resumed pose against the landmarks", near=True)
+            self.lose("to check the resumed pose against the landmarks", near=True, prior=True)
         else:
             self._on_probation("resume")
 
@@ -260,7 +260,7 @@ class Localizer:
         it (:meth:`lose` with ``near``), and a lock-out searches instead of refitting."""
         self.relocalizes = True
         if self.search is None:
-            self.lose("to check the start pose against the landmarks", near=True)
+            self.lose("to check the start pose against the landmarks", near=True, prior=True)
 
     LIFTED = "since it was lifted"
 
@@ -276,12 +276,14 @@ class Localizer:
             return
         self.lose(self.LIFTED)
 
-    def lose(self, why: str, near: bool = False) -> None:
+    def lose(self, why: str, near: bool = False, prior: bool = False) -> None:
         """Give the pose up (no prior at start, lifted, carried, a re-localization that did
         not check out): halt at once, and search for the pose with the global relocalizer's
         answers (:meth:`relocalization`). ``why`` completes "searching for the pose …";
-        ``near``: first around the filter's own pose (a prior worth checking)."""
-        self.search = RelocalizationSearch(why, self.t_imu, near)
+        ``near``: first around the filter's own pose; ``prior``: that pose is a start pose
+        being checked (no sign of trouble: it needs only the frames a start needs — after a
+        kidnap or a lock-out, an answer needs the frames of a global relocalization)."""
+        self.search = RelocalizationSearch(why, self.t_imu, near, prior)
         self.probation = None
         self._good_frames = 0
         self._lockout_since = self._episode_since = None
@@ -321,7 +323,7 @@ class Localizer:
         self.reinitialise(
             (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)), ACCEPT_SIGMA_M, ACCEPT_SIGMA_RAD
         )
-        if search.near:  # the prior confirmed: as many frames as it would have needed
+        if search.near and search.checks_prior:  # a start pose confirmed: as it would be
             self.require_frames(self._frames_needed, "since the prior pose was confirmed")
         else:
             self.require_frames(self.AFTER_RELOCALIZATION_FRAMES, "since a global relocalization")

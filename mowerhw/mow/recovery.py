@@ -29,8 +29,8 @@ from mowerhw.mow.relocalize import Relocalization
 FloatArray = NDArray[np.float64]
 
 #: two answers agree when the second is this close to the first moved by the odometry
-AGREE_M = 0.10
-AGREE_RAD = math.radians(3.0)
+AGREE_M = 0.05
+AGREE_RAD = math.radians(2.0)
 #: plus this share of the distance driven between them (odometry scale error)
 AGREE_PER_M = 0.05
 #: an answer older than this is not paired with a new one (s)
@@ -94,11 +94,15 @@ class _Answer:
 class RelocalizationSearch:
     """Pairs relocalizer answers through the odometry (module doc)."""
 
-    def __init__(self, why: str, t: float | None, near: bool = False) -> None:
+    def __init__(
+        self, why: str, t: float | None, near: bool = False, checks_prior: bool = False
+    ) -> None:
         self.why = why
         self.since = t
         #: check the filter's own pose first (a prior: the dock, a resumed pose, a lock-out)
         self.near = near
+        #: the pose checked is a start pose (no sign that anything went wrong)
+        self.checks_prior = checks_prior
         self.answers = 0
         self.frames = 0
         self.last_why = "no frame searched yet"
@@ -139,7 +143,7 @@ class RelocalizationSearch:
         a global one (True when it just did)."""
         if not self.near or self.since is None or t - self.since < LOCAL_S:
             return False
-        self.near = False
+        self.near = self.checks_prior = False
         self._last = None
         self.why += f"; the pose near the prior was not confirmed in {LOCAL_S:.0f} s"
         return True
