@@ -29,6 +29,7 @@ import numpy as np
 import shapely
 
 from mowerhw.common.geometry import yaw_rotation
+from mowerhw.evaluation.recovery import random_pose
 from mowerhw.map import Landmark, LawnMap
 from mowerhw.mow.relocalize import GlobalRelocalizer
 from mowerhw.sim.lawn import random_lawn
@@ -79,11 +80,7 @@ def main() -> None:
         pos_bytes = len(json.dumps([{**e, "descriptor": None} for e in entries], indent=1))
         g_ms, n_ms, good, wrong = [], [], 0, 0
         for _ in range(args.frames):
-            while True:
-                x, y = rng.uniform(inside.bounds[:2], inside.bounds[2:])
-                if inside.contains(shapely.Point(x, y)):
-                    break
-            yaw = float(rng.uniform(-math.pi, math.pi))
+            x, y, yaw = random_pose(inside, rng)
             p = np.array([x, y, 0.0])
             obs = _view(lawn_map, p, yaw, rng)
             res = reloc.locate(obs)

@@ -27,6 +27,7 @@ import shapely
 
 from mowerhw.config import Config
 from mowerhw.evaluation.pixel import run_teach_pixel
+from mowerhw.evaluation.recovery import random_pose
 from mowerhw.frontend.tracker import FrontEnd
 from mowerhw.map import LawnMap
 from mowerhw.mow.relocalize import GlobalRelocalizer
@@ -65,11 +66,7 @@ def main() -> None:
     frames = max(2, round(args.seconds / FRAME_S))
     runs, single_err, frame_ms, single_ok, single_n = [], [], [], 0, 0
     for i in range(args.starts):
-        while True:
-            x, y = rng.uniform(lawn.bounds[:2], lawn.bounds[2:])
-            if lawn.contains(shapely.Point(x, y)):
-                break
-        psi = float(rng.uniform(-math.pi, math.pi))
+        x, y, psi = random_pose(lawn, rng)
         cam_m, r_mb = pose_on_ground(
             world.terrain, np.array([[x, y]]), np.array([psi]), world.scenario.camera_height_m
         )

@@ -349,15 +349,11 @@ class Bench:
         daemon starts again: nothing tells it where the mower is."""
         self._stop_daemon()
         Path(cfg.runtime.pose_file).unlink(missing_ok=True)
+        from mowerhw.evaluation.recovery import random_pose
+
         lawn = shapely.Polygon(world.lawn.outline(720)).buffer(-0.5)
-        rng = np.random.default_rng([self.seed, 18])
-        minx, miny, maxx, maxy = lawn.bounds
-        while True:
-            x, y = rng.uniform(minx, maxx), rng.uniform(miny, maxy)
-            if lawn.contains(shapely.Point(x, y)):
-                break
-        heading = float(rng.uniform(-math.pi, math.pi))
-        xy, yaw = self.mower.place_on_map(float(x), float(y), heading)
+        x, y, heading = random_pose(lawn, np.random.default_rng([self.seed, 18]))
+        xy, yaw = self.mower.place_on_map(x, y, heading)
         self._spawn("idle")
         return {
             "kind": "random",

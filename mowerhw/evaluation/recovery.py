@@ -123,6 +123,30 @@ def _nees(out: MowOutcome, align: Alignment | None = None) -> list[FloatArray]:
     return series
 
 
+class _NeesLog:
+    """The NEES series of every run, against the truth and in the map's frame."""
+
+    def __init__(self, lawn_map: LawnMap) -> None:
+        self.align = map_alignment(lawn_map)
+        self.series: list[FloatArray] = []
+        self.aligned: list[FloatArray] = []
+        self.dt = 0.01
+
+    def add(self, out: MowOutcome) -> None:
+        self.dt = float(out.t[1] - out.t[0])
+        self.series += _nees(out)
+        if self.align is not None:
+            self.aligned += _nees(out, self.align)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "nees": nees_summary(self.series, self.dt),
+            "nees_in_map_frame": (
+                nees_summary(self.aligned, self.dt) if self.align is not None else None
+            ),
+        }
+
+
 def nees_summary(series: list[FloatArray], dt: float) -> dict[str, Any]:
     """Average NEES over the runs in 0.5 s bins after acceptance, against the two-sided 95 %
     χ² bounds of an average of M three-dimensional NEES."""
@@ -163,8 +187,8 @@ def start_runs(
     """``starts`` random starts with no prior (module doc)."""
     lawn = _inside(scenario, seed, 0.3)
     rng = np.random.default_rng([seed, 18, 1])
-    align = map_alignment(lawn_map)
-    runs, series, aligned, dt = [], [], [], 0.01
+    nees = _NeesLog(lawn_map)
+    runs = []
     for i in range(starts):
         pose = random_pose(lawn, rng)
         out = run_mow(
@@ -178,7 +202,6 @@ def start_runs(
             start=pose,
             no_prior=True,
         )
-        dt = float(out.t[1] - out.t[0])
         err, yaw_err = _errors(out)
         acc = np.flatnonzero(out.relocalizations > 0)
         first_permit = np.flatnonzero(out.permit)
@@ -196,9 +219,7 @@ def start_runs(
             "relocalizations": int(out.relocalizations[-1]),
         }
         runs.append(run)
-        series += _nees(out)
-        if align is not None:
-            aligned += _nees(out, align)
+        nees.add(out)
         if progress is not None:
             progress(i, run)
     ok = [
@@ -223,8 +244,7 @@ def start_runs(
         "time_to_relocalize_s": {"median": _pct(times, 50), "p95": _pct(times, 95)},
         "permit_samples_while_wrong_over_0.15m": sum(r["permits_wrong"] for r in runs),
         "missed_halts": sum(r["missed_halts"] for r in runs),
-        "nees": nees_summary(series, dt),
-        "nees_in_map_frame": nees_summary(aligned, dt) if align is not None else None,
+        **nees.summary(),
         "runs": runs,
     }
 
@@ -242,8 +262,8 @@ def kidnap_runs(
     random pose inside the lawn (module doc)."""
     lawn = _inside(scenario, seed, 0.5)
     rng = np.random.default_rng([seed, 18, 2])
-    align = map_alignment(lawn_map)
-    out_runs, series, aligned, dt = [], [], [], 0.01
+    nees = _NeesLog(lawn_map)
+    out_runs = []
     for i in range(runs):
         mow_seed = seed * 1000 + i
         # carried along a 5–20 m walk (its length sets the carry's duration) and put down
@@ -309,9 +329,7 @@ def kidnap_runs(
             "searches": out.metrics["localizer"]["searches"],
         }
         out_runs.append(run)
-        series += _nees(out)
-        if align is not None:
-            aligned += _nees(out, align)
+        nees.add(out)
         if progress is not None:
             progress(i, run)
     done = [r for r in out_runs if r.get("kidnapped", True)]
@@ -334,7 +352,6 @@ def kidnap_runs(
         "wrong_relocalizations_permitted": sum(
             1 for r in done if r["permits_wrong_after_relocalization"]
         ),
-        "nees": nees_summary(series, dt),
-        "nees_in_map_frame": nees_summary(aligned, dt) if align is not None else None,
+        **nees.summary(),
         "per_run": out_runs,
     }
