@@ -122,7 +122,7 @@ def test_a_wrong_relocalization_never_permits() -> None:
         assert loc.counters.relocalizations == 1 and not any(wrong_permits)
         if not mixed_up:
             assert loc.counters.checks_passed == 1 and loc.localized
-            assert np.linalg.norm(loc.pose().position[:2] - truth[:2]) < 0.02
+            assert np.linalg.norm(loc.pose().position[:2] - truth[:2]) < 0.05
         else:
             assert loc.counters.checks_failed == 1 and loc.searching
             assert "did not check out" in loc.containment().detail

@@ -37,9 +37,10 @@ AGREE_PER_M = 0.05
 PAIR_S = 3.0
 #: a search near a prior becomes global after this long without an accepted answer (s)
 LOCAL_S = 3.0
-#: σ of an accepted global pose (measured: single-frame answers 1–3 cm, < 1° off)
-ACCEPT_SIGMA_M = 0.05
-ACCEPT_SIGMA_RAD = math.radians(2.0)
+#: σ of an accepted pose (measured: answers 1–3 cm and < 0.3° off; a wider prior let the
+#: first association after it pair wrong corners, 2–3 cm of bias at σ 1 cm)
+ACCEPT_SIGMA_M = 0.03
+ACCEPT_SIGMA_RAD = math.radians(0.5)
 
 #: χ²₂ median ≈ 1.386; a consistent frame's median NIS stays below three times that
 MEDIAN_NIS_MAX = 3.0 * 1.386
