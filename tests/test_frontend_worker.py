@@ -40,8 +40,8 @@ def test_the_worker_process_tracks_as_the_thread_does():
 def test_the_worker_relocalizes_a_frame_when_asked() -> None:
     """A mow chain's search runs where the tracking runs: the worker builds the relocalizer
     from the map it is given and answers for the frames that ask (issue 18)."""
+    from mowerhw.common.relocalization import SearchRequest
     from mowerhw.map import Landmark, LawnMap
-    from mowerhw.mow.relocalize import SearchRequest
 
     world = make_world("paper", 3)
     renderer = OmniRenderer(world, 3)

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from mowerhw.camera import load_camchain
+from mowerhw.common.relocalization import Relocalization
 from mowerhw.common.samples import ImuSample, SpeedSample
 from mowerhw.config import default_config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import Landmark, LawnMap
-from mowerhw.mow.relocalize import Relocalization
 from mowerhw.recording.replay import replay_journal
 from mowerhw.runtime.core import RuntimeCore
 from mowerhw.runtime.journal import JournalDecoder, JournalEncoder

@@ -52,12 +52,17 @@ class CameraSource(ThreadedDevice, ABC):
 
 
 def asyncio_sink(
-    loop: asyncio.AbstractEventLoop, queue: asyncio.Queue[Any]
+    loop: asyncio.AbstractEventLoop,
+    queue: asyncio.Queue[Any],
+    arrived: Callable[[Any], None] | None = None,
 ) -> Callable[[Any], None]:
     """A callback for a reader thread that puts items on an asyncio queue, thread-safely,
-    dropping the oldest item when the queue is full (the newest frame matters most)."""
+    dropping the oldest item when the queue is full (the newest frame matters most);
+    ``arrived`` is told of every item on the loop first, dropped ones too."""
 
     def put(item: Any) -> None:
+        if arrived is not None:
+            arrived(item)
         if queue.full():
             with contextlib.suppress(asyncio.QueueEmpty):
                 queue.get_nowait()

@@ -30,7 +30,6 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -38,12 +37,10 @@ from numpy.typing import NDArray
 
 from mowerhw.camera import OmniRadtanCamera
 from mowerhw.common.geometry import quat_to_rotmat
+from mowerhw.common.relocalization import Relocalization
 from mowerhw.config import FrontendConfig
 from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, OrbDescriber, hamming
 from mowerhw.frontend.epipolar import epipolar_inliers
-
-if TYPE_CHECKING:  # the answer's type only: tracking never relocalizes
-    from mowerhw.mow.relocalize import Relocalization
 
 FloatArray = NDArray[np.float64]
 

@@ -55,6 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mowerhw.common.geometry import quat_to_yaw, rotmat_to_quat, yaw_rotation, yaw_to_quat
+from mowerhw.common.relocalization import Relocalization
 from mowerhw.config import Config, ContainmentConfig, MowConfig, stale_limits_s, with_imu_noise
 from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.estimation.posefit import fit_pose_to_bearings
@@ -75,7 +76,6 @@ from mowerhw.mow.recovery import (
     Probation,
     RelocalizationSearch,
 )
-from mowerhw.mow.relocalize import Relocalization
 
 FloatArray = NDArray[np.float64]
 
@@ -109,7 +109,7 @@ class LocalizerCounters:
     frames_without_imu: int = 0  # frames refused: no IMU sample near their time
     imu_gaps: int = 0  # IMU intervals longer than GAP_S (propagated in sub-steps)
     searches: int = 0  # times the pose was given up and searched for (no prior, kidnap, …)
-    relocalizations: int = 0  # global relocalizations accepted
+    relocalizations: int = 0  # searches that ended in an accepted pose (near a prior or global)
     checks_passed: int = 0  # re-localizations that passed the consistency check
     checks_failed: int = 0  # … that did not (the pose was searched for again)
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mowerhw.mow.relocalize import Relocalization
+from mowerhw.common.relocalization import Relocalization
 
 FloatArray = NDArray[np.float64]
 

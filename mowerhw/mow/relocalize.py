@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
@@ -47,6 +46,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from mowerhw.common.geometry import yaw_rotation
+from mowerhw.common.relocalization import Relocalization
 from mowerhw.map import LawnMap
 
 FloatArray = NDArray[np.float64]
@@ -54,32 +54,6 @@ FloatArray = NDArray[np.float64]
 MIN_AZIMUTH_SPREAD_RAD = math.radians(90.0)
 DISTINCT_M = 1.0
 DISTINCT_RAD = math.radians(15.0)
-
-
-@dataclass(frozen=True)
-class Relocalization:
-    """One frame's answer: ``r_wb``, ``p_wb`` (body in the map's world frame), the inlier
-    pairs (observation row, map landmark id) and the runner-up's inliers, or why none."""
-
-    ok: bool
-    r_wb: FloatArray = field(default_factory=lambda: np.eye(3))
-    p_wb: FloatArray = field(default_factory=lambda: np.zeros(3))
-    inliers: list[tuple[int, int]] = field(default_factory=list)
-    runner_up: int = 0
-    hypotheses: int = 0
-    ms: float = 0.0
-    why: str = ""
-
-    @property
-    def yaw(self) -> float:
-        return math.atan2(self.r_wb[1, 0], self.r_wb[0, 0])
-
-
-@dataclass(frozen=True)
-class SearchRequest:
-    """A frame to relocalize from: around ``near`` (x, y, heading), or everywhere (None)."""
-
-    near: tuple[float, float, float] | None = None
 
 
 def _wrap(a: FloatArray | float) -> FloatArray | float:

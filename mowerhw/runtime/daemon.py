@@ -131,7 +131,10 @@ class Daemon:
             self.recorder,
             loop,
         )
-        self.camera = open_camera(self.cfg, asyncio_sink(loop, self._frames))
+        # the camera is alive when its frames arrive, whatever the front end does with them
+        # (a frame searched for the pose can take a second there)
+        arrived = crash_only(self._on_frame, "camera frame", self._handler_failed)
+        self.camera = open_camera(self.cfg, asyncio_sink(loop, self._frames, arrived))
         await self.set_mode(self.start_mode)
         tasks = [self._spawn(self._ticker(), "ticker"), self._spawn(self._frame_task(), "frontend")]
         self.notifier.ready(self.core.status_line())
@@ -201,6 +204,9 @@ class Daemon:
         now = time.monotonic()
         self._send(self.core.imu(s, now), time.monotonic())
 
+    def _on_frame(self, _frame: FrameSample) -> None:
+        self.core.camera_frame(time.monotonic())
+
     def _on_speed(self, s: SpeedSample) -> None:
         self.core.speed(s)
 
@@ -209,7 +215,6 @@ class Daemon:
         loop = asyncio.get_running_loop()
         while True:
             frame = await self._frames.get()
-            self.core.camera_frame(time.monotonic())
             if self.recorder is not None:
                 self.recorder.frame(time.monotonic_ns(), frame.t, frame.sequence, frame.image)
             target = self.core.frame_pipeline()

@@ -25,9 +25,9 @@ from typing import IO, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mowerhw.common.relocalization import SearchRequest
 from mowerhw.common.samples import FrameSample
 from mowerhw.frontend import FrameTracks
-from mowerhw.mow.relocalize import SearchRequest
 from mowerhw.runtime.process import die_with_parent
 from mowerhw.vision.base import VisionBase
 

@@ -16,11 +16,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from mowerhw.common.relocalization import Relocalization
 from mowerhw.common.samples import ImuSample, SpeedSample
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import LawnMap, from_document
 from mowerhw.mow.gate import Decision
-from mowerhw.mow.relocalize import Relocalization
 from mowerhw.runtime.pipelines import StartPose
 
 

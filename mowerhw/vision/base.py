@@ -12,10 +12,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from mowerhw.camera import CameraModel
 from mowerhw.common.geometry import quat_to_rotmat
+from mowerhw.common.relocalization import SearchRequest
 from mowerhw.config import FrontendConfig
 from mowerhw.frontend import FrameTracks, FrontEnd, RotationHistory
 from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, hamming
-from mowerhw.mow.relocalize import SearchRequest
 
 FloatArray = NDArray[np.float64]
 #: radians per pixel of the omni camera near the horizon (Table I: ~470 px/rad there)

@@ -11,12 +11,13 @@ from scipy.stats import chi2
 
 from mowerhw.camera import CameraModel
 from mowerhw.common.geometry import tangent_basis
+from mowerhw.common.relocalization import SearchRequest
 from mowerhw.config import FrontendConfig
 from mowerhw.frontend import FrameTracks
 from mowerhw.frontend.association import Candidates, associate
 from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, stack_sets
 from mowerhw.mow.localizer import Localizer
-from mowerhw.mow.relocalize import GlobalRelocalizer, SearchRequest
+from mowerhw.mow.relocalize import GlobalRelocalizer
 from mowerhw.vision.base import BAN_S, RAD_PER_PX, VisionBase
 
 FloatArray = NDArray[np.float64]
