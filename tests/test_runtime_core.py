@@ -18,7 +18,7 @@ from mowerhw.map import Landmark, LawnMap
 from mowerhw.recording.replay import replay_journal
 from mowerhw.runtime.core import RuntimeCore
 from mowerhw.runtime.journal import JournalDecoder, JournalEncoder
-from mowerhw.runtime.pipelines import BuildRequest, build_pipeline
+from mowerhw.runtime.pipelines import BuildRequest, MowPipeline, build_pipeline
 
 
 def _map() -> LawnMap:
@@ -232,3 +232,26 @@ def test_teach_marks_are_taken_while_recording_and_journalled(camera: Any) -> No
     ]
     marks = [r for r in journal.records if r["kind"] == "teach_mark"]
     assert [(r["mark"], r["name"]) for r in marks][-2:] == [("area", "front"), ("dock", "")]
+
+
+def test_the_log_says_when_the_pose_is_given_up_and_found(camera: Any) -> None:
+    """A mow chain tells the log, once each, that it searches for its pose (here: the check
+    of the start pose every pixel-level start makes), that it gave it up and why, and that
+    it found it again (issue 18)."""
+    from mowerhw.common.geometry import yaw_rotation
+    from mowerhw.common.relocalization import Relocalization
+
+    pipe = build_pipeline(default_config(), camera, BuildRequest(1, "mow", _map()))
+    assert isinstance(pipe, MowPipeline)
+    first = pipe.news()
+    assert len(first) == 1 and "check the start pose" in first[0]
+    assert pipe.news() == []
+    loc = pipe.localizer
+    loc.lose("since a test")
+    assert any("since a test" in line for line in pipe.news())
+    loc.imu(0.0, np.zeros(3))
+    for t in (0.25, 0.5):
+        loc.imu(t, np.zeros(3))
+        loc.relocalization(t, Relocalization(True, yaw_rotation(0.3), np.array([1.0, 2.0, 0.0])))
+    found = pipe.news()
+    assert len(found) == 1 and found[0].startswith("pose found: x 1.00 m, y 2.00 m")

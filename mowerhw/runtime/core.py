@@ -201,6 +201,9 @@ class RuntimeCore:
                 self._inject = ""
                 raise RuntimeError("injected estimator exception (fault injection)")
             feed_ready(pipe, self.buffer, newest_t - pipe.lag_s)
+            if isinstance(pipe, MowPipeline):
+                for line in pipe.news():
+                    log.info("localizer: %s", line)
             if self._inject == "nan" and isinstance(pipe, MowPipeline):
                 self._inject = ""
                 pipe.localizer.inject_fault()

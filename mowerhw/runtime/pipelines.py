@@ -183,6 +183,26 @@ class MowPipeline:
         self._cont_key: tuple[Any, ...] | None = None
         self._finite = True
         self._finite_key: tuple[Any, ...] | None = None
+        self._news = (0, 0, 0)  # searches, relocalizations, failed checks already told
+
+    def news(self) -> list[str]:
+        """What the operator should read in the log since the last call: the pose given up
+        (and why), the pose found again (and where) — issue 18. Each once."""
+        loc = self.localizer
+        c = loc.counters
+        out: list[str] = []
+        if c.searches != self._news[0] and loc.search is not None:
+            out.append(loc.search.describe())
+        if c.relocalizations != self._news[1]:
+            _, x, y, heading, sigma = self.pose()
+            out.append(
+                f"pose found: x {x:.2f} m, y {y:.2f} m, heading {math.degrees(heading):.1f}° "
+                f"(σ {sigma:.3f} m); checking it before the deck may run"
+            )
+        if c.checks_failed != self._news[2]:
+            out.append("a re-localization did not check out: searching again")
+        self._news = (c.searches, c.relocalizations, c.checks_failed)
+        return out
 
     def imu(self, t: float, gyro: FloatArray) -> None:
         self.localizer.imu(t, gyro)
