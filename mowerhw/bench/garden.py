@@ -28,6 +28,7 @@ import numpy as np
 import shapely
 
 from mowerhw.bench.hil import Bench, _boundary_errors
+from mowerhw.common.geometry import wrap_angle
 from mowerhw.runtime.control_protocol import request
 
 #: the share of the mowing time spent on the front lawn before the bench asks for the back one
@@ -73,7 +74,7 @@ class RouteThenCover:
                 self.phase = "cover"
             else:
                 d = self.route[0] - (x, y)
-                err = (math.atan2(d[1], d[0]) - yaw + math.pi) % (2 * math.pi) - math.pi
+                err = wrap_angle(math.atan2(d[1], d[0]) - yaw)
                 if abs(err) > 0.35:
                     return 0.0, float(np.clip(2.0 * err, -0.8, 0.8))
                 return 0.4, float(np.clip(1.5 * err, -0.5, 0.5))

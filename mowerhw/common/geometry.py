@@ -16,6 +16,7 @@ because they run at IMU rate on single quaternions, where scipy's object overhea
 from __future__ import annotations
 
 import math
+from typing import overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -239,6 +240,15 @@ def tuple3(v: ArrayLike) -> tuple[float, float, float]:
     """A 3-vector as a tuple of Python floats (for messages between processes)."""
     x, y, z = (float(c) for c in np.asarray(v, dtype=np.float64).reshape(3))
     return x, y, z
+
+
+@overload
+def wrap_angle(a: float) -> float: ...
+@overload
+def wrap_angle(a: FloatArray) -> FloatArray: ...
+def wrap_angle(a: float | FloatArray) -> float | FloatArray:
+    """An angle (rad), or each of an array, wrapped into [−π, π)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def yaw_rotation(yaw: float) -> FloatArray:

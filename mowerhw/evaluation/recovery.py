@@ -30,7 +30,7 @@ import shapely
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from mowerhw.common.geometry import quat_to_yaw
+from mowerhw.common.geometry import quat_to_yaw, wrap_angle
 from mowerhw.config import Config
 from mowerhw.evaluation.mow import MowOutcome, run_mow
 from mowerhw.map import LawnMap
@@ -71,7 +71,7 @@ def _errors(out: MowOutcome) -> tuple[FloatArray, FloatArray]:
     """Per sample: horizontal position error (m) and heading error (rad)."""
     err = np.linalg.norm(out.est[:, :2] - out.true_xy, axis=1)
     yaw = quat_to_yaw(out.est[:, 3:])
-    dyaw = (yaw - out.true_yaw + math.pi) % (2 * math.pi) - math.pi
+    dyaw = wrap_angle(yaw - out.true_yaw)
     return err, np.abs(dyaw)
 
 
@@ -110,7 +110,7 @@ def _nees(out: MowOutcome, align: Alignment | None = None) -> list[FloatArray]:
         [
             est_xy[:, 0] - out.true_xy[:, 0],
             est_xy[:, 1] - out.true_xy[:, 1],
-            (yaw - out.true_yaw + math.pi) % (2 * math.pi) - math.pi,
+            wrap_angle(yaw - out.true_yaw),
         ]
     )
     dt = float(out.t[1] - out.t[0])

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mowerhw.common.geometry import wrap_angle
 from mowerhw.common.relocalization import Relocalization
 
 FloatArray = NDArray[np.float64]
@@ -62,7 +63,7 @@ class Pose2D:
         return Pose2D(
             self.x + c * other.x - s * other.y,
             self.y + s * other.x + c * other.y,
-            wrap(self.yaw + other.yaw),
+            wrap_angle(self.yaw + other.yaw),
         )
 
     def inverse(self) -> Pose2D:
@@ -77,12 +78,7 @@ class Pose2D:
         return math.hypot(self.x - other.x, self.y - other.y)
 
     def turn(self, other: Pose2D) -> float:
-        return abs(wrap(self.yaw - other.yaw))
-
-
-def wrap(a: float) -> float:
-    """An angle in [−π, π)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
+        return abs(wrap_angle(self.yaw - other.yaw))
 
 
 @dataclass

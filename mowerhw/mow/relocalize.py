@@ -45,7 +45,7 @@ import shapely
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from mowerhw.common.geometry import yaw_rotation
+from mowerhw.common.geometry import wrap_angle, yaw_rotation
 from mowerhw.common.relocalization import Relocalization
 from mowerhw.map import LawnMap
 
@@ -54,10 +54,6 @@ FloatArray = NDArray[np.float64]
 MIN_AZIMUTH_SPREAD_RAD = math.radians(90.0)
 DISTINCT_M = 1.0
 DISTINCT_RAD = math.radians(15.0)
-
-
-def _wrap(a: FloatArray | float) -> FloatArray | float:
-    return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
 
 
 class GlobalRelocalizer:
@@ -138,9 +134,9 @@ class GlobalRelocalizer:
         for flat in order[: 50 * self.n_hypotheses].tolist():
             p, b = divmod(flat, self.n_bins)
             x, y = self.grid[p]
-            yaw = float(_wrap((b + 1.0) * self.yaw_bin))
+            yaw = wrap_angle((b + 1.0) * self.yaw_bin)
             if any(
-                math.hypot(x - hx, y - hy) < 2 * self.grid_m and abs(float(_wrap(yaw - hyaw))) < 0.3
+                math.hypot(x - hx, y - hy) < 2 * self.grid_m and abs(wrap_angle(yaw - hyaw)) < 0.3
                 for hx, hy, hyaw in out
             ):
                 continue
@@ -329,7 +325,7 @@ class GlobalRelocalizer:
         runner = 0
         for n, r2, p2, *_ in scored[1:]:
             far = float(np.linalg.norm(p2[:2] - p_wb[:2])) > DISTINCT_M
-            turned = abs(float(_wrap(math.atan2(r2[1, 0], r2[0, 0]) - yaw_best)))
+            turned = abs(wrap_angle(math.atan2(r2[1, 0], r2[0, 0]) - yaw_best))
             if far or turned > DISTINCT_RAD:
                 runner = max(runner, n)
         if n_best < self.min_inliers:

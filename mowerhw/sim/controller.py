@@ -16,6 +16,8 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from mowerhw.common.geometry import wrap_angle
+
 FloatArray = NDArray[np.float64]
 
 
@@ -57,7 +59,7 @@ class BangBangMower:
                 self.mode = "turn"
                 self.turns += 1
         if self.mode == "turn":
-            err = (self.target - yaw + math.pi) % (2 * math.pi) - math.pi
+            err = wrap_angle(self.target - yaw)
             if abs(err) < math.radians(3.0):
                 self.mode = "drive"
             else:

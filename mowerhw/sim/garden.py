@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mowerhw.common.geometry import wrap_angle
 from mowerhw.sim.lawn import PathLawn
 from mowerhw.sim.motion import Truth, cosine_ramp_profile, truth_from_path
 from mowerhw.sim.terrain import Terrain
@@ -102,7 +103,7 @@ class _Path:
 
     def turn_to(self, heading: float) -> None:
         h0 = self.h[-1]
-        delta = (heading - h0 + np.pi) % (2 * np.pi) - np.pi
+        delta = wrap_angle(heading - h0)
         if abs(delta) < 1e-6:
             return
         ramp = min(1.0, abs(delta) / TURN_RATE)
