@@ -177,7 +177,6 @@ class Localizer:
         self._fault = ""
         self._area_changes = 0  # mow_only calls (part of :attr:`version`)
         self._lockout_since: float | None = None
-        self._episode_since: float | None = None  # first lock-out since the last fix (refits too)
         self._inflated = False
         self._lost_inflated = False
         self._frames_needed = 0  # more than localized_after_frames after an IMU gap
@@ -288,7 +287,7 @@ class Localizer:
         self.search = RelocalizationSearch(why, self.t_imu, near, prior)
         self.probation = None
         self._good_frames = 0
-        self._lockout_since = self._episode_since = None
+        self._lockout_since = None
         self.counters.searches += 1
 
     @property
@@ -622,7 +621,6 @@ class Localizer:
             self._good_frames += 1
             self.t_fix = t if self.t_fix is None else max(self.t_fix, t)
             self._lockout_since = None
-            self._episode_since = None
             self._inflated = False
             self._lost_inflated = False
             if self._fault and self._good_frames >= c.localized_after_frames:
@@ -677,14 +675,6 @@ class Localizer:
 
     def _lockout(self, t: float, rows: NDArray[np.int64], u: FloatArray) -> None:
         c = self.cfg
-        if self._episode_since is None:
-            self._episode_since = t
-        if t - self._episode_since >= self.SEARCH_AFTER_LOCKOUTS * c.lockout_s:
-            self.lose(
-                f"since a lock-out: the landmarks in view disagreed with the pose for "
-                f"{t - self._episode_since:.1f} s"
-            )
-            return
         if self._lockout_since is None:
             self._lockout_since = t
             self.counters.lockouts += 1
@@ -703,8 +693,6 @@ class Localizer:
         elif waited >= 2 * c.lockout_s:
             self._refit(rows, u)
 
-    #: a lock-out this many times ``lockout_s`` long: the pose is given up and searched for
-    SEARCH_AFTER_LOCKOUTS = 4
     #: with a relocalizer, a lock-out this long (s) gives the pose up at once (kidnap)
     SEARCH_AFTER_S = 1.0
 

@@ -135,15 +135,14 @@ class RelocalizationSearch:
         """The mower is in the air: no answer from before pairs with one after."""
         self._last = None
 
-    def widen(self, t: float) -> bool:
+    def widen(self, t: float) -> None:
         """A local search that has not confirmed the prior within :data:`LOCAL_S` becomes
-        a global one (True when it just did)."""
+        a global one."""
         if not self.near or self.since is None or t - self.since < LOCAL_S:
-            return False
+            return
         self.near = self.checks_prior = False
         self._last = None
         self.why += f"; the pose near the prior was not confirmed in {LOCAL_S:.0f} s"
-        return True
 
     def describe(self) -> str:
         where = "near the prior" if self.near else "everywhere (global relocalization)"
@@ -161,7 +160,6 @@ class Probation:
         self.since = t
         self.frames_needed = frames_needed
         self.consistent = 0
-        self.frames = 0
         self.last = "no frame yet"
 
     def frame(
@@ -171,7 +169,6 @@ class Probation:
         passing) or None (still on probation)."""
         if self.since is None:
             self.since = t
-        self.frames += 1
         med = float(np.median(nis)) if nis.size else math.inf
         share = float(np.mean(accepted)) if accepted.size else 0.0
         if fix and med <= MEDIAN_NIS_MAX and share >= ACCEPTED_FRACTION:
