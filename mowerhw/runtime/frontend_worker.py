@@ -150,35 +150,30 @@ def track_frame(
 
 
 def main() -> None:  # pragma: no cover - the child; exercised through FrontendWorker
-    from dataclasses import replace
-
     import cv2
 
     from mowerhw.frontend import FrontEnd
-    from mowerhw.mow.relocalize import GlobalRelocalizer
+    from mowerhw.vision.mow import FrameSearch
 
     cv2.setNumThreads(1)
     with os.fdopen(0, "rb") as inp, os.fdopen(1, "wb") as out:
         frontend: FrontEnd | None = None
-        search_args: tuple[Any, ...] | None = None
-        relocalizer: GlobalRelocalizer | None = None
+        searcher: FrameSearch | None = None
         while True:
             try:
                 msg = _read(inp)
             except EOFError:
                 return
             if msg[0] == "reset":
-                frontend, search_args, relocalizer = FrontEnd(*msg[1]), msg[2], None
+                frontend = FrontEnd(*msg[1])
+                searcher = None if msg[2] is None else FrameSearch(*msg[2])
                 continue
             _, t, image, r, search = msg
             try:
                 assert frontend is not None, "a frame before the front end was set up"
                 tracks = frontend.process(t, image, r)
-                if search is not None and search_args is not None:
-                    if relocalizer is None:  # built on first use (MBs)
-                        relocalizer = GlobalRelocalizer(*search_args)
-                    found = relocalizer.locate(tracks.bearings, search.near)
-                    tracks = replace(tracks, relocalization=found)
+                if search is not None and searcher is not None:
+                    tracks = searcher(tracks, search)
                 _write(out, ("tracks", tracks))
             except Exception as exc:
                 _write(out, ("error", f"{type(exc).__name__}: {exc}"))

@@ -16,11 +16,29 @@ from mowerhw.config import FrontendConfig
 from mowerhw.frontend import FrameTracks
 from mowerhw.frontend.association import Candidates, associate
 from mowerhw.frontend.descriptors import DESCRIPTOR_BYTES, stack_sets
+from mowerhw.map import LawnMap
 from mowerhw.mow.localizer import Localizer
 from mowerhw.mow.relocalize import GlobalRelocalizer
 from mowerhw.vision.base import BAN_S, RAD_PER_PX, VisionBase
 
 FloatArray = NDArray[np.float64]
+
+
+class FrameSearch:
+    """A frame's relocalization from its tracks' bearings, with the map's relocalizer built
+    on first use (megabytes of tables): what :class:`MowVision` runs where it tracks — on
+    its own thread, or in the front end's worker process, which builds one from
+    :attr:`MowVision.search_args`."""
+
+    def __init__(self, lawn_map: LawnMap) -> None:
+        self.map = lawn_map
+        self._relocalizer: GlobalRelocalizer | None = None
+
+    def __call__(self, tracks: FrameTracks, search: SearchRequest) -> FrameTracks:
+        if self._relocalizer is None:
+            self._relocalizer = GlobalRelocalizer(self.map)
+        found = self._relocalizer.locate(tracks.bearings, search.near)
+        return replace(tracks, relocalization=found)
 
 
 class MowVision(VisionBase):
@@ -57,7 +75,7 @@ class MowVision(VisionBase):
         self.last_associated = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
         self.last_bearings = np.zeros((0, 3))
         self.search_args = (localizer.map,)
-        self._relocalizer: GlobalRelocalizer | None = None  # built on first use (MBs)
+        self._search = FrameSearch(*self.search_args)
         localizer.use_relocalizer()  # every start pose is checked, kidnaps are searched
 
     def estimator_rate(self, gyro: FloatArray) -> FloatArray:
@@ -68,10 +86,7 @@ class MowVision(VisionBase):
         return SearchRequest(self.loc.search_near()) if self.loc.searching else None
 
     def searched(self, tracks: FrameTracks, search: SearchRequest) -> FrameTracks:
-        if self._relocalizer is None:
-            self._relocalizer = GlobalRelocalizer(*self.search_args)
-        found = self._relocalizer.locate(tracks.bearings, search.near)
-        return replace(tracks, relocalization=found)
+        return self._search(tracks, search)
 
     def use(self, tracks: FrameTracks) -> FrameTracks:
         """Associations of the tracks with map landmarks → the Localizer; while it searches
