@@ -67,15 +67,24 @@ def random_pose(lawn: shapely.Polygon, rng: np.random.Generator) -> tuple[float,
             return float(x), float(y), float(rng.uniform(-math.pi, math.pi))
 
 
+Alignment = tuple[float, FloatArray, FloatArray, float]  # scale, R (2×2), t (2,), rotation
+
+
+def _pose_errors(out: MowOutcome, align: Alignment | None = None) -> FloatArray:
+    """Per sample (K, 3): the estimate's x, y and heading minus the truth's (heading
+    wrapped), or (``align``) the estimate's taken into the truth's frame by the map's
+    similarity first."""
+    est_xy, yaw = out.est[:, :2], quat_to_yaw(out.est[:, 3:])
+    if align is not None:
+        scale, r, t, rot = align
+        est_xy, yaw = scale * est_xy @ r.T + t, yaw + rot
+    return np.column_stack([est_xy - out.true_xy, wrap_angle(yaw - out.true_yaw)])
+
+
 def _errors(out: MowOutcome) -> tuple[FloatArray, FloatArray]:
     """Per sample: horizontal position error (m) and heading error (rad)."""
-    err = np.linalg.norm(out.est[:, :2] - out.true_xy, axis=1)
-    yaw = quat_to_yaw(out.est[:, 3:])
-    dyaw = wrap_angle(yaw - out.true_yaw)
-    return err, np.abs(dyaw)
-
-
-Alignment = tuple[float, FloatArray, FloatArray, float]  # scale, R (2×2), t (2,), rotation
+    e = _pose_errors(out)
+    return np.linalg.norm(e[:, :2], axis=1), np.abs(e[:, 2])
 
 
 def map_alignment(lawn_map: LawnMap) -> Alignment | None:
@@ -102,17 +111,7 @@ def map_alignment(lawn_map: LawnMap) -> Alignment | None:
 def _nees(out: MowOutcome, align: Alignment | None = None) -> list[FloatArray]:
     """The NEES of (x, y, heading) over :data:`NEES_S` after each accepted relocalization,
     against the truth, or (``align``) against the truth in the map's frame."""
-    est_xy, yaw = out.est[:, :2], quat_to_yaw(out.est[:, 3:])
-    if align is not None:
-        scale, r, t, rot = align
-        est_xy, yaw = scale * est_xy @ r.T + t, yaw + rot
-    err = np.column_stack(
-        [
-            est_xy[:, 0] - out.true_xy[:, 0],
-            est_xy[:, 1] - out.true_xy[:, 1],
-            wrap_angle(yaw - out.true_yaw),
-        ]
-    )
+    err = _pose_errors(out, align)
     dt = float(out.t[1] - out.t[0])
     n = round(NEES_S / dt)
     series = []
