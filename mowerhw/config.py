@@ -634,6 +634,46 @@ class SupervisorConfig:
 
 
 @dataclass(frozen=True)
+class WebConfig:
+    """The status page (``mowerhw.web``, issue 19): a process of its own that reads the
+    daemon through its control socket, so a slow or absent browser never slows the runtime."""
+
+    enabled: bool = opt(False, "serve the status page (the supervisor starts its process)")
+    host: str = opt(
+        "127.0.0.1",
+        "address the page binds to (localhost by default; 0.0.0.0 serves every interface: "
+        "the status is then readable by anyone who reaches it, controls still need the token)",
+        nonempty=True,
+    )
+    port: int = opt(8080, "TCP port of the page (0: any free port, logged)", ge=0, le=65535)
+    token_file: Path = opt(
+        Path("/var/lib/mowerhw/web-token"),
+        "the controls' token: created (mode 0600) with a random token if missing; a systemd "
+        "credential named web-token ($CREDENTIALS_DIRECTORY) is used instead when present",
+    )
+    rate_hz: float = opt(
+        10.0, "how often the page is updated while a browser is connected", ge=1.0, le=20.0
+    )
+    max_clients: int = opt(16, "browsers served at once", ge=1, le=256)
+    trajectory_points: int = opt(
+        36000, "trajectory points the page keeps (5 a second: 2 h by default)", ge=100, le=10**6
+    )
+    foxglove: bool = opt(
+        False,
+        "also serve the pose and state topics of the recordings live with the Foxglove SDK's "
+        "WebSocket server (for Foxglove's app, with the layout used for recordings)",
+    )
+    foxglove_host: str = opt("127.0.0.1", "address of the Foxglove live server", nonempty=True)
+    foxglove_port: int = opt(8765, "port of the Foxglove live server (0: any)", ge=0, le=65535)
+    nice: int = opt(
+        10,
+        "scheduling priority of the page's process (after everything that mows)",
+        ge=-20,
+        le=19,
+    )
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole runtime configuration."""
 
@@ -650,6 +690,7 @@ class Config:
     runtime: RuntimeConfig = section(RuntimeConfig, "daemon")
     supervisor: SupervisorConfig = section(SupervisorConfig, "permit supervisor")
     safety: SafetyConfig = section(SafetyConfig, "lift, tilt, rollover, collision")
+    web: WebConfig = section(WebConfig, "status page")
     source: Path | None = field(default=None, compare=False, metadata={"internal": True})
 
 

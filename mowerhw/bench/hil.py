@@ -138,6 +138,7 @@ class Bench:
         load: int = 0,
         estimator_delay_ms: float = 150.0,
         start: str = "dock",
+        web: bool = False,
     ) -> None:
         if start not in ("dock", "random"):
             raise ValueError(f"start {start!r}: expected dock or random")
@@ -163,6 +164,9 @@ class Bench:
         self.timeline: list[tuple] = []  # (s, state, reason, x, y, heading, detail) at 5 Hz
         self.rss_samples: list[tuple[float, float, float]] = []  # (s into mowing, RSS MB, CPU s)
         self.notify = NotifyListener(self.out / "notify.sock")
+        self.web = web  # serve the status page, and measure it (bench.web_check)
+        self.web_url = ""
+        self._web: dict[str, Any] = {}
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -185,6 +189,19 @@ class Bench:
             pose_file=str(self.out / "pose.json"),
             fault_injection=True,
         )
+        if self.web:
+            from mowerhw.bench.web_check import free_tcp_port
+
+            port = free_tcp_port()
+            raw["web"] = {
+                **raw.get("web", {}),
+                "enabled": True,
+                "host": "127.0.0.1",
+                "port": port,
+                "token_file": str(self.out / "web-token"),
+            }
+            self.web_url = f"http://127.0.0.1:{port}/"
+            print(f"bench: status page on {self.web_url}", file=sys.stderr)
         path = self.out / "bench-config.yaml"
         path.write_text(yaml.safe_dump(raw, sort_keys=False))
         return path
@@ -492,6 +509,8 @@ class Bench:
         next_poll = t_mow0
         latencies: list[dict[str, Any]] = []
         self._actions: list[tuple[float, Any]] = []  # (when, what): fault clearing etc.
+        if self.web:
+            self._web_plan(t_mow0)
         next_rss = t_mow0
         while time.monotonic() < end:
             now = time.monotonic()
@@ -547,6 +566,8 @@ class Bench:
         mow_s = time.monotonic() - t_mow0
         metrics = self._score_mow(world, t_mow0, windows, latencies, mow_s)
         metrics["watchdog"] = self.notify.gaps(t_mow0, time.monotonic())
+        if self.web:
+            metrics["web"] = self._web_result(st)
         vs = self.vn.stats  # the mock sensor's own lateness (a loaded bench, not the daemon)
         mowing = [gap for t, gap in vs.late_gaps if t >= t_mow0]
         metrics["mock_imu"] = {
@@ -592,6 +613,63 @@ class Bench:
             ]
         self._cpu_rss_done = True
         return metrics
+
+    # -------------------------------------------------------------------- the status page
+
+    def _web_pid(self) -> int | None:
+        web = (self._status().get("supervisor") or {}).get("web") or {}
+        return web.get("pid")
+
+    def _web_cpu(self) -> tuple[float, float, float]:
+        """(when, CPU s of all the daemon's processes, CPU s of the page's process)."""
+        from mowerhw.bench.web_check import process_cpu_s
+
+        return time.monotonic(), self._proc_cpu_rss()[0], process_cpu_s(self._web_pid())
+
+    def _web_plan(self, t_mow0: float) -> None:
+        """First half of mowing with the page closed, second half open (web_check)."""
+        from mowerhw.bench.web_check import PageWatcher, send_bad_requests
+
+        w = self._web
+        w["closed_from"] = self._web_cpu()
+
+        def open_page() -> None:
+            w["open_from"] = self._web_cpu()
+            w["watcher"] = PageWatcher(self.web_url).start()
+            token = (self.out / "web-token").read_text().strip()
+            w["requests_at"] = round(time.monotonic() - t_mow0, 2)
+            w["refused"] = send_bad_requests(self.web_url, token)
+
+        self._actions.append((t_mow0 + 0.5 * self.duration_s, open_page))
+
+    def _web_result(self, status: dict[str, Any]) -> dict[str, Any]:
+        w = self._web
+        end = self._web_cpu()
+        out: dict[str, Any] = {"url": self.web_url, "token_file": str(self.out / "web-token")}
+        if "open_from" not in w:
+            return out
+        watcher = w["watcher"]
+        watcher.stop()
+
+        def share(a: tuple[float, float, float], b: tuple[float, float, float]) -> dict[str, Any]:
+            dt = max(b[0] - a[0], 1e-9)
+            return {
+                "seconds": round(dt, 1),
+                "daemon_cpu_percent": round(100.0 * (b[1] - a[1]) / dt, 2),
+                "page_process_cpu_percent": round(100.0 * (b[2] - a[2]) / dt, 2),
+            }
+
+        out["page_closed"] = share(w["closed_from"], w["open_from"])
+        out["page_open_10hz"] = share(w["open_from"], end)
+        out["browser"] = watcher.summary(end[0] - w["open_from"][0])
+        out["refused_requests_at_s"] = w["requests_at"]
+        out["refused_requests"] = w["refused"]
+        # the permit around the requests, from the bench's 5 Hz timeline of the daemon
+        t0 = w["requests_at"]
+        near = [row for row in self.timeline if t0 - 2.0 <= row[0] <= t0 + 5.0]
+        out["states_around_requests"] = _count(row[1] for row in near)
+        out["mode_after_requests"] = status.get("mode")
+        return out
 
     def _true_signed_distance(self, world: Any, t: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """The true signed distance (positive inside) to where mowing is allowed at each

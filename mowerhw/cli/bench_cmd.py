@@ -72,6 +72,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "its pose file deleted, the mower carried to a random pose inside the lawn and the "
         "daemon started again there (it finds its pose by global relocalization)",
     )
+    p.add_argument(
+        "--web",
+        action="store_true",
+        help="serve the status page during the run (its URL and token file are in the JSON); "
+        "mowing's second half is watched by a client at 10 Hz and sent refused control "
+        "requests, and the daemon's CPU is given for both halves",
+    )
     p.add_argument("--json", action="store_true", help="print only the JSON object")
     p.set_defaults(handler=cmd_bench)
 
@@ -99,7 +106,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
         load=args.load,
         estimator_delay_ms=args.estimator_delay,
         start=args.start,
+        web=args.web,
     )
+
     result = bench.run()
     print(strict_json(result, indent=None if args.json else 2))
     ok = result.get("missed_halts") == 0

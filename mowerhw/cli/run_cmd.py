@@ -59,6 +59,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--duration", type=number(float, gt=0), help="stop after this many seconds")
     r.set_defaults(handler=cmd_record)
 
+    w = sub.add_parser(
+        "web",
+        help="serve the status page for a running daemon (what web.enabled starts itself)",
+        description=(
+            "Serve the status page (web.host, web.port) for the daemon on the config's "
+            "control socket: live map, pose, decision and sensors; controls with the token "
+            "in web.token_file. Runs until Ctrl-C / SIGTERM."
+        ),
+    )
+    add_config_argument(w)
+    w.add_argument("--port", type=number(int, ge=0, le=65535), help="instead of web.port")
+    w.add_argument("--host", help="instead of web.host")
+    w.set_defaults(handler=cmd_web)
+
     c = sub.add_parser(
         "ctl",
         help="control a running daemon: status|teach|mow|idle|finish-teach|save-map",
@@ -118,6 +132,24 @@ def cmd_run(args: argparse.Namespace) -> int:
     from mowerhw.runtime.process import run_daemon
 
     return run_daemon(cfg, args.mode, record=args.record, duration_s=args.duration)
+
+
+def cmd_web(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from mowerhw.web.server import web_main
+
+    cfg = load_config_or_exit(args.config)
+    web = replace(
+        cfg.web,
+        port=cfg.web.port if args.port is None else args.port,
+        host=args.host or cfg.web.host,
+    )
+    try:
+        web_main(replace(cfg, web=web), logging.getLogger().level or logging.INFO)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return 0
 
 
 def cmd_record(args: argparse.Namespace) -> int:

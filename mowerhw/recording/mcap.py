@@ -144,6 +144,32 @@ def pose_message(t_s: float, position: Any, q_wxyz: Any, frame: str = "lawn") ->
     }
 
 
+def state_message(
+    host_ns: int,
+    mode: str,
+    state: str,
+    permit: bool,
+    reason: str,
+    sigma: float,
+    signed_distance: float | None,
+    covariance: Any,
+) -> dict[str, Any]:
+    """A ``/estimate/state`` message (``mowerhw.EstimatorState``): recorded, and served live
+    by the status page's Foxglove server."""
+    cov = [] if covariance is None else np.asarray(covariance, dtype=np.float64).ravel().tolist()
+    sd = signed_distance if signed_distance is not None and np.isfinite(signed_distance) else None
+    return {
+        "host_time_ns": host_ns,
+        "mode": mode,
+        "state": state,
+        "permit": bool(permit),
+        "reason": reason,
+        "sigma_xy_m": float(sigma) if sigma is not None and np.isfinite(sigma) else -1.0,
+        "signed_distance_m": sd,
+        "covariance": cov,
+    }
+
+
 class Recorder:
     """Records to ``path`` from any thread (see the module doc)."""
 
@@ -227,22 +253,9 @@ class Recorder:
     ) -> None:
         t = host_ns * 1e-9
         self._put(("/estimate/pose", host_ns, pose_message(t, position, q_wxyz)))
-        cov = np.asarray(covariance, dtype=np.float64).ravel().tolist()
-        sd = (
-            signed_distance
-            if signed_distance is not None and np.isfinite(signed_distance)
-            else None
+        msg = state_message(
+            host_ns, mode, state, permit, reason, sigma, signed_distance, covariance
         )
-        msg = {
-            "host_time_ns": host_ns,
-            "mode": mode,
-            "state": state,
-            "permit": bool(permit),
-            "reason": reason,
-            "sigma_xy_m": float(sigma) if np.isfinite(sigma) else -1.0,
-            "signed_distance_m": sd,
-            "covariance": cov,
-        }
         self._put(("/estimate/state", host_ns, msg))
 
     def attach(self, name: str, data: bytes) -> None:

@@ -27,12 +27,20 @@ class Controllable(Protocol):
     async def finish_teach(self) -> dict[str, Any]: ...
     async def save_map(self, path: Path) -> None: ...
     def status(self) -> dict[str, Any]: ...
+    def live(self, since: int, landmarks: bool) -> dict[str, Any]: ...
 
 
 async def handle_command(d: Controllable, cmd: str, args: dict[str, Any]) -> dict[str, Any]:
     """The reply to one command: ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``."""
     if cmd == "status":
         return {"ok": True, **d.status()}
+    if cmd == "live":  # the status page (issue 19)
+        since, landmarks = args.get("since", 0), args.get("landmarks", False)
+        if not isinstance(since, int) or isinstance(since, bool) or not 0 <= since < 2**53:
+            return {"ok": False, "error": "since: a trajectory index, an integer >= 0"}
+        if not isinstance(landmarks, bool):
+            return {"ok": False, "error": "landmarks: true or false"}
+        return {"ok": True, **d.live(since, landmarks)}
     if cmd == "teach" and args.get("args"):  # ctl teach area NAME | keepout NAME | ... | dock
         words = [str(a) for a in args["args"]]
         if len(words) > 2:

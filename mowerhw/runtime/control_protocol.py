@@ -2,7 +2,8 @@
 stream socket, parsed with limits, and the blocking client the CLI and the bench use.
 
 Request: ``{"cmd": "status"}`` (or just the word ``status``), optional arguments as keys;
-reply: ``{"ok": true, ...}`` or ``{"ok": false, "error": "..."}``. Commands: status, idle,
+reply: ``{"ok": true, ...}`` or ``{"ok": false, "error": "..."}``. Commands: status, live
+(what the status page shows: ``since`` trajectory index, ``landmarks`` true/false), idle,
 teach, mow, finish-teach, save-map [path], and (only with ``runtime.fault_injection``) fault.
 A request is at most :data:`MAX_REQUEST_BYTES`, nested at most :data:`MAX_DEPTH` deep, with no
 duplicate keys and only strings, numbers, booleans, null or lists of those as arguments.
@@ -17,9 +18,9 @@ from typing import Any
 
 from mowerhw.common.strictjson import unique_keys
 
-COMMANDS = ("status", "idle", "teach", "mow", "finish-teach", "save-map", "fault")
+COMMANDS = ("status", "live", "idle", "teach", "mow", "finish-teach", "save-map", "fault")
 #: commands anyone allowed to open the socket may send; the rest change the mower or files
-READ_ONLY = frozenset({"status"})
+READ_ONLY = frozenset({"status", "live"})
 #: the longest request line (bytes); requests are a command and a path at most
 MAX_REQUEST_BYTES = 4096
 #: deepest nesting of a request (the object, a list in it)

@@ -49,6 +49,7 @@ from mowerhw.runtime.devices import (
     record_estimate,
 )
 from mowerhw.runtime.frontend_worker import FrontendWorker, FrontendWorkerDied, track_frame
+from mowerhw.runtime.live import LiveView
 from mowerhw.runtime.mapfiles import MapFile, PoseFile, save_map, teach_to_map_file
 from mowerhw.runtime.pipelines import BuildRequest, build_pipeline
 from mowerhw.runtime.process import LoopLag
@@ -88,6 +89,7 @@ class Daemon:
         self.imu_dev: Vn100 | None = None
         self.camera: CameraSource | None = None
         self.loop_lag = LoopLag()
+        self.live_view = LiveView(config.web.trajectory_points)
         self.control: ControlServer | None = None
         self.estimator_delay_s, self._next_delay = 0.0, 0.0
         self._frames: asyncio.Queue[FrameSample] | None = None
@@ -370,6 +372,7 @@ class Daemon:
             self.can.retry(now)
             self._decide(now)
             self.can.tick(now)
+            self.live_view.sample(self.core, now)
             if self.recorder is not None and now >= self._next_record:
                 self._next_record = now + 0.1
                 record_estimate(self.recorder, self.core, now)
@@ -396,6 +399,11 @@ class Daemon:
         assert self.core.map is not None
         loop = asyncio.get_running_loop()
         await loop.run_in_executor(self._work_pool, save_map, self.core.map, path)
+
+    def live(self, since: int, landmarks: bool) -> dict[str, Any]:
+        """What the status page shows (:mod:`.live`)."""
+        sup = getattr(self.link, "supervisor_status", None)
+        return self.live_view.snapshot(self.core, time.monotonic(), since, landmarks, sup)
 
     def status(self) -> dict[str, Any]:
         now = time.monotonic()

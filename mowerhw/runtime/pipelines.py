@@ -43,6 +43,17 @@ class StartPose(NamedTuple):
     gyro_bias: FloatArray | None = None
 
 
+class PlanPose(NamedTuple):
+    """The mower for the status page: time, position (3), q_wb (w, x, y, z) and the
+    covariance (6 × 6: position, then rotation in world axes) where the estimator has one in
+    the map frame."""
+
+    t: float
+    position: FloatArray
+    quaternion: FloatArray
+    covariance: FloatArray | None
+
+
 @dataclass(frozen=True)
 class BuildRequest:
     """An estimator chain the runtime wants built (seconds of work: off the event loop).
@@ -138,6 +149,20 @@ class TeachPipeline:
         """Loop closure and boundary (seconds of work: call it off the event loop)."""
         result = self.vision.annotate(self.teacher.finish())
         return result, LawnMap.from_teach_result(result)
+
+    def plan_pose(self) -> PlanPose | None:
+        """Where the teacher puts the mower now (eqs 19–20), for the status page; ``None``
+        before the drive starts. Its uncertainty is robot-centric (no ellipse in the map)."""
+        tch = self.teacher
+        if tch.phase != "driving":
+            return None
+        pos, q = tch.world_pose()
+        return PlanPose(self.t_last, pos, q, None)
+
+    def landmarks_xyz(self) -> FloatArray:
+        """(N, 4): id, x, y, z of every landmark located so far (the page's live map)."""
+        ids, xyz, _ = self.teacher.known_landmarks()
+        return np.column_stack([ids.astype(np.float64), xyz]) if ids.size else np.zeros((0, 4))
 
     def status(self) -> dict[str, Any]:
         tch = self.teacher
@@ -240,6 +265,13 @@ class MowPipeline:
         p = self.localizer.pose()
         x, y = float(p.position[0]), float(p.position[1])
         return p.t, x, y, yaw_of(p.quaternion), self.localizer.sigma_xy()
+
+    def plan_pose(self) -> PlanPose | None:
+        """The newest estimate with its covariance (the page's ellipse)."""
+        if not self.finite():
+            return None
+        p = self.localizer.pose()
+        return PlanPose(p.t, p.position, p.quaternion, p.covariance)
 
     def last_good_pose(self) -> StartPose | None:
         """Position, q_wb and the calibrated gyro bias (for a rebuilt estimator)."""

@@ -37,6 +37,7 @@ from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
 from mowerhw.supervisor.canport import CanPort
 from mowerhw.supervisor.lease import Lease, SupervisorGate
+from mowerhw.web.process import WebProcess
 
 log = logging.getLogger("mowerhw.supervisor")
 
@@ -137,6 +138,7 @@ class Supervisor:
         self._next_status = 0.0
         self._lifted_told = False  # what the estimation side was last told about a lift
         self._next_watchdog = 0.0
+        self.web: WebProcess | None = WebProcess(config) if config.web.enabled else None
 
     # -------------------------------------------------------------------------- child
 
@@ -276,6 +278,8 @@ class Supervisor:
         self._rx = threading.Thread(target=self._receive, name="can-rx", daemon=True)
         self._rx.start()
         self._start_child()
+        if self.web is not None:
+            self.web.start()
         assert self.conn is not None and self.child is not None
         started = time.monotonic()
         status = 0
@@ -320,6 +324,8 @@ class Supervisor:
                 status = 1
                 break
             self._decide(now)
+            if self.web is not None:
+                self.web.check(now)
         self._shutdown(status)
         return status
 
@@ -389,6 +395,7 @@ class Supervisor:
             "tilt_deg": round(self.safety.tilt_deg, 1),
             "lease_expired": self.gate.expired,
             "permit_sender": vars(self.sender.stats) if self.sender else {},
+            "web": self.web.status() if self.web is not None else None,
             **self.counts,
         }
 
@@ -402,6 +409,8 @@ class Supervisor:
             else:
                 self.sender.shutdown(now)
         self._to_child(("stop", None))
+        if self.web is not None:
+            self.web.stop()
         if self.child is not None:
             self.child.join(timeout=3.0)  # within systemd's TimeoutStopSec (5 s)
             if self.child.is_alive():  # stalled: it cannot even handle a SIGTERM
