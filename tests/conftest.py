@@ -34,3 +34,50 @@ def map_file(tmp_path):
     path = tmp_path / "lawn.json"
     m.save(path)
     return path
+
+
+# ------------------------------------------------------------- the bench (daemon + mock hardware)
+
+
+def _multicast_works() -> str:
+    """'' if two python-can udp_multicast buses on this host hear each other, else why not
+    (``MOWERHW_NO_MULTICAST=1`` says not: how a CI without multicast is tried here)."""
+    if os.environ.get("MOWERHW_NO_MULTICAST"):
+        return "MOWERHW_NO_MULTICAST is set"
+    import can
+
+    from mowerhw.bench.hil import _free_udp_port
+
+    port = _free_udp_port()
+    try:
+        a = can.Bus(interface="udp_multicast", channel="239.74.163.9", port=port)
+        b = can.Bus(interface="udp_multicast", channel="239.74.163.9", port=port)
+    except Exception as exc:
+        return f"cannot open a udp_multicast bus: {exc}"
+    try:
+        a.send(can.Message(arbitration_id=0x18FEF100, data=b"\x01", is_extended_id=True))
+        got = b.recv(1.0)
+        return "" if got is not None else "multicast frames do not arrive on the loopback"
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+@pytest.fixture(scope="session")
+def multicast():
+    why = _multicast_works()
+    if why:
+        pytest.skip(f"the bench's CAN between processes needs IP multicast: {why}")
+
+
+@pytest.fixture(scope="session")
+def yard_map(tmp_path_factory, multicast):
+    """The bench yard's map, from a pixel-level simulated teach (seed 7), once per session."""
+    from mowerhw.evaluation.pixel import run_teach_pixel
+    from mowerhw.map import LawnMap
+
+    out = run_teach_pixel("paper", 7)
+    assert out.result is not None, out.error
+    path = tmp_path_factory.mktemp("map") / "lawn.json"
+    LawnMap.from_teach_result(out.result).save(path)
+    return path

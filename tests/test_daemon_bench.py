@@ -7,57 +7,14 @@ full teach-then-mow run is ``mowerhw bench``; its figures are in the README)."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
 import pytest
 
 from mowerhw.bench import Bench, FaultSpec
-from mowerhw.evaluation.pixel import run_teach_pixel
-from mowerhw.map import LawnMap
 
 pytestmark = pytest.mark.slow
-
-
-def _multicast_works() -> str:
-    """'' if two python-can udp_multicast buses on this host hear each other, else why not
-    (``MOWERHW_NO_MULTICAST=1`` says not: how a CI without multicast is tried here)."""
-    if os.environ.get("MOWERHW_NO_MULTICAST"):
-        return "MOWERHW_NO_MULTICAST is set"
-    import can
-
-    from mowerhw.bench.hil import _free_udp_port
-
-    port = _free_udp_port()
-    try:
-        a = can.Bus(interface="udp_multicast", channel="239.74.163.9", port=port)
-        b = can.Bus(interface="udp_multicast", channel="239.74.163.9", port=port)
-    except Exception as exc:
-        return f"cannot open a udp_multicast bus: {exc}"
-    try:
-        a.send(can.Message(arbitration_id=0x18FEF100, data=b"\x01", is_extended_id=True))
-        got = b.recv(1.0)
-        return "" if got is not None else "multicast frames do not arrive on the loopback"
-    finally:
-        a.shutdown()
-        b.shutdown()
-
-
-@pytest.fixture(scope="module")
-def multicast():
-    why = _multicast_works()
-    if why:
-        pytest.skip(f"the bench's CAN between processes needs IP multicast: {why}")
-
-
-@pytest.fixture(scope="module")
-def yard_map(tmp_path_factory, multicast):
-    out = run_teach_pixel("paper", 7)
-    assert out.result is not None, out.error
-    path = tmp_path_factory.mktemp("map") / "lawn.json"
-    LawnMap.from_teach_result(out.result).save(path)
-    return path
 
 
 def test_mows_with_faults_and_recovers(yard_map, tmp_path) -> None:
@@ -86,7 +43,7 @@ def test_mows_with_faults_and_recovers(yard_map, tmp_path) -> None:
         assert reason in f["reason"], f
         assert f["recovered"], f
     # the map file was restored, never half-written by the daemon
-    assert LawnMap is not None and (tmp_path / "lawn.json").read_bytes() == yard_map.read_bytes()
+    assert (tmp_path / "lawn.json").read_bytes() == yard_map.read_bytes()
     log = (tmp_path / "daemon.log").read_text()
     assert "HALT MAP_INVALID" in log and "HALT SENSOR_STALE: imu silent" in log
 

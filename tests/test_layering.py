@@ -11,7 +11,8 @@ Layers, lowest first; a module may import its own layer and the ones below, neve
 Besides: layers 0–3 never import device I/O (drivers, asyncio, serial, CAN, sockets); the
 front end never imports an estimator and teach and mow never import each other; the runtime
 core has no I/O, threads or clock of its own; drivers import nothing of mowerhw but
-``mowerhw.common``.
+``mowerhw.common``; the status page (``mowerhw.web``) never imports the runtime or the
+supervisor: it is a client of the control socket.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     (
         "mowerhw.runtime",
         "mowerhw.supervisor",
+        "mowerhw.web",
         "mowerhw.recording",
         "mowerhw.bench",
         "mowerhw.cli",
@@ -66,6 +68,9 @@ FORBIDDEN = (
     ("mowerhw.mow", "mowerhw.teach"),
     ("mowerhw.estimation", "mowerhw.teach"),
     ("mowerhw.estimation", "mowerhw.mow"),
+    # the status page reads the daemon only through the control socket (issue 19)
+    ("mowerhw.web", "mowerhw.runtime"),
+    ("mowerhw.web", "mowerhw.supervisor"),
 )
 #: the runtime core: synchronous, no I/O, no threads, no clock
 CORE_MODULES = ("mowerhw.runtime.core", "mowerhw.runtime.journal", "mowerhw.runtime.pipelines")

@@ -61,6 +61,7 @@ def page(url: str, width: int = 1280, height: int = 800) -> Iterator[Any]:
             args=CHROMIUM_ARGS,
             headless=True,
             viewport={"width": width, "height": height},
+            bypass_csp=True,  # the page forbids eval; Playwright's string predicates use it
         )
         try:
             pg = browser.new_page() if not browser.pages else browser.pages[0]

@@ -36,6 +36,7 @@ from mowerhw.estimation.safety import SafetyMonitor
 from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
 from mowerhw.supervisor.canport import CanPort
+from mowerhw.supervisor.child import web_child_main
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.web.process import WebProcess
 
@@ -138,7 +139,9 @@ class Supervisor:
         self._next_status = 0.0
         self._lifted_told = False  # what the estimation side was last told about a lift
         self._next_watchdog = 0.0
-        self.web: WebProcess | None = WebProcess(config) if config.web.enabled else None
+        self.web: WebProcess | None = (
+            WebProcess(config, web_child_main) if config.web.enabled else None
+        )
 
     # -------------------------------------------------------------------------- child
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+from collections.abc import Callable
 from typing import Any
 
 from mowerhw.config import EX_CONFIG, Config
@@ -23,8 +24,9 @@ MAX_BACKOFF_S = 60.0
 class WebProcess:
     """Start, watch and stop the page's process."""
 
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, target: Callable[[Config, int], None]) -> None:
         self.cfg = config
+        self.target = target  # the process's entry point (the supervisor's web_child_main)
         self.proc: Any = None
         self.starts = 0
         self.deaths = 0
@@ -34,11 +36,9 @@ class WebProcess:
         self._next_check = 0.0
 
     def start(self) -> None:
-        from mowerhw.web.server import web_main
-
         ctx = multiprocessing.get_context("spawn")
         self.proc = ctx.Process(
-            target=web_main,
+            target=self.target,
             args=(self.cfg, logging.getLogger().level),
             name="mowerhw-web",
             daemon=True,

@@ -326,13 +326,11 @@ async def serve(config: Config, ready: Any = None) -> None:
 
 
 def web_main(config: Config, log_level: int) -> None:
-    """Entry point of the page's process (the supervisor starts it when ``web.enabled``)."""
+    """Serve the page in this process until SIGTERM (``mowerhw web``; the supervisor's child
+    :func:`mowerhw.supervisor.child.web_child_main`)."""
     import os
     import signal
 
-    from mowerhw.runtime.process import die_with_parent
-
-    die_with_parent()
     os.environ.pop("NOTIFY_SOCKET", None)
     logging.basicConfig(level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     with contextlib.suppress(OSError):

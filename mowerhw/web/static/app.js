@@ -51,6 +51,7 @@ function onLive(msg) {
   }
   state.live = msg;
   state.updates += 1;
+  document.body.dataset.points = state.traj.length;
   $("updates").textContent = state.updates;
   $("error").hidden = !msg.error;
   $("error").textContent = msg.error || "";

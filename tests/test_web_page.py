@@ -1,0 +1,102 @@
+"""The status page in headless Chromium (Debian's chromium, driven by Playwright) against
+the real daemon on the bench (issue 19): what the page shows is what the daemon says, within
+one update; it comes back after a reload; its controls need the token. The screenshots under
+``docs/`` come from ``tools/web_screenshots.py`` (a whole teach-then-mow bench run)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import pytest
+
+from mowerhw.bench import Bench, browser
+from mowerhw.runtime.control_protocol import request
+
+pytestmark = pytest.mark.slow
+
+#: what the page shows, read in one go
+READ_PAGE = """() => ({
+  now: Number(document.body.dataset.now),
+  state: document.body.dataset.state,
+  permit: document.body.dataset.permit,
+  x: Number(document.getElementById('pose-x').textContent),
+  y: Number(document.getElementById('pose-y').textContent),
+  heading: Number(document.getElementById('pose-heading').textContent),
+  mode: document.getElementById('mode').textContent,
+  points: Number(document.body.dataset.points),
+})"""
+
+
+def _until(fn: Any, timeout: float, what: str) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        got = fn()
+        if got:
+            return got
+        time.sleep(0.1)
+    raise AssertionError(f"no {what} within {timeout} s")
+
+
+def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) -> None:
+    why = browser.missing()
+    if why:
+        pytest.skip(f"the page's browser test needs {why}")
+    bench = Bench(duration_s=45.0, seed=7, out_dir=tmp_path, map_path=yard_map, web=True)
+    result: dict[str, Any] = {}
+    runner = threading.Thread(target=lambda: result.update(bench.run()), daemon=True)
+    runner.start()
+    sock = tmp_path / "control.sock"
+
+    def live() -> dict[str, Any]:
+        try:
+            return request(sock, "live", timeout=2.0)
+        except (OSError, ConnectionError, ValueError):
+            return {}
+
+    _until(lambda: live().get("mode") == "mow" and bench.web_url, 90.0, "mowing")
+    compared = []
+    with browser.page(bench.web_url) as pg:
+        pg.wait_for_function("document.body.dataset.permit === 'true'", timeout=60_000)
+        for _ in range(8):
+            t0 = time.monotonic()
+            shown = pg.evaluate(READ_PAGE)
+            said = live()
+            took = time.monotonic() - t0
+            compared.append((shown, said, took))
+            time.sleep(0.37)
+        # a reload (a browser coming back) draws the whole drive again
+        n_before = pg.evaluate(READ_PAGE)["points"]
+        pg.reload()
+        pg.wait_for_function("document.body.dataset.connected === 'true'", timeout=10_000)
+        pg.wait_for_function(f"Number(document.body.dataset.points) >= {n_before}")
+        # the controls: refused without the token, done with it
+        pg.click("button[data-cmd=idle]")
+        refused = pg.wait_for_function(
+            "document.getElementById('reply').textContent || false"
+        ).json_value()
+        token = (tmp_path / "web-token").read_text().strip()
+        pg.fill("#token", token)
+        pg.click("button[data-cmd=idle]")
+        pg.wait_for_function("document.getElementById('reply').textContent.includes('done')")
+        mode_after = _until(lambda: live().get("mode"), 5.0, "status")
+        pg.wait_for_function("document.getElementById('mode').textContent === 'idle'")
+    runner.join(timeout=120.0)
+    assert not runner.is_alive()
+
+    for shown, said, took in compared:
+        pose = said["pose"]
+        lag = said["now"] - shown["now"]  # the daemon's time between page and status
+        # within one update (0.1 s at 10 Hz) plus the time the two reads took
+        assert -0.01 <= lag <= 0.1 + took + 0.05, (lag, took)
+        moved = abs(complex(pose["x"] - shown["x"], pose["y"] - shown["y"]))
+        assert moved <= 0.6 * max(lag, 0.0) + 0.002, (shown, pose, lag)  # ≤ 0.6 m/s
+        assert shown["mode"] == "mow"
+    same_state = sum(s["state"] == d["state"] for s, d, _ in compared)
+    assert same_state >= len(compared) - 1, [(s["state"], d["state"]) for s, d, _ in compared]
+    assert "401" in refused and "token" in refused
+    assert mode_after == "idle"
+    assert result["missed_halts"] == 0
+    assert result["web"]["browser"]["updates"] > 0
+    assert all(r["status"] in (400, 401, 403, 413) for r in result["web"]["refused_requests"])
