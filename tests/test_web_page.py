@@ -49,20 +49,20 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
     runner.start()
     sock = tmp_path / "control.sock"
 
-    def live() -> dict[str, Any]:
+    def status() -> dict[str, Any]:  # what `mowerhw ctl status` prints
         try:
-            return request(sock, "live", timeout=2.0)
+            return request(sock, "status", timeout=2.0)
         except (OSError, ConnectionError, ValueError):
             return {}
 
-    _until(lambda: live().get("mode") == "mow" and bench.web_url, 90.0, "mowing")
+    _until(lambda: status().get("mode") == "mow" and bench.web_url, 90.0, "mowing")
     compared = []
     with browser.page(bench.web_url) as pg:
         pg.wait_for_function("document.body.dataset.permit === 'true'", timeout=60_000)
         for _ in range(8):
             t0 = time.monotonic()
             shown = pg.evaluate(READ_PAGE)
-            said = live()
+            said = status()
             took = time.monotonic() - t0
             compared.append((shown, said, took))
             time.sleep(0.37)
@@ -80,7 +80,7 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
         pg.fill("#token", token)
         pg.click("button[data-cmd=idle]")
         pg.wait_for_function("document.getElementById('reply').textContent.includes('done')")
-        mode_after = _until(lambda: live().get("mode"), 5.0, "status")
+        mode_after = _until(lambda: status().get("mode"), 5.0, "status")
         pg.wait_for_function("document.getElementById('mode').textContent === 'idle'")
     runner.join(timeout=120.0)
     assert not runner.is_alive()

@@ -99,7 +99,7 @@ function showDaemon(d) {
     pose && pose.sigma_heading !== null ? fmt((pose.sigma_heading * 180) / Math.PI, 2) + "°" : "–";
   const loc = d.localizer;
   $("localizer").textContent = loc
-    ? `${loc.localized ? "localized" : "not localized"}, ${loc.searches} searches, ${loc.relocalizations} found again`
+    ? `${loc.localized ? "localized" : "not localized"} · searches ${loc.searches} · found ${loc.relocalizations}`
     : "–";
   const rows = Object.entries(d.sensors || {}).map(([name, s]) => {
     const late = s.age_s === null || s.age_s > 0.5;
@@ -118,9 +118,12 @@ function showDaemon(d) {
 }
 
 function loopText(t) {
-  const keys = Object.keys(t).filter((k) => k.startsWith("loop") || k === "closure_m" || k === "map");
-  if (!keys.length) return t.state === "recording" ? "after the drive" : "–";
-  return keys.map((k) => `${k}: ${typeof t[k] === "number" ? fmt(t[k], 3) : t[k]}`).join(", ");
+  if (t.loop_closure) {
+    const area = t.area_m2 === undefined ? "" : ` — ${fmt(t.area_m2, 1)} m²`;
+    return t.loop_closure + area;
+  }
+  if (t.state && t.state.startsWith("failed")) return t.state;
+  return t.state === "recording" ? "after the drive" : "–";
 }
 
 function showAreas() {
@@ -166,6 +169,7 @@ function bounds() {
   if (state.map) {
     for (const a of state.map.areas) for (const [x, y] of a.polygon) add(x, y);
     add(state.map.dock.x, state.map.dock.y);
+    for (const l of state.map.landmarks) add(l[1], l[2]);
   }
   for (const [, x, y] of state.traj) add(x, y);
   for (const l of state.landmarks) add(l[1], l[2]);
@@ -251,7 +255,8 @@ function ellipse(g, pose, px, py, scale) {
   const k = Math.sqrt(5.991);
   const r1 = k * Math.sqrt(l1) * scale, r2 = k * Math.sqrt(l2) * scale;
   const angle = 0.5 * Math.atan2(2 * bxy, a - c);
-  const zoom = r1 > 0 && r1 < 10 ? Math.pow(10, Math.ceil(Math.log10(10 / r1))) : 1;
+  let zoom = 1; // 1, 2, 5, 10, 20, … until the ellipse is at least 10 px across
+  while (r1 > 0 && r1 * zoom < 5 && zoom < 1e4) zoom *= String(zoom)[0] === "2" ? 2.5 : 2;
   note.textContent = zoom > 1 ? `· 95 % ellipse ×${zoom}` : "· 95 % ellipse";
   g.save(); g.translate(px, py); g.rotate(-angle);
   g.beginPath(); g.ellipse(0, 0, r1 * zoom, Math.max(r2 * zoom, 1), 0, 0, 2 * Math.PI);
