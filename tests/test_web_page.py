@@ -85,11 +85,13 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
     runner.join(timeout=120.0)
     assert not runner.is_alive()
 
+    print("page behind ctl status (s):", [round(d["now"] - s["now"], 3) for s, d, _ in compared])
     for shown, said, took in compared:
         pose = said["pose"]
         lag = said["now"] - shown["now"]  # the daemon's time between page and status
-        # within one update (0.1 s at 10 Hz) plus the time the two reads took
-        assert -0.01 <= lag <= 0.1 + took + 0.05, (lag, took)
+        # within one update (0.1 s at 10 Hz), plus the time the two reads took and up to
+        # 0.1 s for the update to travel (page process → WebSocket → Chromium)
+        assert -0.01 <= lag <= 0.1 + took + 0.1, (lag, took)
         moved = abs(complex(pose["x"] - shown["x"], pose["y"] - shown["y"]))
         assert moved <= 0.6 * max(lag, 0.0) + 0.002, (shown, pose, lag)  # ≤ 0.6 m/s
         assert shown["mode"] == "mow"
