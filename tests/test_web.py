@@ -334,3 +334,41 @@ def test_foxglove_live_serves_the_recordings_pose_and_state_topics(tmp_path) -> 
     assert pose["pose"]["orientation"] == {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}
     assert st["state"] == "INSIDE" and st["permit"] is True and st["mode"] == "mow"
     assert st["sigma_xy_m"] == 0.01 and len(st["covariance"]) == 36
+
+
+# ----------------------------------------------------------- the page's process, supervised
+
+
+def _dies(config: Config, log_level: int) -> None:
+    raise SystemExit(int(os.environ.get("MOWERHW_TEST_EXIT", "1")))
+
+
+def test_a_dead_page_process_is_started_again_with_backoff_and_a_bad_config_is_not(
+    tmp_path, monkeypatch
+) -> None:
+    from mowerhw.config import EX_CONFIG
+    from mowerhw.web.process import WebProcess
+
+    cfg = _config(tmp_path)
+    web = WebProcess(cfg, _dies)
+    web.start()
+    web.proc.join(10.0)
+    web.check(now=100.0)  # dead: restart in 1 s
+    assert web.deaths == 1 and web.starts == 1
+    web.check(now=100.5)
+    assert web.starts == 1  # not yet
+    web.check(now=101.1)
+    assert web.starts == 2  # started again
+    web.proc.join(10.0)
+    web.check(now=102.2)  # dead again: the backoff doubled
+    web.check(now=103.3)
+    assert web.starts == 2
+    web.check(now=104.3)
+    assert web.starts == 3 and web.deaths == 2
+    monkeypatch.setenv("MOWERHW_TEST_EXIT", str(EX_CONFIG))
+    bad = WebProcess(cfg, _dies)
+    bad.start()
+    bad.proc.join(10.0)
+    bad.check(now=200.0)
+    bad.check(now=300.0)
+    assert bad.given_up and bad.starts == 1 and not bad.status()["alive"]

@@ -5,6 +5,8 @@ one update; it comes back after a reload; its controls need the token. The scree
 
 from __future__ import annotations
 
+import os
+import signal
 import threading
 import time
 from typing import Any
@@ -71,6 +73,17 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
         pg.reload()
         pg.wait_for_function("document.body.dataset.connected === 'true'", timeout=10_000)
         pg.wait_for_function(f"Number(document.body.dataset.points) >= {n_before}")
+        # the page's process killed: the supervisor starts it again, the page reconnects,
+        # the estimation side does not notice (no lease runs out)
+        before = status()["supervisor"]
+        os.kill(before["web"]["pid"], signal.SIGKILL)
+        pg.wait_for_function("document.body.dataset.connected === 'false'", timeout=10_000)
+        pg.wait_for_function("document.body.dataset.connected === 'true'", timeout=20_000)
+        after = _until(
+            lambda: (status().get("supervisor") or {}).get("web", {}).get("deaths") and status(),
+            5.0,
+            "the page's restart in the supervisor's status",
+        )["supervisor"]
         # the controls: refused without the token, done with it
         pg.click("button[data-cmd=idle]")
         refused = pg.wait_for_function(
@@ -99,6 +112,9 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
     assert same_state >= len(compared) - 1, [(s["state"], d["state"]) for s, d, _ in compared]
     assert "401" in refused and "token" in refused
     assert mode_after == "idle"
+    assert after["web"]["deaths"] == 1 and after["web"]["starts"] == 2
+    assert after["web"]["pid"] != before["web"]["pid"] and after["web"]["alive"]
+    assert after["lease_expired"] == before["lease_expired"]
     assert result["missed_halts"] == 0
     assert result["web"]["browser"]["updates"] > 0
     assert all(r["status"] in (400, 401, 403, 413) for r in result["web"]["refused_requests"])
