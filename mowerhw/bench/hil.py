@@ -659,6 +659,7 @@ class Bench:
                 "page_process_cpu_percent": round(100.0 * (b[2] - a[2]) / dt, 2),
             }
 
+        out["page_process_peak_rss_mb"] = _pid_status_mb(self._web_pid() or -1, "VmHWM")
         out["page_closed"] = share(w["closed_from"], w["open_from"])
         out["page_open_10hz"] = share(w["open_from"], end)
         out["browser"] = watcher.summary(end[0] - w["open_from"][0])

@@ -1,6 +1,5 @@
-"""The supervisor's children: the estimation process — the daemon
-(:class:`mowerhw.runtime.daemon.Daemon`) with its decisions going to the supervisor as
-leases, its ground speed coming from it — and the status page's process."""
+"""The estimation process: the daemon (:class:`mowerhw.runtime.daemon.Daemon`) with its
+decisions going to the supervisor as leases, its ground speed coming from it."""
 
 from __future__ import annotations
 
@@ -31,14 +30,3 @@ def estimator_main(
     tune_process()
     daemon = Daemon(config, mode, record, link=SupervisorLink(conn))
     raise SystemExit(asyncio.run(daemon.run()))
-
-
-def web_child_main(config: Config, log_level: int) -> None:
-    """Entry point of the status page's process (``web.enabled``): it dies with the
-    supervisor (a page left behind would keep the port from the next one)."""
-    from mowerhw.runtime.process import die_with_parent
-
-    die_with_parent()
-    from mowerhw.web.server import web_main
-
-    web_main(config, log_level)

@@ -36,8 +36,8 @@ from mowerhw.estimation.safety import SafetyMonitor
 from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
 from mowerhw.supervisor.canport import CanPort
-from mowerhw.supervisor.child import web_child_main
 from mowerhw.supervisor.lease import Lease, SupervisorGate
+from mowerhw.supervisor.web_child import web_child_main
 from mowerhw.web.process import WebProcess
 
 log = logging.getLogger("mowerhw.supervisor")

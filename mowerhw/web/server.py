@@ -327,7 +327,7 @@ async def serve(config: Config, ready: Any = None) -> None:
 
 def web_main(config: Config, log_level: int) -> None:
     """Serve the page in this process until SIGTERM (``mowerhw web``; the supervisor's child
-    :func:`mowerhw.supervisor.child.web_child_main`)."""
+    :func:`mowerhw.supervisor.web_child.web_child_main`)."""
     import os
     import signal
 
