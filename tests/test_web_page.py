@@ -68,6 +68,9 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
             took = time.monotonic() - t0
             compared.append((shown, said, took))
             time.sleep(0.37)
+        # the sensors as the page lists them: late only as the permit gate judges it
+        sensors = request(sock, "live", timeout=2.0)["sensors"]
+        late_cells = pg.eval_on_selector_all("#sensors td.late", "cells => cells.length")
         # a reload (a browser coming back) draws the whole drive again
         n_before = pg.evaluate(READ_PAGE)["points"]
         pg.reload()
@@ -112,6 +115,9 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
     assert same_state >= len(compared) - 1, [(s["state"], d["state"]) for s, d, _ in compared]
     assert "401" in refused and "token" in refused
     assert mode_after == "idle"
+    assert set(sensors) == {"imu", "speed", "camera"}
+    assert sensors["imu"]["limit_s"] == 0.1 and sensors["speed"]["limit_s"] == 0.3
+    assert not any(s["late"] for s in sensors.values()) and late_cells == 0  # mowing
     assert after["web"]["deaths"] == 1 and after["web"]["starts"] == 2
     assert after["web"]["pid"] != before["web"]["pid"] and after["web"]["alive"]
     assert after["lease_expired"] == before["lease_expired"]

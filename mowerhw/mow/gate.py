@@ -60,7 +60,7 @@ class PermitGate:
         is recent, it is the detail instead of "silent"."""
         for name, limit in self.stale_limits_s.items():
             last = last_arrival.get(name)
-            if last is not None and now - last <= limit:
+            if not self.late(name, now, last):
                 continue
             note = (notes or {}).get(name)
             if note is not None and last is not None and note[0] < last:
@@ -72,6 +72,12 @@ class PermitGate:
                 return name, f"no {name} data yet{said}"
             return name, f"{name} silent for {now - last:.3f} s (limit {limit} s){said}"
         return None
+
+    def late(self, name: str, now: float, last: float | None) -> bool:
+        """Whether stream ``name``, last heard at ``last``, is older than its limit (the one
+        rule of staleness: the decision and the status page both ask it)."""
+        limit = self.stale_limits_s.get(name)
+        return limit is not None and (last is None or now - last > limit)
 
     def next_stale_deadline(self, now: float, last_arrival: dict[str, float | None]) -> float:
         """When the next stream's limit runs out (a shell wakes then, so a silent sensor

@@ -103,16 +103,7 @@ class LiveView:
             "reason": d.reason,
             "detail": d.detail,
             "signed_distance_m": _finite(d.signed_distance_m),
-            "sensors": {
-                name: {
-                    "age_s": None
-                    if core.last_arrival[name] is None
-                    # the arrival time is on the same clock as ``now``
-                    else round(now - float(core.last_arrival[name] or 0.0), 3),
-                    "rate_hz": rates[name],
-                }
-                for name in SENSOR_COUNTS
-            },
+            "sensors": {name: self._sensor(core, name, now, rates[name]) for name in SENSOR_COUNTS},
             "pose": (_pose_json(pose) or None) if pose is not None else None,
             "trajectory": {"from": start, "points": pts},
             "map_problem": core.map_problem,
@@ -138,6 +129,18 @@ class LiveView:
                 for k in ("permit", "reason", "lease_age_s", "can_up", "tilt_deg")
             }
         return out
+
+    @staticmethod
+    def _sensor(core: RuntimeCore, name: str, now: float, rate: float | None) -> dict[str, Any]:
+        """Age (arrival on the host clock, as ``now``), rate, and whether the permit gate
+        counts it late (its limit: the gate is the one judge of staleness)."""
+        last = core.last_arrival[name]
+        return {
+            "age_s": None if last is None else round(now - last, 3),
+            "rate_hz": rate,
+            "limit_s": core.gate.stale_limits_s.get(name),
+            "late": core.gate.late(name, now, last),
+        }
 
 
 def plan_pose(core: RuntimeCore) -> PlanPose | None:

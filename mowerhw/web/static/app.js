@@ -102,9 +102,9 @@ function showDaemon(d) {
     ? `${loc.localized ? "localized" : "not localized"} · searches ${loc.searches} · found ${loc.relocalizations}`
     : "–";
   const rows = Object.entries(d.sensors || {}).map(([name, s]) => {
-    const late = s.age_s === null || s.age_s > 0.5;
+    const late = s.late; // as the permit gate judges it (its limit: s.limit_s)
     return `<tr><td>${name}</td><td>${s.rate_hz === null ? "–" : fmt(s.rate_hz, 1) + " Hz"}</td>` +
-      `<td class="${late ? "late" : ""}">${s.age_s === null ? "never" : fmt(s.age_s * 1000, 0) + " ms"}</td></tr>`;
+      `<td class="${late ? "late" : ""}" title="limit ${s.limit_s} s">${s.age_s === null ? "never" : fmt(s.age_s * 1000, 0) + " ms"}</td></tr>`;
   });
   $("sensors").tBodies[0].innerHTML = rows.join("");
   const t = d.teach;
