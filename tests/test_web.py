@@ -372,3 +372,28 @@ def test_a_dead_page_process_is_started_again_with_backoff_and_a_bad_config_is_n
     bad.check(now=200.0)
     bad.check(now=300.0)
     assert bad.given_up and bad.starts == 1 and not bad.status()["alive"]
+
+
+def test_an_oversized_websocket_message_closes_that_browser_only(tmp_path) -> None:
+    async def body(url: str, server: WebServer, daemon: FakeDaemon) -> dict[str, Any]:
+        async with (
+            aiohttp.ClientSession() as s,
+            s.ws_connect(url + "ws") as bad,
+            s.ws_connect(url + "ws") as good,
+        ):
+            await bad.receive(timeout=2)
+            await bad.send_str("x" * 5000)  # the page's WebSocket takes at most 1 KiB
+            closed = None
+            for _ in range(50):
+                msg = await bad.receive(timeout=2)
+                if msg.type in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED):
+                    closed = bad.close_code
+                    break
+            n = 0
+            for _ in range(5):
+                n += (await good.receive(timeout=2)).type == aiohttp.WSMsgType.TEXT
+        return {"closed": closed, "n": n}
+
+    out = asyncio.run(_with_page(tmp_path, body))
+    assert out["closed"] == 1009  # "message too big"
+    assert out["n"] == 5

@@ -51,23 +51,9 @@ def print_json(obj: Any, indent: int | None = 2) -> None:
 
 def strict_json(obj: Any, indent: int | None = None) -> str:
     """``obj`` as strict JSON text: numpy values converted, non-finite numbers as null."""
-    return json.dumps(_finite(obj), indent=indent, allow_nan=False, default=_json_default)
+    from mowerhw.common.strictjson import finite
 
-
-def _finite(value: Any) -> Any:
-    import math
-
-    import numpy as np
-
-    if isinstance(value, float | np.floating):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _finite(value.tolist())
-    return value
+    return json.dumps(finite(obj), indent=indent, allow_nan=False, default=_json_default)
 
 
 def _json_default(value: Any) -> Any:

@@ -32,3 +32,21 @@ def bounded_int(text: str) -> int:
 def no_constant(text: str) -> Any:
     """``parse_constant``: NaN and the infinities are no numbers here."""
     raise JsonLimitError(f"{text} is not an allowed number")
+
+
+def finite(value: Any) -> Any:
+    """``value`` ready for strict JSON: NaN and the infinities become null (JSON has no such
+    numbers, and strict readers refuse them), numpy scalars and arrays plain Python."""
+    import math
+
+    import numpy as np
+
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return finite(value.tolist())
+    return value

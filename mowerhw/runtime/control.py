@@ -28,6 +28,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
+from mowerhw.common.strictjson import finite
 from mowerhw.config import Config
 from mowerhw.runtime.control_access import ControlPolicy, Peer
 from mowerhw.runtime.control_protocol import MAX_REQUEST_BYTES, READ_ONLY, parse_request
@@ -268,7 +269,8 @@ def _error(message: str) -> dict[str, Any]:
 
 
 def _encode(reply: dict[str, Any]) -> bytes:
-    return (json.dumps(reply, default=_jsonable) + "\n").encode()
+    """Strict JSON: a number that is not finite (a pose before the first fix) is null."""
+    return (json.dumps(finite(reply), default=_jsonable, allow_nan=False) + "\n").encode()
 
 
 def _jsonable(v: Any) -> Any:

@@ -208,7 +208,7 @@ class DaemonFeed:
             writer.close()
         if not line:
             raise ConnectionError("the daemon closed the connection without a reply")
-        reply: dict[str, Any] = json.loads(line)
+        reply: dict[str, Any] = json.loads(line, parse_constant=_null)
         return reply
 
     async def _request(self, req: dict[str, Any]) -> dict[str, Any]:
@@ -223,7 +223,7 @@ class DaemonFeed:
         line = await asyncio.wait_for(reader.readline(), REPLY_TIMEOUT_S)
         if not line:
             raise ConnectionError("the daemon closed the connection")
-        reply: dict[str, Any] = json.loads(line)
+        reply: dict[str, Any] = json.loads(line, parse_constant=_null)
         return reply
 
     def _close(self) -> None:
@@ -267,3 +267,8 @@ def _why(exc: BaseException) -> str:
     if isinstance(exc, TimeoutError):
         return "no reply in time"
     return str(exc) or type(exc).__name__
+
+
+def _null(constant: str) -> None:
+    """NaN or an infinity from a daemon that still sends them: no number (null)."""
+    return None

@@ -233,7 +233,17 @@ class WebServer:
             "controls": list(CONTROLS),
             "token_hint": f"the token is in {self.token_file} on the mower",
         }
-        await ws.send_str(_dumps(hello))
+        try:
+            await ws.send_str(_dumps(hello))
+            await self._updates(ws)
+        except (ConnectionError, RuntimeError):
+            return  # the browser went away
+        except Exception:  # a bug: that browser is told (1011) and closed, the page goes on
+            log.exception("web: sending to a browser failed")
+            await ws.close(code=1011, message=b"internal error")
+
+    async def _updates(self, ws: web.WebSocketResponse) -> None:
+        """One browser's updates: the newest one each time, until it goes away."""
         seen, session, index, landmarks = -1, None, 0, -1
         feed = self.feed
         while not ws.closed:
