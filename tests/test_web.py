@@ -397,3 +397,20 @@ def test_an_oversized_websocket_message_closes_that_browser_only(tmp_path) -> No
     out = asyncio.run(_with_page(tmp_path, body))
     assert out["closed"] == 1009  # "message too big"
     assert out["n"] == 5
+
+
+def test_live_replies_are_strict_json_before_the_first_imu_sample() -> None:
+    """Found by the browser test: the localizer's pose time is NaN until the first IMU
+    sample; a `live` reply then carried it, and the page's sender died on it."""
+    import numpy as np
+
+    from mowerhw.runtime.control import _encode
+    from mowerhw.runtime.live import _pose_json
+    from mowerhw.runtime.pipelines import PlanPose
+
+    pose = PlanPose(float("nan"), np.array([1.0, 2.0, 0.3]), np.array([1.0, 0, 0, 0]), None)
+    out = _pose_json(pose)
+    assert out["t"] is None and out["x"] == 1.0
+    json.dumps(out, allow_nan=False)
+    wire = _encode({"ok": True, "a": float("nan"), "b": [float("inf"), 1.5]})
+    assert json.loads(wire) == {"ok": True, "a": None, "b": [None, 1.5]}

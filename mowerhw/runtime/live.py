@@ -158,7 +158,7 @@ def _pose_json(p: PlanPose) -> dict[str, Any]:
     """x, y, heading for the page; position, q_wb and the full covariance for Foxglove's
     pose and state topics (the same messages a recording holds)."""
     out: dict[str, Any] = {
-        "t": round(p.t, 3),
+        "t": _finite(p.t),  # NaN before the first IMU sample
         "x": round(float(p.position[0]), 4),
         "y": round(float(p.position[1]), 4),
         "z": round(float(p.position[2]), 4),

@@ -46,11 +46,10 @@ class FoxgloveLive:
         """One ``live`` update (see :mod:`mowerhw.runtime.live`) as the recordings' messages."""
         pose = live.get("pose")
         now_ns = time.time_ns()
-        host_ns = round(float(pose["t"] if pose else live.get("now", 0.0)) * 1e9)
+        t = (pose.get("t") if pose else None) or float(live.get("now") or 0.0)
+        host_ns = round(t * 1e9)
         if pose:
-            msg = pose_message(
-                pose["t"], (pose["x"], pose["y"], pose["z"]), pose["q_wxyz"], frame="lawn"
-            )
+            msg = pose_message(t, (pose["x"], pose["y"], pose["z"]), pose["q_wxyz"], frame="lawn")
             self.channels["/estimate/pose"].log(msg, log_time=now_ns)
         sigma = pose.get("sigma_xy_m") if pose else None
         state = state_message(
