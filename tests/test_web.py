@@ -414,3 +414,21 @@ def test_live_replies_are_strict_json_before_the_first_imu_sample() -> None:
     json.dumps(out, allow_nan=False)
     wire = _encode({"ok": True, "a": float("nan"), "b": [float("inf"), 1.5]})
     assert json.loads(wire) == {"ok": True, "a": None, "b": [None, 1.5]}
+
+
+def test_a_plain_status_request_asks_the_daemon_with_no_browser_open(tmp_path, map_file) -> None:
+    async def body(url: str, server: WebServer, daemon: FakeDaemon) -> dict[str, Any]:
+        server.feed.map_path = map_file
+        async with aiohttp.ClientSession() as s:
+            async with s.get(url + "api/status") as r:
+                status = await r.json()
+            async with s.get(url + "api/map") as r:
+                plan = (r.status, await r.json())
+        return {"status": status, "plan": plan, "lives": daemon.lives}
+
+    out = asyncio.run(_with_page(tmp_path, body))
+    assert out["status"]["ok"] and out["status"]["daemon"]["state"] == "INSIDE"
+    assert out["lives"] == 1  # asked once, for this request
+    code, plan = out["plan"]
+    assert code == 200 and plan["mow_areas"] and len(plan["landmarks"]) == 6
+    assert plan["areas"][0]["kind"] == "mow" and len(plan["areas"][0]["polygon"]) == 80

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import os
 import time
 from collections import deque
@@ -77,6 +78,8 @@ class DaemonFeed:
         self._wake = asyncio.Event()
         self._conn: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
         self._stopping = False
+        self._lock = asyncio.Lock()
+        self._polled_at = -math.inf
 
     # ------------------------------------------------------------------------- consumers
 
@@ -119,14 +122,30 @@ class DaemonFeed:
                 self._wake.clear()
                 await self._wake.wait()
             started = loop.time()
-            await self._poll()
-            if loop.time() >= self._next_map_check:
-                self._next_map_check = loop.time() + MAP_CHECK_S
+            if not await self._poll():
+                await asyncio.sleep(1.0)  # the daemon does not answer: ask again in a second
+            if time.monotonic() >= self._next_map_check:
+                self._next_map_check = time.monotonic() + MAP_CHECK_S
                 await self._check_map()
             await asyncio.sleep(max(0.0, started + self.period_s - loop.time()))
 
-    async def _poll(self) -> None:
+    async def refresh(self) -> None:
+        """A reader with no stream (``GET /api/status``, ``/api/map``): ask the daemon now,
+        unless the newest answer is younger than one period."""
         now = time.monotonic()
+        if now - self._polled_at >= self.period_s:
+            await self._poll()
+        if now >= self._next_map_check:
+            self._next_map_check = now + MAP_CHECK_S
+            await self._check_map()
+
+    async def _poll(self) -> bool:
+        """Ask the daemon once; False when it did not answer."""
+        async with self._lock:  # one request at a time on the one connection
+            return await self._poll_once()
+
+    async def _poll_once(self) -> bool:
+        now = self._polled_at = time.monotonic()
         want_landmarks = now >= self._next_landmarks
         since = self._since
         try:
@@ -141,13 +160,12 @@ class DaemonFeed:
                 log.warning("web: %s", error)
             self.error = error
             await self._publish()
-            await asyncio.sleep(1.0)
-            return
+            return False
         self.polls += 1
         if not reply.get("ok"):
             self.error = f"the daemon refused the status request: {reply.get('error')}"
             await self._publish()
-            return
+            return True
         if self.error:
             log.info("web: reading the daemon on %s", self.socket_path)
         self.error = ""
@@ -155,6 +173,7 @@ class DaemonFeed:
             self._next_landmarks = now + LANDMARKS_PERIOD_S
         if self._take(reply, since):
             await self._publish()
+        return True
 
     def _take(self, reply: dict[str, Any], since: int) -> bool:
         """Keep a reply; False when it must be asked again (a new session, asked from the

@@ -174,10 +174,12 @@ class WebServer:
         return web.Response(body=body, content_type=STATIC[name], charset="utf-8")
 
     async def _status(self, request: web.Request) -> web.StreamResponse:
+        await self.feed.refresh()
         return web.json_response(self.update(), dumps=_dumps)
 
     async def _map(self, request: web.Request) -> web.StreamResponse:
         feed = self.feed
+        await feed.refresh()
         if feed.map is None:
             return _error(404, feed.map_error or "no map yet")
         return web.json_response(
