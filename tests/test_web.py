@@ -432,3 +432,27 @@ def test_a_plain_status_request_asks_the_daemon_with_no_browser_open(tmp_path, m
     code, plan = out["plan"]
     assert code == 200 and plan["mow_areas"] and len(plan["landmarks"]) == 6
     assert plan["areas"][0]["kind"] == "mow" and len(plan["areas"][0]["polygon"]) == 80
+
+
+def test_trajectory_points_since_an_index_with_the_oldest_dropped() -> None:
+    """The daemon's buffer and the page's keep the newest points; a caller gets the points
+    from its index on, or from the oldest kept."""
+    from mowerhw.runtime.live import LiveView
+    from mowerhw.web.feed import DaemonFeed
+
+    async def feed_points() -> list[Any]:
+        f = DaemonFeed("/nowhere", "/nowhere", max_points=5)
+        for k in range(8):
+            f.points.append((k, k, k))
+            f.total += 1
+        return [f.points_since(i) for i in (0, 7, 8)]
+
+    view = LiveView(max_points=5)
+    for k in range(8):  # as sample() appends them
+        view._points.append((k, k, k))
+        view._total += 1
+    pts = [(k, k, k) for k in range(8)]
+    assert view.trajectory_since(0) == (3, pts[3:])
+    assert view.trajectory_since(6) == (6, pts[6:])
+    assert view.trajectory_since(8) == view.trajectory_since(100) == (8, [])
+    assert asyncio.run(feed_points()) == [(3, pts[3:]), (7, pts[7:]), (8, [])]

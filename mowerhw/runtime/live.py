@@ -10,6 +10,7 @@ points it already has) and gets only the new ones.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from collections import deque
@@ -77,7 +78,8 @@ class LiveView:
         points kept when ``since`` has already left the buffer."""
         first = max(0, self._total - len(self._points))
         start = min(max(since, first), self._total)
-        pts = list(self._points)[start - first :] if start < self._total else []
+        # from the newest end: a reply costs the points it carries, not the whole drive
+        pts = list(itertools.islice(reversed(self._points), self._total - start))[::-1]
         return start, pts
 
     def snapshot(

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import logging
 import math
@@ -107,9 +108,8 @@ class DaemonFeed:
         """(index of the first point, points from ``index`` on; the oldest kept if gone)."""
         first = self.total - len(self.points)
         start = min(max(index, first), self.total)
-        if start >= self.total:
-            return start, []
-        return start, list(self.points)[start - first :]
+        # from the newest end: an update costs the points it carries, not the whole drive
+        return start, list(itertools.islice(reversed(self.points), self.total - start))[::-1]
 
     # ------------------------------------------------------------------------------ run
 
