@@ -13,6 +13,18 @@ import os
 import tempfile
 from pathlib import Path
 
+FileStamp = tuple[int, int, int]
+
+
+def file_stamp(path: str | Path) -> FileStamp | None:
+    """(mtime, size, inode) of ``path``, None if it cannot be read: a change means reload
+    (the daemon's map file, the status page's copy of it)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_mtime_ns, st.st_size, st.st_ino)
+
 
 def write_atomic(path: str | Path, data: bytes, mode: int = 0o644, durable: bool = True) -> None:
     """Replace ``path`` with ``data`` atomically and (``durable``) durably. Without

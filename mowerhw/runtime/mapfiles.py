@@ -7,7 +7,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import os
 import pickle
 import shutil
 import subprocess
@@ -20,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from mowerhw.common.fileio import write_atomic
+from mowerhw.common.fileio import FileStamp, file_stamp, write_atomic
 from mowerhw.config import Config
 from mowerhw.map import MAX_MAP_BYTES, LawnMap, MapError, check_map_file
 from mowerhw.runtime.pipelines import StartPose, TeachPipeline
@@ -29,17 +28,6 @@ log = logging.getLogger("mowerhw.daemon")
 
 #: a pose saved by a previous run is resumed from if it is at most this old (s)
 RESUME_MAX_AGE_S = 120.0
-
-FileStamp = tuple[int, int, int]
-
-
-def file_stamp(path: Path) -> FileStamp | None:
-    """(mtime, size, inode) of ``path``, None if it cannot be read: a change means reload."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return (st.st_mtime_ns, st.st_size, st.st_ino)
 
 
 class MapFile:

@@ -23,6 +23,7 @@ from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any
 
+from mowerhw.common.fileio import FileStamp, file_stamp
 from mowerhw.map import MapError
 from mowerhw.map import load as load_map
 from mowerhw.web.plan import map_plan
@@ -74,7 +75,7 @@ class DaemonFeed:
         self._since = 0  # the daemon's trajectory index
         self._next_landmarks = 0.0
         self._next_map_check = 0.0
-        self._map_key: tuple[int, int] | None = None
+        self._map_key: FileStamp | None = None
         self._cond = asyncio.Condition()
         self._wake = asyncio.Event()
         self._conn: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
@@ -253,20 +254,14 @@ class DaemonFeed:
     # ------------------------------------------------------------------------------- map
 
     async def _check_map(self) -> None:
-        try:
-            st = os.stat(self.map_path)
-        except FileNotFoundError:
-            key = None
-        except OSError as exc:
-            self.map_error = f"map {self.map_path}: {exc.strerror}"
-            return
-        else:
-            key = (st.st_mtime_ns, st.st_size)
+        key = file_stamp(self.map_path)
         if key == self._map_key:
             return
         self._map_key = key
         if key is None:
-            self.map, self.map_error, self.map_version = None, "no map yet", ""
+            self.map, self.map_version = None, ""
+            exists = os.path.lexists(self.map_path)
+            self.map_error = f"map {self.map_path}: cannot be read" if exists else "no map yet"
             return
         loop = asyncio.get_running_loop()
         try:
@@ -275,7 +270,7 @@ class DaemonFeed:
             self.map, self.map_error = None, str(exc)[:300]
         else:
             self.map, self.map_error = plan, ""
-        self.map_version = f"{key[0]}-{key[1]}"
+        self.map_version = "-".join(str(k) for k in key)
 
 
 def _load_plan(path: Path) -> dict[str, Any]:
