@@ -121,9 +121,11 @@ class LiveView:
             if landmarks:
                 out["landmarks"] = np.round(lms, 3).tolist()
         elif isinstance(pipe, MowPipeline):
-            st = pipe.status()
+            loc = pipe.localizer  # three figures: not the whole status with its copies
             out["localizer"] = {
-                k: st.get(k) for k in ("localized", "searches", "relocalizations") if k in st
+                "localized": loc.localized,
+                "searches": loc.counters.searches,
+                "relocalizations": loc.counters.relocalizations,
             }
         if supervisor:
             out["supervisor"] = {
@@ -168,15 +170,15 @@ def _pose_json(p: PlanPose) -> dict[str, Any]:
         "q_wxyz": [round(float(v), 6) for v in p.quaternion],
         "cov_xy": None,
         "sigma_heading": None,
-        "sigma_xy_m": None,
+        "sigma_xy_m": (
+            round(p.sigma_xy, 5) if p.sigma_xy is not None and math.isfinite(p.sigma_xy) else None
+        ),
         "covariance": None,
     }
     cov = p.covariance
     if cov is not None and bool(np.isfinite(cov).all()):
         out["cov_xy"] = [[float(f"{v:.4g}") for v in row] for row in cov[:2, :2].tolist()]
         out["sigma_heading"] = round(math.sqrt(max(float(cov[5, 5]), 0.0)), 6)
-        # the largest σ of the horizontal position, as the localizer reports it
-        out["sigma_xy_m"] = round(math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0)), 5)
         out["covariance"] = [float(f"{v:.4g}") for v in cov.ravel().tolist()]
     if not all(math.isfinite(v) for v in (out["x"], out["y"], out["z"], out["heading"])):
         return {}

@@ -44,14 +44,15 @@ class StartPose(NamedTuple):
 
 
 class PlanPose(NamedTuple):
-    """The mower for the status page: time, position (3), q_wb (w, x, y, z) and the
-    covariance (6 × 6: position, then rotation in world axes) where the estimator has one in
-    the map frame."""
+    """The mower for the status page: time, position (3), q_wb (w, x, y, z), and where the
+    estimator has them in the map frame the covariance (6 × 6: position, then rotation in
+    world axes) and the largest σ of the horizontal position (m), as the localizer gives it."""
 
     t: float
     position: FloatArray
     quaternion: FloatArray
     covariance: FloatArray | None
+    sigma_xy: float | None = None
 
 
 @dataclass(frozen=True)
@@ -271,7 +272,7 @@ class MowPipeline:
         if not self.finite():
             return None
         p = self.localizer.pose()
-        return PlanPose(p.t, p.position, p.quaternion, p.covariance)
+        return PlanPose(p.t, p.position, p.quaternion, p.covariance, self.localizer.sigma_xy())
 
     def last_good_pose(self) -> StartPose | None:
         """Position, q_wb and the calibrated gyro bias (for a rebuilt estimator)."""
