@@ -255,14 +255,9 @@ class Bench:
         if self.proc is None or self.proc.poll() is not None:
             return 0.0, 0.0
         cpu = rss = 0.0
-        tick = os.sysconf("SC_CLK_TCK")
         for pid in _process_tree(self.proc.pid):
-            try:
-                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-                cpu += (int(fields[11]) + int(fields[12])) / tick
-                rss += _pid_status_mb(pid, "VmHWM")
-            except (OSError, ValueError, IndexError):
-                continue
+            cpu += _pid_cpu_s(pid)
+            rss += _pid_status_mb(pid, "VmHWM")
         return cpu, rss
 
     # -------------------------------------------------------------------------------- run
@@ -622,9 +617,8 @@ class Bench:
 
     def _web_cpu(self) -> tuple[float, float, float]:
         """(when, CPU s of all the daemon's processes, CPU s of the page's process)."""
-        from mowerhw.bench.web_check import process_cpu_s
-
-        return time.monotonic(), self._proc_cpu_rss()[0], process_cpu_s(self._web_pid())
+        pid = self._web_pid()
+        return time.monotonic(), self._proc_cpu_rss()[0], 0.0 if pid is None else _pid_cpu_s(pid)
 
     def _web_plan(self, t_mow0: float) -> None:
         """First half of mowing with the page closed, second half open (web_check)."""
@@ -893,6 +887,15 @@ def _process_tree(pid: int) -> list[int]:
             except (OSError, ValueError):
                 continue
     return out
+
+
+def _pid_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of a running process; 0 if it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return 0.0
 
 
 def _pid_status_mb(pid: int, key: str) -> float:
