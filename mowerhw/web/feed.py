@@ -40,6 +40,7 @@ MAX_REPLY_BYTES = 4 << 20
 REPLY_TIMEOUT_S = 2.0
 
 Point = tuple[float, float, float]
+Connection = tuple[asyncio.StreamReader, asyncio.StreamWriter]
 
 
 class DaemonFeed:
@@ -78,7 +79,7 @@ class DaemonFeed:
         self._map_key: FileStamp | None = None
         self._cond = asyncio.Condition()
         self._wake = asyncio.Event()
-        self._conn: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
+        self._conn: Connection | None = None
         self._stopping = False
         self._lock = asyncio.Lock()
         self._polled_at = -math.inf
@@ -125,9 +126,7 @@ class DaemonFeed:
             started = loop.time()
             if not await self._poll():
                 await asyncio.sleep(1.0)  # the daemon does not answer: ask again in a second
-            if time.monotonic() >= self._next_map_check:
-                self._next_map_check = time.monotonic() + MAP_CHECK_S
-                await self._check_map()
+            await self._check_map_when_due()
             await asyncio.sleep(max(0.0, started + self.period_s - loop.time()))
 
     async def refresh(self) -> None:
@@ -136,9 +135,7 @@ class DaemonFeed:
         now = time.monotonic()
         if now - self._polled_at >= self.period_s:
             await self._poll()
-        if now >= self._next_map_check:
-            self._next_map_check = now + MAP_CHECK_S
-            await self._check_map()
+        await self._check_map_when_due()
 
     async def _poll(self) -> bool:
         """Ask the daemon once; False when it did not answer."""
@@ -217,34 +214,22 @@ class DaemonFeed:
 
     async def request(self, req: dict[str, Any], timeout: float = 20.0) -> dict[str, Any]:
         """One command on a connection of its own (the operator's controls)."""
-        reader, writer = await asyncio.wait_for(
-            asyncio.open_unix_connection(str(self.socket_path), limit=MAX_REPLY_BYTES), 5.0
-        )
+        conn = await self._connect(5.0)
         try:
-            writer.write((json.dumps(req) + "\n").encode())
-            await writer.drain()
-            line = await asyncio.wait_for(reader.readline(), timeout)
+            return await _exchange(conn, req, timeout)
         finally:
-            writer.close()
-        if not line:
-            raise ConnectionError("the daemon closed the connection without a reply")
-        reply: dict[str, Any] = json.loads(line, parse_constant=_null)
-        return reply
+            conn[1].close()
 
     async def _request(self, req: dict[str, Any]) -> dict[str, Any]:
+        """One ``live`` request on the polling connection (opened when needed)."""
         if self._conn is None:
-            self._conn = await asyncio.wait_for(
-                asyncio.open_unix_connection(str(self.socket_path), limit=MAX_REPLY_BYTES),
-                REPLY_TIMEOUT_S,
-            )
-        reader, writer = self._conn
-        writer.write((json.dumps(req) + "\n").encode())
-        await writer.drain()
-        line = await asyncio.wait_for(reader.readline(), REPLY_TIMEOUT_S)
-        if not line:
-            raise ConnectionError("the daemon closed the connection")
-        reply: dict[str, Any] = json.loads(line, parse_constant=_null)
-        return reply
+            self._conn = await self._connect(REPLY_TIMEOUT_S)
+        return await _exchange(self._conn, req, REPLY_TIMEOUT_S)
+
+    async def _connect(self, timeout: float) -> Connection:
+        return await asyncio.wait_for(
+            asyncio.open_unix_connection(str(self.socket_path), limit=MAX_REPLY_BYTES), timeout
+        )
 
     def _close(self) -> None:
         if self._conn is not None:
@@ -252,6 +237,13 @@ class DaemonFeed:
             self._conn = None
 
     # ------------------------------------------------------------------------------- map
+
+    async def _check_map_when_due(self) -> None:
+        """Look at the map file at most every :data:`MAP_CHECK_S`."""
+        now = time.monotonic()
+        if now >= self._next_map_check:
+            self._next_map_check = now + MAP_CHECK_S
+            await self._check_map()
 
     async def _check_map(self) -> None:
         key = file_stamp(self.map_path)
@@ -271,6 +263,18 @@ class DaemonFeed:
         else:
             self.map, self.map_error = plan, ""
         self.map_version = "-".join(str(k) for k in key)
+
+
+async def _exchange(conn: Connection, req: dict[str, Any], timeout: float) -> dict[str, Any]:
+    """Send one request line, read its reply line (a NaN from an older daemon is null)."""
+    reader, writer = conn
+    writer.write((json.dumps(req) + "\n").encode())
+    await writer.drain()
+    line = await asyncio.wait_for(reader.readline(), timeout)
+    if not line:
+        raise ConnectionError("the daemon closed the connection without a reply")
+    reply: dict[str, Any] = json.loads(line, parse_constant=_null)
+    return reply
 
 
 def _load_plan(path: Path) -> dict[str, Any]:
