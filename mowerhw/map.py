@@ -30,6 +30,9 @@ frame at its first sample: x forward, y left, z up, origin at the camera centre)
                                          controller; version 2)
       "camera": {Kalibr camchain entry} | null,   the calibration the map was made with
       "teach": {...},                    how the map was made (duration, distance, closure)
+      "compass": {"north_rad", "sigma_rad", "strength_t", "dip_rad", "samples"},
+                                         optional: the Earth's field in the map's frame, as
+                                         the teach drive read it (mowerhw.common.magnetic)
       "checksum": "sha256:<hex>"         over the canonical JSON of everything else
     }
 
@@ -68,6 +71,7 @@ from shapely.validation import explain_validity
 
 from mowerhw import __version__
 from mowerhw.common.fileio import write_atomic
+from mowerhw.common.magnetic import CompassReference
 from mowerhw.common.strictjson import JsonLimitError, bounded_int, no_constant, unique_keys
 from mowerhw.zones import Garden, Zone
 
@@ -148,6 +152,7 @@ class LawnMap:
     boundary_name: str = TAUGHT_AREA
     areas: list[Area] = field(default_factory=list)
     dock_approach: FloatArray | None = None  # (K, 2): from the dock into the garden
+    compass: CompassReference | None = None  # the field's direction in the map's frame
 
     # -- geometry -----------------------------------------------------------------------------
 
@@ -411,6 +416,8 @@ class LawnMap:
             "camera": self.camera,
             "teach": self.teach,
         }
+        if self.compass is not None:  # only when read: a map without one keeps its bytes
+            doc["compass"] = self.compass.to_dict()
         doc["checksum"] = "sha256:" + _digest(doc)
         return doc
 
@@ -471,6 +478,7 @@ class LawnMap:
             camera=camera,
             teach=teach,
             created_utc=_utc_now(),
+            compass=getattr(result, "compass", None),
         )
 
 
@@ -640,7 +648,14 @@ def _from_document(doc: Any, source: str, strict: bool) -> LawnMap:
             OmniRadtanCamera.from_kalibr(camera, where="camera")
         except CameraCalibrationError as exc:
             raise MapError(f"{source}: {exc}") from None
+    compass = None
+    if doc.get("compass") is not None:
+        try:
+            compass = CompassReference.from_dict(doc["compass"])
+        except ValueError as exc:
+            raise MapError(f"{source}: {exc}") from None
     lawn = LawnMap(
+        compass=compass,
         boundary=boundary,
         boundary_name=boundary_name,
         areas=areas,

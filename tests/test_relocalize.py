@@ -62,3 +62,24 @@ def test_too_few_bearings_give_no_pose() -> None:
     pts = _ring(rng)
     res = GlobalRelocalizer(_map(pts)).locate(_view(pts[:5], np.zeros(3), 0.0, rng, 0.001))
     assert not res.ok and "bearings" in res.why
+
+
+def test_the_compass_tells_a_half_turned_twin_apart_and_a_wrong_one_gives_no_pose() -> None:
+    """The same symmetric garden with the magnetometer's heading (issue 18): the twin place
+    faces the other way, so the compass rules it out and the true pose comes back; a compass
+    beyond its tolerance from the truth gives no pose rather than a wrong one."""
+    rng = np.random.default_rng(5)
+    half = _ring(rng, 20)
+    pts = np.vstack([half, half * [-1, -1, 1]])
+    p, yaw = np.array([1.0, 0.5, 0.0]), 0.4
+    bearings = _view(pts, p, yaw, rng, 0.001)
+    reloc = GlobalRelocalizer(_map(pts))
+    res = reloc.locate(bearings, heading=(yaw + math.radians(12.0), math.radians(5.0)))
+    assert res.ok, res.why
+    assert np.linalg.norm(res.p_wb - p) < 0.05
+    assert abs((res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi) < math.radians(1.0)
+    wrong = reloc.locate(bearings, heading=(yaw + math.pi / 2, math.radians(5.0)))
+    assert not wrong.ok, "a compass 90° off must not give a pose"
+    # a compass too unsure to use (σ 30°: tolerance 90°) changes nothing: still ambiguous
+    unsure = reloc.locate(bearings, heading=(yaw, math.radians(30.0)))
+    assert not unsure.ok and unsure.why.startswith("ambiguous"), unsure.why

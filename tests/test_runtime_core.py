@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from typing import Any
 
 import numpy as np
 import pytest
 
 from mowerhw.camera import load_camchain
+from mowerhw.common.magnetic import CompassReference
 from mowerhw.common.relocalization import Relocalization
 from mowerhw.common.samples import ImuSample, SpeedSample
 from mowerhw.config import default_config
@@ -154,6 +156,11 @@ def test_the_journal_codec_round_trips_exactly(tmp_path: Any) -> None:
     imu = ImuSample(0.1 + 1e-12, np.array([1e-7, -2.5, np.pi]), None, 12, 34)
     back_imu = dec.imu(json.loads(json.dumps(enc.encode("imu", {"s": imu})))["s"])
     assert np.array_equal(back_imu.gyro, imu.gyro) and back_imu.t == imu.t
+    assert back_imu.mag is None
+    field = np.array([2e-5, -1e-6, -4.5e-5])
+    imu = ImuSample(0.2, np.zeros(3), np.array([0.0, 0.0, 9.8]), None, None, field)
+    back_imu = dec.imu(json.loads(json.dumps(enc.encode("imu", {"s": imu})))["s"])
+    assert back_imu.mag is not None and np.array_equal(back_imu.mag, imu.mag)
     m = _map()
     m.save(tmp_path / "lawn.json")  # as the daemon's maps are: saved, with a checksum
     first = json.loads(json.dumps(enc.encode("map_loaded", {"map": m})))["map"]
@@ -239,7 +246,6 @@ def test_the_log_says_when_the_pose_is_given_up_and_found(camera: Any) -> None:
     of the start pose every pixel-level start makes), that it gave it up and why, and that
     it found it again (issue 18)."""
     from mowerhw.common.geometry import yaw_rotation
-    from mowerhw.common.relocalization import Relocalization
 
     pipe = build_pipeline(default_config(), camera, BuildRequest(1, "mow", _map()))
     assert isinstance(pipe, MowPipeline)
@@ -255,3 +261,30 @@ def test_the_log_says_when_the_pose_is_given_up_and_found(camera: Any) -> None:
         loc.relocalization(t, Relocalization(True, yaw_rotation(0.3), np.array([1.0, 2.0, 0.0])))
     found = pipe.news()
     assert len(found) == 1 and found[0].startswith("pose found: x 1.00 m, y 2.00 m")
+
+
+def test_the_magnetometer_reaches_the_localizer_at_10_hz(camera: Any) -> None:
+    """The compass's readings (issue 18): the IMU's magnetic field and specific force, turned
+    into the body frame, go to the mow chain's localizer ten times a second (the journal
+    keeps them with the IMU sample: the codec test above)."""
+    reference = CompassReference(0.7, math.radians(3.0), 5e-5, math.radians(65.0), 400)
+    lawn = dataclasses.replace(_map(), compass=reference)
+    core, _ = _core(camera)
+    core.set_mode("mow")
+    core.map_loaded(lawn)
+    heading = 0.3  # the field in the body frame of a mower facing 0.3 rad in the map
+    alpha, dip = 0.7 - heading, 1.134
+    field_b = 5e-5 * np.array(
+        [math.cos(alpha) * math.cos(dip), math.sin(alpha) * math.cos(dip), -math.sin(dip)]
+    )
+    r_ib = core.r_bi.T
+    for k in range(150):
+        t = 0.01 * k
+        core.imu(ImuSample(t, np.zeros(3), r_ib @ [0.0, 0.0, 9.81], None, None, r_ib @ field_b), t)
+        if k % 10 == 0:
+            core.speed(SpeedSample(t, 0.0))
+    assert isinstance(core.pipeline, MowPipeline)
+    compass = core.pipeline.localizer.compass
+    assert compass is not None and len(compass._t) == 10  # the last second, at 10 Hz
+    found = compass.heading(1.49)
+    assert found is not None and abs(found[0] - heading) < 1e-6

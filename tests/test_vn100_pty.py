@@ -39,10 +39,26 @@ def test_driver_configures_the_mock_from_factory_settings(link):
         drv = Vn100(str(link), baudrate=921600, rate_hz=100, output="binary")
         drv.open()
         assert mock.baud == 921600 and drv.stats.baudrate == 921600
-        assert mock.registers[75] == ["1", "8", "01", "0129"]
+        # TimeStartup, YawPitchRoll, AngularRate, Accel, MagPres (the compass)
+        assert mock.registers[75] == ["1", "8", "01", "0529"]
         assert mock.registers[6] == ["0"]
         assert mock.async_on
         drv.close()
+
+
+@pytest.mark.parametrize("output", ["binary", "ascii"])
+def test_every_sample_carries_the_magnetic_field_in_tesla(link, output):
+    """The compass's input (issue 18), over the pty: binary MagPres and ASCII $VNYMR both
+    give the field the sensor sent (gauss) in tesla."""
+    samples = []
+    with MockVn100(link, source=moving_source) as _mock:
+        drv = Vn100(str(link), on_sample=samples.append, output=output)
+        drv.open()
+        run_for(drv, 0.5)
+    assert len(samples) > 20
+    for s in samples:
+        assert s.mag is not None
+        np.testing.assert_allclose(s.mag, [0.2e-4, 0.0, 0.4e-4], rtol=1e-6, atol=1e-12)
 
 
 @pytest.mark.slow
@@ -159,7 +175,7 @@ def test_driver_asks_for_the_configured_gyro_field(link):
     with MockVn100(link, source=moving_source) as mock:
         drv = Vn100(str(link), gyro_source="uncomp_gyro", on_sample=samples.append)
         drv.open()
-        assert mock.registers[75] == ["1", "8", "01", "0209"]  # TimeStartup, YPR, Imu
+        assert mock.registers[75] == ["1", "8", "01", "0609"]  # TimeStartup, YPR, Imu, MagPres
         run_for(drv, 1.0)
     assert len(samples) >= 80 and drv.extractor.stats.unused == 0
     s = samples[-1]

@@ -9,6 +9,13 @@ log is fed in random chunks through :class:`drivers.imu.vn100.Vn100Parser` and
 (``parsed_by_upstream/*_B``, printed with 7 significant digits, so a value agrees to half a
 unit of its last printed digit: 5e-7 relative).
 
+Then the compass (issue 18): each sample's magnetic field (T, from ``Imu.UncompMag``) and
+specific force, turned from the VN-100's frame (x forward, y right, z down) into mowerhw's
+body frame (z up) and levelled (:func:`mowerhw.common.magnetic.field_in_body`), against the
+sensor's own yaw (``Attitude.YawPitchRoll``, from its compensated field): the difference is
+one constant (the field's uncompensated offset) plus the spread reported — with the
+levelling, and without it (the logger sat tilted ~14° and ~7° on the ice).
+
 Prints one JSON object per log. Run: ``.venv/bin/python tools/check_real_vn100.py``.
 """
 
@@ -22,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.imu.vn100 import ImuExtractor, Vn100Parser
+from mowerhw.common.magnetic import field_in_body
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 LOGS = DATA / "vn100-binary-waves-in-ice"
@@ -118,11 +126,47 @@ def compare(name: str, seed: int = 0) -> dict[str, object]:
     return out
 
 
+#: the VN-100's body frame (x forward, y right, z down) → mowerhw's (x forward, y left, z up)
+VN_TO_BODY = np.diag([1.0, -1.0, -1.0])
+
+
+def compass(name: str) -> dict[str, object]:
+    """The levelled field direction α against the sensor's own yaw (module doc): α − yaw
+    (the VN-100's yaw turns clockwise, α counter-clockwise: the same angle for a still
+    field), its median and the spread about it (p50 / p95 of |deviation|, degrees)."""
+    items = Vn100Parser().feed((LOGS / "raw" / name).read_bytes())
+    extractor = ImuExtractor()
+    out: dict[str, object] = {"log": name}
+    for label, use_accel in (("levelled", True), ("not_levelled", False)):
+        diffs = []
+        for k, item in enumerate(items):
+            sample = extractor.sample(item, k)
+            if sample is None or sample.mag is None or sample.accel is None:
+                continue
+            accel = VN_TO_BODY @ sample.accel if use_accel else None
+            reading = field_in_body(VN_TO_BODY @ sample.mag, accel)
+            if reading is None:
+                continue
+            yaw = float(np.atleast_1d(item["Attitude.YawPitchRoll"])[0])
+            diffs.append(np.remainder(reading.alpha - yaw + np.pi, 2 * np.pi) - np.pi)
+        d = np.degrees(np.array(diffs))
+        mid = float(np.median(d))
+        dev = np.abs(np.remainder(d - mid + 180.0, 360.0) - 180.0)
+        out[label] = {
+            "samples": int(d.size),
+            "offset_deg": round(mid, 2),
+            "spread_deg_p50": round(float(np.percentile(dev, 50)), 2),
+            "spread_deg_p95": round(float(np.percentile(dev, 95)), 2),
+        }
+    return out
+
+
 def main() -> None:
     if not LOGS.exists():
         sys.exit(f"no real data at {LOGS}")
     for name in ("F00294", "F00379"):
         print(json.dumps(compare(name)))
+        print(json.dumps(compass(name)))
 
 
 if __name__ == "__main__":

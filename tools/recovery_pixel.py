@@ -42,6 +42,7 @@ def main() -> None:
     ap.add_argument("--map", help="a map taught before (skips the teach)")
     ap.add_argument("--save-map", help="write the taught map here")
     ap.add_argument("--per-run", action="store_true")
+    ap.add_argument("--no-compass", action="store_true", help="the search without the magnetometer")
     args = ap.parse_args()
     cfg = Config()
     t0 = time.perf_counter()
@@ -60,7 +61,13 @@ def main() -> None:
     if args.starts:
         t1 = time.perf_counter()
         out["starts"] = start_runs(
-            lawn_map, args.scenario, args.seed, args.starts, cfg, progress=_progress("start")
+            lawn_map,
+            args.scenario,
+            args.seed,
+            args.starts,
+            cfg,
+            progress=_progress("start"),
+            compass=not args.no_compass,
         )
         out["starts"]["wall_s"] = round(time.perf_counter() - t1, 1)
         if not args.per_run:
@@ -75,6 +82,7 @@ def main() -> None:
             cfg,
             lifted=not args.no_lift,
             progress=_progress("kidnap"),
+            compass=not args.no_compass,
         )
         out["kidnaps"]["wall_s"] = round(time.perf_counter() - t1, 1)
         if not args.per_run:

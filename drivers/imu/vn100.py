@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -528,15 +529,16 @@ def _parse_ascii(body: str) -> Any:
 # ------------------------------------------------------------------------------- device
 
 #: binary output fields we ask for (common group): TimeStartup, YawPitchRoll, AngularRate,
-#: Accel — bits 0, 3, 5, 8
-COMMON_FIELDS = (1 << 0) | (1 << 3) | (1 << 5) | (1 << 8)
-#: the common-group fields asked for per ``imu.gyro_source``: TimeStartup, YawPitchRoll and
-#: the rate (AngularRate + Accel; Imu = uncompensated accel + gyro; Deltas = Δt, Δθ, Δv)
+#: Accel, MagPres (the compensated magnetic field: the compass, issue 18) — bits 0, 3, 5, 8, 10
+MAG_PRES = 1 << 10
+COMMON_FIELDS = (1 << 0) | (1 << 3) | (1 << 5) | (1 << 8) | MAG_PRES
+#: the common-group fields asked for per ``imu.gyro_source``: TimeStartup, YawPitchRoll, the
+#: rate (AngularRate + Accel; Imu = uncompensated accel + gyro; Deltas = Δt, Δθ, Δv), MagPres
 COMMON_FIELDS_FOR = {
     "auto": COMMON_FIELDS,
     "angular_rate": COMMON_FIELDS,
-    "uncomp_gyro": (1 << 0) | (1 << 3) | (1 << 9),
-    "delta_theta": (1 << 0) | (1 << 3) | (1 << 8) | (1 << 11),
+    "uncomp_gyro": (1 << 0) | (1 << 3) | (1 << 9) | MAG_PRES,
+    "delta_theta": (1 << 0) | (1 << 3) | (1 << 8) | (1 << 11) | MAG_PRES,
 }
 
 
@@ -572,6 +574,9 @@ GYRO_SOURCES: dict[str, tuple[str, ...]] = {
     "delta_theta": ("Imu.DeltaTheta", "Common.Deltas"),  # integrated angle over Δt
 }
 _ACCEL_FIELDS = ("Common.Accel", "Imu.Accel", "Imu.UncompAccel", "Common.Imu")
+#: the magnetic field (T, decoded), compensated first
+_MAG_FIELDS = ("Imu.Mag", "Common.MagPres", "Imu.UncompMag")
+GAUSS_T = 1e-4
 _TIME_FIELDS = ("Common.TimeStartup", "Time.TimeStartup")
 #: which ASCII asynchronous outputs carry which kind of angular rate
 _ASCII_GYRO_KIND = {"VNIMU": "uncomp_gyro", "VNDTV": "delta_theta"}  # the rest: angular_rate
@@ -610,7 +615,7 @@ class ImuExtractor:
 
     def sample(self, item: Any, host_ns: int) -> ImuSample | None:
         """An :class:`ImuSample` (IMU frame, ``t`` = arrival on the host clock), or None."""
-        gyro = accel = None
+        gyro = accel = mag = None
         if isinstance(item, BinaryPacket):
             found = item.first(self._binary_fields)
             if found is not None:
@@ -618,6 +623,9 @@ class ImuExtractor:
                 acc = item.first(_ACCEL_FIELDS)
                 if acc is not None:
                     accel = acc[1][:3]
+                field = item.first(_MAG_FIELDS)
+                if field is not None:
+                    mag = np.asarray(field[1][:3], dtype=np.float64)
         elif isinstance(
             item,
             YmrMessage | QmrMessage | ImuMessage | YprAccelRateMessage | RateMessage | DeltaMessage,
@@ -626,6 +634,8 @@ class ImuExtractor:
             if _ASCII_GYRO_KIND.get(header, "angular_rate") in self._ascii_kinds:
                 gyro = item.gyro
                 accel = getattr(item, "accel", None)
+                gauss = getattr(item, "mag", None)
+                mag = None if gauss is None else np.asarray(gauss, dtype=np.float64) * GAUSS_T
                 if isinstance(item, DeltaMessage) and not item.dt > 0:
                     self.stats.empty_interval += 1
                     return None
@@ -642,6 +652,7 @@ class ImuExtractor:
             accel=accel,
             device_time_ns=device_time_ns(item),
             host_time_ns=host_ns,
+            mag=mag if mag is not None and bool(np.all(np.isfinite(mag))) else None,
         )
 
     def _rate(self, name: str, value: Any) -> np.ndarray | None:
@@ -674,7 +685,7 @@ def imu_sample_from(item: Any, host_ns: int, clock: ClockSync | None = None) -> 
     if sample is None or clock is None or sample.device_time_ns is None:
         return sample
     t = clock.update(sample.device_time_ns, host_ns * 1e-9)
-    return ImuSample(t, sample.gyro, sample.accel, sample.device_time_ns, host_ns)
+    return ImuSample(t, sample.gyro, sample.accel, sample.device_time_ns, host_ns, sample.mag)
 
 
 class Vn100(ThreadedDevice):
@@ -859,9 +870,7 @@ class Vn100(ThreadedDevice):
             if sample.device_time_ns is not None and self.clock.synced:
                 t = self.clock.to_host(sample.device_time_ns)
                 t = max(t, self._last_t + 1e-6)  # never backwards, even while syncing
-                sample = ImuSample(
-                    t, sample.gyro, sample.accel, sample.device_time_ns, sample.host_time_ns
-                )
+                sample = dataclasses.replace(sample, t=t)
             self._last_t = sample.t
             self.stats.samples += 1
             if self.on_sample is not None:

@@ -29,9 +29,9 @@ from numpy.typing import NDArray
 
 from drivers.imu.mock import MockImuState
 from drivers.threaded import ThreadedDevice
-from mowerhw.common.geometry import quat_to_rotmat
+from mowerhw.common.geometry import quat_to_rotmat, yaw_rotation
 from mowerhw.sim.motion import Truth, camera_xy_world
-from mowerhw.sim.sensors import SensorSuite
+from mowerhw.sim.sensors import SensorSuite, mower_magnetometer
 from mowerhw.sim.world import World
 
 FloatArray = NDArray[np.float64]
@@ -61,6 +61,7 @@ class RealTimeMower(ThreadedDevice):
         self.frame = teach_truth.frame  # the world frame: the body frame where teach starts
         self.sensors = sensors or world.scenario.sensors
         self.rng = np.random.default_rng([seed, 40])
+        self.magnetometer = mower_magnetometer(self.sensors, seed)
         self.r_ib = quat_to_rotmat(np.asarray(q_bi, dtype=np.float64)).T  # body → IMU frame
         self.bias = self.rng.normal(0.0, self.sensors.imu.turn_on_bias, size=3)
         self.phase = "still"
@@ -248,7 +249,7 @@ class RealTimeMower(ThreadedDevice):
             accel=self.r_ib @ accel_b,
             ypr_deg=np.array([math.degrees(yaw), 0.0, 0.0]),
             quaternion_xyzw=np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)]),
-            mag_gauss=np.array([0.2, 0.05, 0.45]),
+            mag_gauss=self.r_ib @ self.magnetometer.measure(yaw_rotation(yaw)) * 1e4,
         )
 
     def speed_source(self, _t_sensor: float) -> float:

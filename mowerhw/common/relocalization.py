@@ -34,6 +34,8 @@ class Relocalization:
 
 @dataclass(frozen=True)
 class SearchRequest:
-    """A frame to relocalize from: around ``near`` (x, y, heading), or everywhere (None)."""
+    """A frame to relocalize from: around ``near`` (x, y, heading), or everywhere (None);
+    ``heading``: what the compass says while searching everywhere (ψ, σ; rad)."""
 
     near: tuple[float, float, float] | None = None
+    heading: tuple[float, float] | None = None

@@ -36,18 +36,22 @@ def _vec3(value: object, name: str) -> FloatArray:
 
 @dataclass(frozen=True, slots=True)
 class ImuSample:
-    """One IMU reading in the IMU frame: gyro (rad/s), optional accel (m/s²)."""
+    """One IMU reading in the IMU frame: gyro (rad/s), optional accel (m/s²) and magnetic
+    field (T)."""
 
     t: float
     gyro: FloatArray
     accel: FloatArray | None = None
     device_time_ns: int | None = None  # VN-100 TimeStartup, if the packet had it
     host_time_ns: int | None = None  # arrival, before clock mapping
+    mag: FloatArray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "gyro", _vec3(self.gyro, "gyro"))
         if self.accel is not None:
             object.__setattr__(self, "accel", _vec3(self.accel, "accel"))
+        if self.mag is not None:
+            object.__setattr__(self, "mag", _vec3(self.mag, "mag"))
 
     @property
     def finite(self) -> bool:

@@ -90,8 +90,11 @@ def run_mow(
     start: tuple[float, float, float] | None = None,
     no_prior: bool = False,
     kidnaps: list[Kidnap] | None = None,
+    compass: bool = True,
 ) -> MowOutcome:
     """Mow a simulated yard (the world of ``scenario``/``seed``) with the given map.
+    ``compass``: the magnetometer's readings go to the localizer (its map must have the
+    taught field for them to count).
 
     ``level="pixel"``: the camera delivers rendered images, and landmarks are found and
     re-identified by the front end (:class:`mowerhw.vision.MowVision`); the map must come
@@ -191,6 +194,8 @@ def run_mow(
             vision.imu(*out.imu)
         if out.speed is not None:
             loc.speed(*out.speed)
+        if out.mag is not None and compass:
+            loc.magnetometer(*out.mag)
         for f in out.frames:
             if vision is None:
                 loc.bearings(f.t, f.ids, f.bearings)

@@ -168,10 +168,12 @@ def run_teach_pixel(
     trails: dict[int, list[FloatArray]] = {}  # recent pixels of every live track (figures)
     wall_render = 0.0
     t0 = time.perf_counter()
-    for kind, payload in run.streams.events():
+    for kind, payload in run.streams.events(magnetometer=True):
         if kind == "imu":
             teacher.imu(*payload)
             vision.imu(*payload)
+        elif kind == "mag":
+            teacher.magnetometer(*payload)
         elif kind == "speed":
             teacher.speed(*payload)
         else:

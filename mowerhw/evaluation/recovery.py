@@ -182,8 +182,10 @@ def start_runs(
     config: Config | None = None,
     seconds: float = 12.0,
     progress: Callable[[int, dict[str, Any]], None] | None = None,
+    compass: bool = True,
 ) -> dict[str, Any]:
-    """``starts`` random starts with no prior (module doc)."""
+    """``starts`` random starts with no prior (module doc); ``compass``: the magnetometer
+    helps the search (when the map has the taught field)."""
     lawn = _inside(scenario, seed, 0.3)
     rng = np.random.default_rng([seed, 18, 1])
     nees = _NeesLog(lawn_map)
@@ -200,6 +202,7 @@ def start_runs(
             level="pixel",
             start=pose,
             no_prior=True,
+            compass=compass,
         )
         err, yaw_err = _errors(out)
         acc = np.flatnonzero(out.relocalizations > 0)
@@ -234,6 +237,7 @@ def start_runs(
         "scenario": scenario,
         "seed": seed,
         "starts": starts,
+        "compass": compass and lawn_map.compass is not None,
         "map_landmarks": len(lawn_map.landmarks),
         "success_rate": round(len(ok) / max(1, starts), 3),
         "accepted": len(times),
@@ -256,6 +260,7 @@ def kidnap_runs(
     config: Config | None = None,
     lifted: bool = True,
     progress: Callable[[int, dict[str, Any]], None] | None = None,
+    compass: bool = True,
 ) -> dict[str, Any]:
     """``runs`` kidnaps mid-mow: a 5–20 m walk (at :data:`CARRY_MPS`), put down at a
     random pose inside the lawn (module doc)."""
@@ -289,6 +294,7 @@ def kidnap_runs(
             mow_seed=mow_seed,
             level="pixel",
             kidnaps=[kidnap],
+            compass=compass,
         )
         dt = float(out.t[1] - out.t[0])
         err, _ = _errors(out)
@@ -339,6 +345,7 @@ def kidnap_runs(
         "seed": seed,
         "runs": runs,
         "lift_seen": lifted,
+        "compass": compass and lawn_map.compass is not None,
         "kidnapped_while_mowing": len(done),
         "time_to_halt_s": {"median": _pct(halts, 50), "max": max(halts) if halts else None},
         "relocalized": len(relocs),

@@ -57,6 +57,7 @@ from numpy.typing import ArrayLike, NDArray
 from mowerhw.common.geometry import quat_to_yaw, rotmat_to_quat, yaw_rotation, yaw_to_quat
 from mowerhw.common.relocalization import Relocalization
 from mowerhw.config import Config, ContainmentConfig, MowConfig, stale_limits_s, with_imu_noise
+from mowerhw.estimation.compass import Compass
 from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.estimation.posefit import fit_pose_to_bearings
 from mowerhw.estimation.standstill import StandstillCalibrator
@@ -192,6 +193,8 @@ class Localizer:
         self.search: RelocalizationSearch | None = None  # no trustworthy pose: searching
         self.relocalizes = False  # a relocalizer answers searches (use_relocalizer)
         self.probation: Probation | None = None  # a re-localization being checked
+        # the magnetometer as a coarse compass, when the map has the taught field
+        self.compass = Compass(self.map.compass) if self.map.compass is not None else None
         if start_pose is None:
             start_pose = (self.map.dock_position, self.map.dock_quaternion)
         self.reinitialise(start_pose)
@@ -294,6 +297,13 @@ class Localizer:
     def searching(self) -> bool:
         """The pose is given up: frames are for :meth:`relocalization`, not updates."""
         return self.search is not None
+
+    def search_heading(self) -> tuple[float, float] | None:
+        """What the compass says the heading is (ψ, σ in the map's frame), while the search
+        is global and the compass has a steady, undisturbed reading; otherwise None."""
+        if self.search is None or self.search.near or self.compass is None or self.t_imu is None:
+            return None
+        return self.compass.heading(self.t_imu)
 
     def search_near(self) -> tuple[float, float, float] | None:
         """Where the search looks: the filter's (x, y, heading) while it checks a prior,
@@ -413,6 +423,12 @@ class Localizer:
             return
         self._step(self.t_imu, float(t), gyro)
         self.t_imu = float(t)
+
+    def magnetometer(self, t: float, mag_t: ArrayLike, accel: ArrayLike | None = None) -> None:
+        """A magnetometer reading (T, body frame; the accelerometer's, m/s², when there is
+        one): the compass a global search may use (:meth:`search_heading`)."""
+        if self.compass is not None:
+            self.compass.add(t, mag_t, accel)
 
     def speed(self, t: float, v: float) -> None:
         """Signed ground speed (m/s); NaN (invalid / not available) is ignored."""

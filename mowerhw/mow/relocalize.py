@@ -29,6 +29,12 @@ the *geometry*: where, around the mower and how high, the landmarks appear. So:
    two apart), and no refined optimum more than 0.15 m away scores 90 % as well (not pinned
    down). Otherwise no answer, with the reason.
 
+With a compass (``locate(bearings, heading=(ψ, σ))``: the magnetometer's heading in the map's
+frame, :mod:`mowerhw.estimation.compass`) the search keeps only the headings within
+:meth:`GlobalRelocalizer.compass_tolerance` of it — votes, the answer and its rivals alike —
+so a look-alike place turned far from it is no rival; the geometry still has to pin the pose
+down by itself.
+
 With a prior (``locate(bearings, near=(x, y, heading))``: the dock, a resumed pose, the pose
 before a lock-out) the grid vote is skipped and the refinement starts at the prior; the rest
 is the same. Whether to *trust* an answer (the same pose from more than one frame, through
@@ -54,6 +60,11 @@ FloatArray = NDArray[np.float64]
 MIN_AZIMUTH_SPREAD_RAD = math.radians(90.0)
 DISTINCT_M = 1.0
 DISTINCT_RAD = math.radians(15.0)
+#: the compass's tolerance: 3 σ, at least this (its σ is the taught spread and the
+#: reading's; a motor or a steel post nearby bends the field more than they say) …
+COMPASS_MIN_TOLERANCE_RAD = math.radians(30.0)
+#: … and a compass less sure than this is not used at all
+COMPASS_MAX_TOLERANCE_RAD = math.radians(60.0)
 
 
 class GlobalRelocalizer:
@@ -125,6 +136,21 @@ class GlobalRelocalizer:
             # per distinct index, however often it repeats (unlike np.add.at)
             votes[self._pair_position[a:b] * self.n_bins + bins] += 1
         return votes.reshape(p_n, self.n_bins)
+
+    @staticmethod
+    def compass_tolerance(heading: tuple[float, float] | None) -> float | None:
+        """How far from the compass's ψ a heading may be (module doc), or None: no compass,
+        or one too unsure to use."""
+        if heading is None:
+            return None
+        tol = max(COMPASS_MIN_TOLERANCE_RAD, 3.0 * heading[1])
+        return tol if tol <= COMPASS_MAX_TOLERANCE_RAD else None
+
+    def _within_compass(self, votes: NDArray[np.int64], psi: float, tol: float) -> None:
+        """Zero the votes of the headings farther than ``tol`` (+ a bin) from ``psi``."""
+        bin_yaw = (np.arange(self.n_bins) + 1.0) * self.yaw_bin
+        off = np.abs(np.angle(np.exp(1j * (bin_yaw - psi))))
+        votes[:, off > tol + self.yaw_bin] = 0
 
     def _hypotheses(self, votes: NDArray[np.int64]) -> list[tuple[float, float, float]]:
         """The best (x, y, yaw) of distinct places, best first."""
@@ -281,11 +307,15 @@ class GlobalRelocalizer:
     # ---------------------------------------------------------------------------- answer
 
     def locate(
-        self, bearings: FloatArray, near: tuple[float, float, float] | None = None
+        self,
+        bearings: FloatArray,
+        near: tuple[float, float, float] | None = None,
+        heading: tuple[float, float] | None = None,
     ) -> Relocalization:
         """The pose from one frame's body-frame unit bearings (module doc); ``near``: a
         prior (x, y, heading) to check instead of searching the whole map — the refinement
-        starts there (no grid vote, no rival place), the rest is the same."""
+        starts there (no grid vote, no rival place), the rest is the same; ``heading``: the
+        compass's (ψ, σ), for a search of the whole map."""
         t0 = time.perf_counter()
         obs = np.asarray(bearings, dtype=np.float64).reshape(-1, 3)
         obs = obs / np.linalg.norm(obs, axis=1, keepdims=True)
@@ -298,7 +328,14 @@ class GlobalRelocalizer:
             return done(f"{obs.shape[0]} bearings, {self.points.shape[0]} landmarks")
         azimuth = np.arctan2(obs[:, 1], obs[:, 0])
         elevation = np.arctan2(obs[:, 2], np.hypot(obs[:, 0], obs[:, 1]))
-        hyps = [near] if near is not None else self._hypotheses(self._votes(azimuth, elevation))
+        tol = self.compass_tolerance(heading) if near is None else None
+        if near is not None:
+            hyps = [near]
+        else:
+            votes = self._votes(azimuth, elevation)
+            if tol is not None and heading is not None:
+                self._within_compass(votes, heading[0], tol)
+            hyps = self._hypotheses(votes)
         scored = []
         for hyp in hyps:
             r_wb, p_wb, rows, cols = self._refine(obs, hyp)
@@ -325,11 +362,23 @@ class GlobalRelocalizer:
         runner = 0
         for n, r2, p2, *_ in scored[1:]:
             far = float(np.linalg.norm(p2[:2] - p_wb[:2])) > DISTINCT_M
-            turned = abs(wrap_angle(math.atan2(r2[1, 0], r2[0, 0]) - yaw_best))
+            yaw2 = math.atan2(r2[1, 0], r2[0, 0])
+            turned = abs(wrap_angle(yaw2 - yaw_best))
+            if tol is not None and heading is not None and abs(wrap_angle(yaw2 - heading[0])) > tol:
+                continue  # a place the compass rules out is no rival
             if far or turned > DISTINCT_RAD:
                 runner = max(runner, n)
         if n_best < self.min_inliers:
             return done(f"{n_best} inliers (need {self.min_inliers})", len(hyps))
+        if tol is not None and heading is not None:
+            off = abs(wrap_angle(yaw_best - heading[0]))
+            if off > tol:
+                return done(
+                    f"the compass says {math.degrees(heading[0]):.0f}°, the best place faces "
+                    f"{math.degrees(yaw_best):.0f}° ({math.degrees(off):.0f}° off, "
+                    f"tolerance {math.degrees(tol):.0f}°)",
+                    len(hyps),
+                )
         if runner > self.ambiguity_ratio * n_best and n_best - runner < self.ambiguity_margin:
             return done(f"ambiguous: {n_best} inliers here, {runner} at another place", len(hyps))
         if rival > self.LOCAL_AMBIGUITY_RATIO:

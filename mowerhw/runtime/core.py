@@ -48,6 +48,8 @@ log = logging.getLogger("mowerhw.daemon")
 MODES = ("idle", "teach", "mow")
 #: localized poses are offered for saving (restarts resume from them) at most this often (s)
 POSE_SAVE_PERIOD_S = 0.1
+#: magnetometer readings go to the estimators at most this often (s; the compass keeps 10 Hz)
+MAG_PERIOD_S = 0.095
 FAULT_KINDS = ("nan", "exception")
 
 
@@ -99,6 +101,7 @@ class RuntimeCore:
         self._pose_to_save: StartPose | None = None
         self._revealed_at: float | None = None
         self.is_lifted = False  # the supervisor says the mower is lifted
+        self._next_mag_t = -math.inf
 
     # ------------------------------------------------------------------------- journal
 
@@ -124,6 +127,10 @@ class RuntimeCore:
         )
         if self.pipeline is not None:
             self.pipeline.vision.imu(sample.t, gyro)  # the front end's derotation history
+            if sample.mag is not None and sample.t >= self._next_mag_t:  # the compass: 10 Hz
+                self._next_mag_t = sample.t + MAG_PERIOD_S
+                accel = None if sample.accel is None else self.r_bi @ sample.accel
+                self.pipeline.magnetometer(sample.t, self.r_bi @ sample.mag, accel)
         self._hold_pose()
         self._consume(sample.t)
         arrival = sample.host_time_ns * 1e-9 if sample.host_time_ns is not None else now

@@ -66,6 +66,7 @@ class JournalEncoder:
                 "accel": None if v.accel is None else _floats(v.accel),
                 "device_time_ns": v.device_time_ns,
                 "host_time_ns": v.host_time_ns,
+                "mag": None if v.mag is None else _floats(v.mag),
             }
         if isinstance(v, SpeedSample):
             return dataclasses.asdict(v)
@@ -129,6 +130,7 @@ class JournalDecoder:
             None if d["accel"] is None else np.asarray(d["accel"], dtype=np.float64),
             d["device_time_ns"],
             d["host_time_ns"],
+            None if d.get("mag") is None else np.asarray(d["mag"], dtype=np.float64),
         )
 
     def speed(self, d: dict[str, Any]) -> SpeedSample:

@@ -124,6 +124,9 @@ class TeachPipeline:
         self.teacher.imu(t, gyro)
         self.t_last = t
 
+    def magnetometer(self, t: float, mag: FloatArray, accel: FloatArray | None) -> None:
+        self.teacher.magnetometer(t, mag, accel)
+
     def speed(self, t: float, v: float) -> None:
         self.teacher.speed(t, v)
         if v == 0.0:
@@ -232,6 +235,9 @@ class MowPipeline:
 
     def imu(self, t: float, gyro: FloatArray) -> None:
         self.localizer.imu(t, gyro)
+
+    def magnetometer(self, t: float, mag: FloatArray, accel: FloatArray | None) -> None:
+        self.localizer.magnetometer(t, mag, accel)
 
     def speed(self, t: float, v: float) -> None:
         self.localizer.speed(t, v)

@@ -23,7 +23,14 @@ from scipy.spatial.transform import Rotation
 from mowerhw.common.samples import BearingObservation
 from mowerhw.common.units import GRAVITY_MPS2
 from mowerhw.sim.motion import MapFrame, camera_xy_world, pose_on_ground, start_frame
-from mowerhw.sim.sensors import CameraTiming, Gyro, SensorSuite, Speedometer, observe_at
+from mowerhw.sim.sensors import (
+    CameraTiming,
+    Gyro,
+    SensorSuite,
+    Speedometer,
+    mower_magnetometer,
+    observe_at,
+)
 from mowerhw.sim.world import World
 
 FloatArray = NDArray[np.float64]
@@ -45,6 +52,7 @@ class PlantOutput:
     imu: tuple[float, FloatArray]
     speed: tuple[float, float] | None = None
     frames: list[Any] = field(default_factory=list)  # BearingObservation or PixelFrame
+    mag: tuple[float, FloatArray] | None = None  # a magnetometer reading (T, body frame)
 
 
 class MowerPlant:
@@ -96,6 +104,8 @@ class MowerPlant:
         if speed_scale is not None and self.sensors.speed.day_sigma:
             speed_scale *= 1.0 + speed_rng.normal(0.0, self.sensors.speed.day_sigma)
         self.speedometer = Speedometer(self.sensors.speed, speed_rng, speed_scale)
+        self.magnetometer = mower_magnetometer(self.sensors, seed)
+        self._mag_every = max(1, round(self.rates.imu_hz / self.sensors.mag.rate_hz))
         self.dt = 1.0 / self.rates.imu_hz
         self.t = 0.0
         self.k = 0
@@ -219,6 +229,8 @@ class MowerPlant:
         if self.k % self._speed_every == 0:
             meas = self.speedometer.measure(self.t, v_cmd, self._speed_every * dt)
             out.speed = (self.t, meas)
+        if self.k % self._mag_every == 0:
+            out.mag = (self.t, self.magnetometer.measure(self.rot))
         if self.k % self._frame_every == 0:
             self._take_frame()
         due = [f for when, f in self._pending if when <= self.t + 1e-9]

@@ -7,6 +7,11 @@
 * **ground speed** (:class:`Speedometer`): signed along-ground speed × (1 + scale error) +
   white noise, wheel-slip events (the wheels turn faster than the mower moves), quantised as
   on CAN; a standing mower reads exactly 0;
+* **magnetometer** (:class:`Magnetometer`): the Earth's field (:class:`MagnetometerModel`:
+  strength, dip, its direction in the simulator's world frame) turned into the body frame,
+  plus the mower's own field that calibration left (a constant body-frame offset per mower:
+  it turns with the mower, so the heading it gives is off by a few degrees, differently at
+  each heading) and white noise; read at 10 Hz;
 * **camera** (:class:`CameraTiming`, :func:`observe_at`): every landmark inside the camera's
   range is projected through the omni camera model (docs/design.md §6), kept if its pixel is valid,
   perturbed with Gaussian pixel noise, kept if the noisy pixel is still valid, and lifted back
@@ -136,6 +141,59 @@ class Speedometer:
 
 
 @dataclass(frozen=True)
+class MagnetometerModel:
+    """The Earth's field where the garden is, and what the mower's magnetometer adds to it."""
+
+    strength_t: float = 50e-6
+    dip_rad: float = math.radians(65.0)
+    #: the field's horizontal direction in the simulator's world frame (an arbitrary frame)
+    declination_rad: float = 1.0
+    #: the mower's own field left after calibration (per axis, body frame, one draw per mower)
+    residual_t: float = 1.0e-6
+    noise_t: float = 0.4e-6
+    rate_hz: float = 10.0
+
+    @property
+    def field_w(self) -> FloatArray:
+        """The field in the world frame (T; x, y, z up: it points down in the north)."""
+        h = self.strength_t * math.cos(self.dip_rad)
+        return np.array(
+            [
+                h * math.cos(self.declination_rad),
+                h * math.sin(self.declination_rad),
+                -self.strength_t * math.sin(self.dip_rad),
+            ]
+        )
+
+
+class Magnetometer:
+    """:class:`MagnetometerModel` read at body attitudes: ``R_wbᵀ B_w`` + residual + noise."""
+
+    def __init__(self, model: MagnetometerModel, rng: np.random.Generator) -> None:
+        self.model = model
+        self.rng = rng
+        self.residual = rng.normal(0.0, model.residual_t, 3)
+
+    def measure_all(self, r_wb: FloatArray) -> FloatArray:
+        """Readings (K, 3) in T for attitudes (K, 3, 3)."""
+        rot = np.asarray(r_wb, dtype=np.float64).reshape(-1, 3, 3)
+        body = np.einsum("kji,j->ki", rot, self.model.field_w)
+        out: FloatArray = (
+            body + self.residual + self.rng.normal(0.0, self.model.noise_t, body.shape)
+        )
+        return out
+
+    def measure(self, r_wb: FloatArray) -> FloatArray:
+        out: FloatArray = self.measure_all(r_wb)[0]
+        return out
+
+
+def mower_magnetometer(sensors: SensorSuite, seed: int) -> Magnetometer:
+    """The magnetometer of yard ``seed``'s mower (its residual is the same when it mows)."""
+    return Magnetometer(sensors.mag, np.random.default_rng([seed, 7]))
+
+
+@dataclass(frozen=True)
 class CameraTiming:
     """Camera delivery: latency ``latency_s`` (lo, hi) uniform per frame, capture-stamp
     jitter (1σ, s), frames lost (probability), single bearings missed (probability), pixel
@@ -162,6 +220,7 @@ class SensorSuite:
     imu: ImuGrade = field(default_factory=lambda: IMU_GRADES["vn100"])
     speed: SpeedModel = field(default_factory=SpeedModel)
     camera: CameraTiming = field(default_factory=CameraTiming)
+    mag: MagnetometerModel = field(default_factory=MagnetometerModel)
     rates: Rates = field(default_factory=Rates)
 
 
@@ -182,11 +241,16 @@ class SensorStreams:
     slipping: NDArray[np.bool_] | None = None  # (M,) wheel slip at each speed reading
     speed_scale: float = 1.0  # the speed sensor's true scale (1 + its scale error)
     gyro_scale: FloatArray | None = None  # (3,) the gyro's true scale per axis
+    mag_t: FloatArray | None = None  # (L,) magnetometer reading times
+    mag: FloatArray | None = None  # (L, 3) T, body frame
 
-    def events(self):
-        """(kind, sample) in time order; at equal times imu, then speed, then bearings."""
-        items: list[tuple[float, int, str, object]] = []
+    def events(self, magnetometer: bool = False):
+        """(kind, sample) in time order; at equal times imu, (mag,) then speed, then
+        bearings. ``magnetometer``: the magnetometer's readings too, as ("mag", (t, m))."""
+        items: list[tuple[float, float, str, object]] = []
         items += [(t, 0, "imu", (t, g)) for t, g in zip(self.imu_t, self.gyro, strict=True)]
+        if magnetometer and self.mag_t is not None and self.mag is not None:
+            items += [(t, 0.5, "mag", (t, m)) for t, m in zip(self.mag_t, self.mag, strict=True)]
         items += [(t, 1, "speed", (t, v)) for t, v in zip(self.speed_t, self.speed, strict=True)]
         items += [(f.t, 2, "bearings", f) for f in self.frames]
         items.sort(key=lambda e: (e[0], e[1]))
@@ -267,6 +331,10 @@ def simulate_sensors(
         v[j] = meter.measure(float(truth.t[i]), float(truth.speed[i]), dt_speed)
         slipping[j] = meter.slipping
 
+    mstep = max(1, round(rates.imu_hz / sensors.mag.rate_hz))
+    midx = np.arange(0, k, mstep)
+    mag = mower_magnetometer(sensors, seed).measure_all(truth.rot[midx])
+
     cam = sensors.camera
     cam_rng = np.random.default_rng([seed, 3])
     timing_rng = np.random.default_rng([seed, 5])
@@ -302,4 +370,6 @@ def simulate_sensors(
         slipping,
         float(meter.scale),
         np.broadcast_to(gyro_sim.scale, (3,)).copy(),
+        truth.t[midx].copy(),
+        mag,
     )

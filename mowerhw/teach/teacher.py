@@ -43,7 +43,9 @@ from mowerhw.common.geometry import (
     quat_to_yaw,
     rotmat_log,
 )
+from mowerhw.common.magnetic import CompassReference
 from mowerhw.config import Config, TeachConfig, with_imu_noise
+from mowerhw.estimation.compass import CompassCalibration
 from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
 from mowerhw.estimation.standstill import StandstillCalibrator
 from mowerhw.teach.boundary import BoundaryError, boundary_from_path
@@ -158,6 +160,7 @@ class TeachResult:
     camera: Any = None  # the calibration the map was made with (OmniRadtanCamera)
     zones: list[TaughtZone] = field(default_factory=list)  # marked stretches (teach/marks.py)
     dock_index: int | None = None  # the trajectory sample the operator marked as the dock
+    compass: CompassReference | None = None  # the field in the map's frame, when it was read
 
     @property
     def start_pose(self) -> tuple[FloatArray, FloatArray]:
@@ -257,6 +260,7 @@ class Teacher:
         self.distance_m = 0.0
         self.keyframes: list[Keyframe] = []
         self._standstill = StandstillCalibrator()
+        self._compass = CompassCalibration()
         self._still_bearings: dict[int, list[FloatArray]] = {}
         self._traj = _Growable(10)  # t, x^{bj} (3), q^{bj} (4), distance, keyframe index
         self._row = np.zeros(10)
@@ -311,6 +315,11 @@ class Teacher:
         self._propagate(float(t) - self.t_imu, self.w_last, gyro)  # type: ignore[operator]
         self.t_imu = float(t)
         self._record()
+
+    def magnetometer(self, t: float, mag_t: ArrayLike, accel: ArrayLike | None = None) -> None:
+        """A magnetometer reading (T, body frame; with the accelerometer's, m/s², when there
+        is one): the map learns the field's direction (:mod:`mowerhw.estimation.compass`)."""
+        self._compass.add(t, mag_t, accel)
 
     def speed(self, t: float, v: float) -> None:
         """Signed ground speed (m/s); NaN or invalid readings are ignored (held speed)."""
@@ -923,6 +932,7 @@ class Teacher:
             camera=self.camera,
             zones=zones,
             dock_index=dock_index(traj9[:, 0], self.marks),
+            compass=self._compass.fit(traj9[:, :8]),
         )
 
     def mark(self, t: float, kind: str, name: str = "") -> str:

@@ -37,7 +37,7 @@ class FrameSearch:
     def __call__(self, tracks: FrameTracks, search: SearchRequest) -> FrameTracks:
         if self._relocalizer is None:
             self._relocalizer = GlobalRelocalizer(self.map)
-        found = self._relocalizer.locate(tracks.bearings, search.near)
+        found = self._relocalizer.locate(tracks.bearings, search.near, search.heading)
         return replace(tracks, relocalization=found)
 
 
@@ -83,7 +83,9 @@ class MowVision(VisionBase):
 
     def wants_search(self) -> SearchRequest | None:
         """While the localizer has given its pose up, every frame is searched."""
-        return SearchRequest(self.loc.search_near()) if self.loc.searching else None
+        if not self.loc.searching:
+            return None
+        return SearchRequest(self.loc.search_near(), self.loc.search_heading())
 
     def searched(self, tracks: FrameTracks, search: SearchRequest) -> FrameTracks:
         return self._search(tracks, search)
