@@ -16,7 +16,8 @@ FloatArray = NDArray[np.float64]
 @dataclass(frozen=True)
 class Relocalization:
     """One frame's answer: ``r_wb``, ``p_wb`` (body in the map's world frame), the inlier
-    pairs (observation row, map landmark id) and the runner-up's inliers, or why none."""
+    pairs (observation row, map landmark id) and the runner-up's inliers, or why none;
+    ``covariance``: of (x, y, heading), from the fit's residuals (None: not computed)."""
 
     ok: bool
     r_wb: FloatArray = field(default_factory=lambda: np.eye(3))
@@ -26,6 +27,7 @@ class Relocalization:
     hypotheses: int = 0
     ms: float = 0.0
     why: str = ""
+    covariance: FloatArray | None = None
 
     @property
     def yaw(self) -> float:

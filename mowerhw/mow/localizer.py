@@ -71,11 +71,10 @@ from mowerhw.mow.containment import (
 )
 from mowerhw.mow.ekf import EkfState, LocalizerNoise, WorldPoseEKF
 from mowerhw.mow.recovery import (
-    ACCEPT_SIGMA_M,
-    ACCEPT_SIGMA_RAD,
     Pose2D,
     Probation,
     RelocalizationSearch,
+    accepted_sigma,
 )
 
 FloatArray = NDArray[np.float64]
@@ -332,7 +331,7 @@ class Localizer:
         self.t_fix = t  # the answer is a landmark fix
         self.counters.relocalizations += 1
         self.reinitialise(
-            (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)), ACCEPT_SIGMA_M, ACCEPT_SIGMA_RAD
+            (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)), *accepted_sigma(answer.covariance)
         )
         if search.near and search.checks_prior:  # a start pose confirmed: as it would be
             self.require_frames(self._frames_needed, "since the prior pose was confirmed")

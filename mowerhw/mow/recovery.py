@@ -38,10 +38,27 @@ AGREE_PER_M = 0.05
 PAIR_S = 3.0
 #: a search near a prior becomes global after this long without an accepted answer (s)
 LOCAL_S = 3.0
-#: σ of an accepted pose (measured: answers 1–3 cm and < 0.3° off; a wider prior let the
-#: first association after it pair wrong corners, 2–3 cm of bias at σ 1 cm)
+#: σ of an accepted pose: the answer's own (its fit's covariance, the map's landmark errors
+#: in it), within these bounds — at most what answers are off (measured: 1–3 cm, < 0.3°; a
+#: wider prior let the first association after it pair wrong corners, 2–3 cm of bias at
+#: σ 1 cm), at least what a frame's corners can tell
 ACCEPT_SIGMA_M = 0.03
 ACCEPT_SIGMA_RAD = math.radians(0.5)
+ACCEPT_MIN_SIGMA_M = 0.003
+ACCEPT_MIN_SIGMA_RAD = math.radians(0.03)
+
+
+def accepted_sigma(covariance: FloatArray | None) -> tuple[float, float]:
+    """The position and heading σ a filter restarts with at an accepted answer (above)."""
+    if covariance is None or not np.all(np.isfinite(covariance)):
+        return ACCEPT_SIGMA_M, ACCEPT_SIGMA_RAD
+    pos = math.sqrt(max(0.0, float(np.linalg.eigvalsh(covariance[:2, :2])[-1])))
+    yaw = math.sqrt(max(0.0, float(covariance[2, 2])))
+    return (
+        min(ACCEPT_SIGMA_M, max(ACCEPT_MIN_SIGMA_M, pos)),
+        min(ACCEPT_SIGMA_RAD, max(ACCEPT_MIN_SIGMA_RAD, yaw)),
+    )
+
 
 #: χ²₂ median ≈ 1.386; a consistent frame's median NIS stays below three times that
 MEDIAN_NIS_MAX = 3.0 * 1.386

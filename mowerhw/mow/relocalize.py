@@ -86,6 +86,11 @@ class GlobalRelocalizer:
         self.ids = np.array([lm.id for lm in lawn_map.landmarks], dtype=np.int64)
         self.points = np.array([lm.xyz for lm in lawn_map.landmarks], dtype=np.float64)
         self.points = self.points.reshape(-1, 3)
+        # each landmark's position variance (m², the mean of its three axes): how much its
+        # bearing may be off whatever the pose (the answer's covariance)
+        self._point_var = np.array(
+            [float(np.trace(lm.covariance)) / 3.0 for lm in lawn_map.landmarks], dtype=np.float64
+        )
         self.grid_m = grid_m
         self.yaw_bin = yaw_bin_rad
         self.n_bins = math.ceil(2 * math.pi / yaw_bin_rad)
@@ -301,6 +306,39 @@ class GlobalRelocalizer:
         rival = max(others) / top if others and top > 0 else 0.0
         return best, rival
 
+    #: the bearing σ of the covariance is the inliers' own residual, at least this (rad): a
+    #: pose that fits its inliers better than the corners can be located is not that sure
+    MIN_RESIDUAL_RAD = math.radians(0.1)
+
+    def covariance(
+        self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], state: FloatArray
+    ) -> FloatArray:
+        """The (x, y, heading) covariance of a fitted pose: (Σ Jᵢᵀ Jᵢ / σᵢ²)⁻¹ over the
+        inliers' angular residuals (Gauss–Newton, J by central differences), where a
+        bearing's σᵢ² is the inliers' residual RMS per axis (at least
+        :attr:`MIN_RESIDUAL_RAD`) squared plus its landmark's position variance seen from
+        the pose (σ²_landmark / range²): the map's errors move the answer too."""
+
+        def residual(x: FloatArray) -> FloatArray:
+            out: FloatArray = np.cross(obs[rows], self._predict(*self._pose(x), cols)).ravel()
+            return out
+
+        r0 = residual(state)
+        steps = (1e-4, 1e-4, 1e-5)
+        jac = np.empty((r0.size, 3))
+        for k, h in enumerate(steps):
+            d = np.zeros(3)
+            d[k] = h
+            jac[:, k] = (residual(state + d) - residual(state - d)) / (2 * h)
+        dof = max(1, 2 * rows.size - 3)  # a bearing's residual has two free directions
+        s2 = max(float(r0 @ r0) / dof, self.MIN_RESIDUAL_RAD**2)
+        _, p_wb = self._pose(state)
+        range2 = np.sum((self.points[cols] - p_wb) ** 2, axis=1)
+        var = s2 + self._point_var[cols] / np.maximum(range2, 0.25)  # (n,) per bearing
+        weight = np.repeat(1.0 / var, 3)  # the residual's three components
+        cov: FloatArray = np.linalg.pinv(jac.T @ (jac * weight[:, None]))
+        return cov
+
     def _pose(self, state: FloatArray) -> tuple[FloatArray, FloatArray]:
         return yaw_rotation(float(state[2])), np.array([state[0], state[1], self.height])
 
@@ -391,6 +429,7 @@ class GlobalRelocalizer:
         gaps = np.diff(np.concatenate([az, az[:1] + 2 * math.pi]))
         if 2 * math.pi - gaps.max() < MIN_AZIMUTH_SPREAD_RAD:
             return done("inliers all on one side", len(hyps))
+        fitted = np.array([p_wb[0], p_wb[1], math.atan2(r_wb[1, 0], r_wb[0, 0])])
         return Relocalization(
             True,
             r_wb,
@@ -399,4 +438,5 @@ class GlobalRelocalizer:
             runner,
             len(hyps),
             1e3 * (time.perf_counter() - t0),
+            covariance=self.covariance(obs, rows, cols, fitted),
         )

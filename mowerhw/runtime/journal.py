@@ -94,6 +94,7 @@ class JournalEncoder:
                 "hypotheses": v.hypotheses,
                 "ms": v.ms,
                 "why": v.why,
+                "covariance": None if v.covariance is None else _floats(v.covariance),
             }
         if isinstance(v, LawnMap):
             if v.checksum in self._maps:
@@ -168,6 +169,9 @@ class JournalDecoder:
             int(d["hypotheses"]),
             float(d["ms"]),
             str(d["why"]),
+            None
+            if d.get("covariance") is None
+            else np.asarray(d["covariance"], dtype=np.float64).reshape(3, 3),
         )
 
     def lawn_map(self, d: dict[str, Any]) -> LawnMap:
