@@ -855,7 +855,21 @@ class Localizer:
             "position": p.position.tolist(),
             "sigma_xy_m": self.sigma_xy(),
             "gyro_bias": self.ekf.bg.tolist(),
+            "compass": self._compass_status(),
             **vars(self.counters),
+        }
+
+    def _compass_status(self) -> dict[str, Any] | None:
+        """The compass: None when the map has no taught field; else the heading it gives now
+        (degrees in the map's frame, None while it has no steady reading) and how many
+        readings it refused as not the taught field."""
+        if self.compass is None:
+            return None
+        found = self.compass.heading(self.t_imu) if self.t_imu is not None else None
+        return {
+            "heading_deg": None if found is None else round(math.degrees(found[0]), 1),
+            "sigma_deg": None if found is None else round(math.degrees(found[1]), 1),
+            "disturbed_readings": self.compass.disturbed,
         }
 
 
