@@ -8,7 +8,7 @@ bend the field by degrees to tens of degrees — so it only rules out places who
 far from what it says (:class:`Compass` gives a heading and a σ; the relocalizer keeps the
 hypotheses within its tolerance), never gives a pose by itself.
 
-Angles (DESIGN.md §1: map frame z up, headings CCW from the map's x axis):
+Angles (docs/design.md §3: map frame z up, headings CCW from the map's x axis):
 
 - ``α`` — the direction of the field's horizontal part in the *body's* levelled frame
   (``field_in_body``): the mower's accelerometer says where up is, or the body's z when
