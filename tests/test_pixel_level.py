@@ -6,6 +6,7 @@ rendered images. Scored against the renderer's ground truth.
 """
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -85,3 +86,24 @@ def test_cli_refuses_a_bearing_level_map_for_pixel_mowing(tmp_path, capsys):
     )
     assert rc == 2
     assert "needs a map from `sim teach --level pixel`" in capsys.readouterr().err
+
+
+def test_the_taught_map_knows_where_the_magnetic_field_points(taught):
+    """The teach drive's magnetometer readings against its headings (issue 18): the map
+    keeps the field's direction in its frame — the simulator's, turned as the map is (by
+    the first heading of the drive: the teach frame is the body's at its first sample)."""
+    from mowerhw.common.geometry import wrap_angle
+    from mowerhw.sim import simulate_teach
+    from mowerhw.sim.sensors import MagnetometerModel
+
+    out, path = taught
+    compass = load(path).compass
+    assert compass is not None and compass.samples >= 300
+    first_world = simulate_teach("paper", 2).truth.rot[0]
+    first_map = out.result.trajectory[0, 4:8]  # q_wb = (w, 0, 0, z): a level start
+    turn = math.atan2(first_world[1, 0], first_world[0, 0]) - 2 * math.atan2(
+        first_map[3], first_map[0]
+    )
+    expected = MagnetometerModel().declination_rad - turn
+    assert abs(wrap_angle(compass.north_rad - expected)) < math.radians(3.0)
+    assert compass.sigma_rad < math.radians(10.0)
