@@ -134,3 +134,18 @@ def test_the_map_keeps_the_taught_field_and_refuses_a_bad_one(tmp_path) -> None:
         path.write_text(json.dumps(doc))
         with pytest.raises(MapError, match=says):
             load(path)
+
+
+def test_map_show_says_whether_the_map_has_a_compass(tmp_path, capsys) -> None:
+    from mowerhw.cli import main
+
+    ref = CompassReference(math.radians(57.6), math.radians(4.4), 50.1e-6, math.radians(65), 592)
+    with_compass, without = tmp_path / "a.json", tmp_path / "b.json"
+    _lawn_map(ref).save(with_compass)
+    _lawn_map(None).save(without)
+    assert main(["map", "show", str(with_compass)]) == 0
+    assert "the field points 57.6° ± 4.4° in the map (50.1 µT, dip 65.0°, 592 readings)" in (
+        capsys.readouterr().out
+    )
+    assert main(["map", "show", str(without)]) == 0
+    assert "compass      none" in capsys.readouterr().out

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import math
 import shutil
 import sys
 from collections.abc import Callable
@@ -177,6 +178,15 @@ def _summary(m, path: Path) -> dict:
         "dock_position": [round(v, 3) for v in m.dock_position.tolist()],
         "dock_approach_points": None if m.dock_approach is None else len(m.dock_approach),
         "camera": (m.camera or {}).get("camera_model"),
+        "compass": None
+        if m.compass is None
+        else {
+            "north_deg": round(math.degrees(m.compass.north_rad), 1),
+            "sigma_deg": round(math.degrees(m.compass.sigma_rad), 1),
+            "strength_ut": round(m.compass.strength_t * 1e6, 1),
+            "dip_deg": round(math.degrees(m.compass.dip_rad), 1),
+            "readings": m.compass.samples,
+        },
         "teach": m.teach,
     }
 
@@ -219,6 +229,13 @@ def _show(args: argparse.Namespace) -> int:
     print(f"landmarks    {s['landmarks']} (median σ {s['landmark_sigma_median_m']} m)")
     way = s["dock_approach_points"]
     print(f"dock         {s['dock_position']}" + (f", approach of {way} points" if way else ""))
+    c = s["compass"]
+    print(
+        "compass      none (the teach drive read no magnetic field)"
+        if c is None
+        else f"compass      the field points {c['north_deg']}° ± {c['sigma_deg']}° in the map "
+        f"({c['strength_ut']} µT, dip {c['dip_deg']}°, {c['readings']} readings)"
+    )
     print(f"checksum     {s['checksum']}")
     for warning in s["warnings"]:
         print(f"WARNING      {warning}")
