@@ -297,3 +297,9 @@ def test_the_magnetometer_reaches_the_localizer_at_10_hz(camera: Any) -> None:
     assert compass is not None and len(compass._t) == 10  # the last second, at 10 Hz
     found = compass.heading(1.49)
     assert found is not None and abs(found[0] - heading) < 1e-6
+    # the status page's `live` reply and the status say it too
+    from mowerhw.runtime.live import LiveView
+
+    live = LiveView().snapshot(core, 1.49)
+    assert live["localizer"]["compass_deg"] == [round(math.degrees(heading), 1), 3.0]
+    assert core.pipeline.localizer.status()["compass"]["heading_deg"] == 17.2

@@ -297,12 +297,18 @@ class Localizer:
         """The pose is given up: frames are for :meth:`relocalization`, not updates."""
         return self.search is not None
 
-    def search_heading(self) -> tuple[float, float] | None:
-        """What the compass says the heading is (ψ, σ in the map's frame), while the search
-        is global and the compass has a steady, undisturbed reading; otherwise None."""
-        if self.search is None or self.search.near or self.compass is None or self.t_imu is None:
+    def compass_heading(self) -> tuple[float, float] | None:
+        """What the compass says the heading is now (ψ, σ in the map's frame), or None: no
+        taught field, or no steady, undisturbed reading."""
+        if self.compass is None or self.t_imu is None:
             return None
         return self.compass.heading(self.t_imu)
+
+    def search_heading(self) -> tuple[float, float] | None:
+        """:meth:`compass_heading` while the search is global; otherwise None."""
+        if self.search is None or self.search.near:
+            return None
+        return self.compass_heading()
 
     def search_near(self) -> tuple[float, float, float] | None:
         """Where the search looks: the filter's (x, y, heading) while it checks a prior,
@@ -865,7 +871,7 @@ class Localizer:
         readings it refused as not the taught field."""
         if self.compass is None:
             return None
-        found = self.compass.heading(self.t_imu) if self.t_imu is not None else None
+        found = self.compass_heading()
         return {
             "heading_deg": None if found is None else round(math.degrees(found[0]), 1),
             "sigma_deg": None if found is None else round(math.degrees(found[1]), 1),

@@ -127,6 +127,11 @@ class LiveView:
                 "searches": loc.counters.searches,
                 "relocalizations": loc.counters.relocalizations,
             }
+            if loc.compass is not None:  # the map has a taught field: what it says now
+                found = loc.compass_heading()
+                out["localizer"]["compass_deg"] = (
+                    None if found is None else [round(math.degrees(v), 1) for v in found]
+                )
         if supervisor:
             out["supervisor"] = {
                 k: supervisor.get(k)

@@ -99,7 +99,9 @@ function showDaemon(d) {
     pose && pose.sigma_heading !== null ? fmt((pose.sigma_heading * 180) / Math.PI, 2) + "°" : "–";
   const loc = d.localizer;
   $("localizer").textContent = loc
-    ? `${loc.localized ? "localized" : "not localized"} · searches ${loc.searches} · found ${loc.relocalizations}`
+    ? `${loc.localized ? "localized" : "not localized"} · searches ${loc.searches} · found ${loc.relocalizations}` +
+      (loc.compass_deg === undefined ? "" : " · compass " +
+        (loc.compass_deg === null ? "–" : `${fmt(loc.compass_deg[0], 0)}° ± ${fmt(loc.compass_deg[1], 0)}°`))
     : "–";
   const rows = Object.entries(d.sensors || {}).map(([name, s]) => {
     const late = s.late; // as the permit gate judges it (its limit: s.limit_s)
