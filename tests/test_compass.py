@@ -39,6 +39,7 @@ def test_a_levelled_reading_gives_the_field_direction_in_the_body_frame() -> Non
     assert field_in_body([0.0, 0.0, 0.0]) is None
     assert field_in_body([math.nan, 0.0, 1e-5]) is None
     assert field_in_body([0.0, 0.0, -5e-5]) is None  # straight down: no direction
+    assert field_in_body(MODEL.field_w, [9.81, 0.0, 0.0]) is None  # the mower on its end
 
 
 def _drive(n: int = 600) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -84,6 +84,7 @@ def test_the_compass_tells_a_half_turned_twin_apart_and_a_wrong_one_gives_no_pos
     # a compass too unsure to use (σ 30°: tolerance 90°) changes nothing: still ambiguous
     unsure = reloc.locate(bearings, heading=(yaw, math.radians(30.0)))
     assert not unsure.ok and unsure.why.startswith("ambiguous"), unsure.why
+    assert GlobalRelocalizer.compass_tolerance((math.nan, 0.05)) is None  # no compass at all
 
 
 def test_an_answer_says_how_sure_it_is_and_is_about_that_sure() -> None:

@@ -34,7 +34,7 @@ def field_in_body(mag_t: ArrayLike, accel: ArrayLike | None = None) -> FieldRead
     """The field's horizontal direction in the body's levelled frame (module doc), from a
     body-frame magnetometer reading (T) and, when there is one, the accelerometer's
     specific force (m/s², body frame: up when at rest). None for a reading that is not
-    finite, zero, or (nearly) vertical."""
+    finite, zero, or (nearly) vertical, and for a body standing on its end."""
     m = np.asarray(mag_t, dtype=np.float64).reshape(3)
     up = np.array([0.0, 0.0, 1.0])
     if accel is not None:
@@ -49,6 +49,8 @@ def field_in_body(mag_t: ArrayLike, accel: ArrayLike | None = None) -> FieldRead
     if float(np.linalg.norm(m_h)) < 0.05 * strength:
         return None
     x_h = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    if float(np.linalg.norm(x_h)) < 0.1:  # the body's x axis points (nearly) up: on its end
+        return None
     x_h /= np.linalg.norm(x_h)
     y_h = np.cross(up, x_h)
     alpha = math.atan2(float(m_h @ y_h), float(m_h @ x_h))

@@ -146,7 +146,7 @@ class GlobalRelocalizer:
     def compass_tolerance(heading: tuple[float, float] | None) -> float | None:
         """How far from the compass's ψ a heading may be (module doc), or None: no compass,
         or one too unsure to use."""
-        if heading is None:
+        if heading is None or not (math.isfinite(heading[0]) and math.isfinite(heading[1])):
             return None
         tol = max(COMPASS_MIN_TOLERANCE_RAD, 3.0 * heading[1])
         return tol if tol <= COMPASS_MAX_TOLERANCE_RAD else None
