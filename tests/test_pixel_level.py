@@ -92,7 +92,7 @@ def test_the_taught_map_knows_where_the_magnetic_field_points(taught):
     """The teach drive's magnetometer readings against its headings (issue 18): the map
     keeps the field's direction in its frame — the simulator's, turned as the map is (by
     the first heading of the drive: the teach frame is the body's at its first sample)."""
-    from mowerhw.common.geometry import wrap_angle
+    from mowerhw.common.geometry import quat_to_yaw, wrap_angle
     from mowerhw.sim import simulate_teach
     from mowerhw.sim.sensors import MagnetometerModel
 
@@ -100,10 +100,8 @@ def test_the_taught_map_knows_where_the_magnetic_field_points(taught):
     compass = load(path).compass
     assert compass is not None and compass.samples >= 300
     first_world = simulate_teach("paper", 2).truth.rot[0]
-    first_map = out.result.trajectory[0, 4:8]  # q_wb = (w, 0, 0, z): a level start
-    turn = math.atan2(first_world[1, 0], first_world[0, 0]) - 2 * math.atan2(
-        first_map[3], first_map[0]
-    )
+    first_map = out.result.trajectory[0, 4:8]  # q_wb of the first pose
+    turn = math.atan2(first_world[1, 0], first_world[0, 0]) - float(quat_to_yaw(first_map))
     expected = MagnetometerModel().declination_rad - turn
     assert abs(wrap_angle(compass.north_rad - expected)) < math.radians(3.0)
     assert compass.sigma_rad < math.radians(10.0)

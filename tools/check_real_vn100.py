@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.imu.vn100 import ImuExtractor, Vn100Parser
+from mowerhw.common.geometry import wrap_angle
 from mowerhw.common.magnetic import field_in_body
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
@@ -148,10 +149,10 @@ def compass(name: str) -> dict[str, object]:
             if reading is None:
                 continue
             yaw = float(np.atleast_1d(item["Attitude.YawPitchRoll"])[0])
-            diffs.append(np.remainder(reading.alpha - yaw + np.pi, 2 * np.pi) - np.pi)
+            diffs.append(wrap_angle(reading.alpha - yaw))
         d = np.degrees(np.array(diffs))
         mid = float(np.median(d))
-        dev = np.abs(np.remainder(d - mid + 180.0, 360.0) - 180.0)
+        dev = np.degrees(np.abs(wrap_angle(np.radians(d - mid))))
         out[label] = {
             "samples": int(d.size),
             "offset_deg": round(mid, 2),

@@ -29,15 +29,15 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mowerhw.common.geometry import quat_to_rotmat, wrap_angle
+from mowerhw.common.geometry import quat_to_yaw, wrap_angle
 from mowerhw.common.magnetic import CompassReference, FieldReading, field_in_body
 
 FloatArray = NDArray[np.float64]
 
 #: readings are kept at most this often (s; less half a 100 Hz interval, for jitter): the
-#: field changes with the heading only
+#: field changes with the heading only. The runtime hands readings on at this period too.
 SAMPLE_PERIOD_S = 0.1
-_KEEP_AFTER_S = SAMPLE_PERIOD_S - 0.005
+KEEP_AFTER_S = SAMPLE_PERIOD_S - 0.005
 #: a taught reference must have this many readings and at most this spread to be trusted
 MIN_TEACH_SAMPLES = 50
 MAX_TEACH_SPREAD_RAD = math.radians(20.0)
@@ -46,6 +46,16 @@ MAX_TEACH_SPREAD_RAD = math.radians(20.0)
 WINDOW_S = 1.0
 MIN_WINDOW_SAMPLES = 5
 MAX_WINDOW_SPREAD_RAD = math.radians(10.0)
+
+
+def _next_reading(
+    times: list[float], t: float, mag_t: ArrayLike, accel: ArrayLike | None
+) -> FieldReading | None:
+    """The levelled reading at ``t``, or None: too soon after the last one kept (``times``),
+    not finite, or no direction (``field_in_body``)."""
+    if (times and t - times[-1] < KEEP_AFTER_S) or not math.isfinite(t):
+        return None
+    return field_in_body(mag_t, accel)
 
 
 def _circular(angles: FloatArray) -> tuple[float, float]:
@@ -65,10 +75,8 @@ class CompassCalibration:
         self._readings: list[FieldReading] = []
 
     def add(self, t: float, mag_t: ArrayLike, accel: ArrayLike | None = None) -> None:
-        if self._t and t - self._t[-1] < _KEEP_AFTER_S:
-            return
-        reading = field_in_body(mag_t, accel)
-        if reading is not None and math.isfinite(t):
+        reading = _next_reading(self._t, t, mag_t, accel)
+        if reading is not None:
             self._t.append(float(t))
             self._readings.append(reading)
 
@@ -82,8 +90,7 @@ class CompassCalibration:
         inside = (t >= trajectory[0, 0]) & (t <= trajectory[-1, 0])
         if int(inside.sum()) < MIN_TEACH_SAMPLES:
             return None
-        yaw = np.array([_yaw(q) for q in trajectory[:, 4:8]])
-        heading = np.interp(t[inside], trajectory[:, 0], np.unwrap(yaw))
+        heading = np.interp(t[inside], trajectory[:, 0], np.unwrap(quat_to_yaw(trajectory[:, 4:8])))
         alpha = np.array([r.alpha for r, ok in zip(self._readings, inside, strict=True) if ok])
         north, spread = _circular(heading + alpha)
         if spread > MAX_TEACH_SPREAD_RAD:
@@ -91,11 +98,6 @@ class CompassCalibration:
         strength = float(np.median([r.strength_t for r in self._readings]))
         dip = float(np.median([r.dip_rad for r in self._readings]))
         return CompassReference(wrap_angle(north), spread, strength, dip, int(inside.sum()))
-
-
-def _yaw(q_wxyz: FloatArray) -> float:
-    r = quat_to_rotmat(q_wxyz)
-    return math.atan2(float(r[1, 0]), float(r[0, 0]))
 
 
 class Compass:
@@ -109,10 +111,8 @@ class Compass:
         self.disturbed = 0  # readings refused as not the taught field
 
     def add(self, t: float, mag_t: ArrayLike, accel: ArrayLike | None = None) -> None:
-        if self._t and t - self._t[-1] < _KEEP_AFTER_S:
-            return
-        reading = field_in_body(mag_t, accel)
-        if reading is None or not math.isfinite(t):
+        reading = _next_reading(self._t, t, mag_t, accel)
+        if reading is None:
             return
         if self.reference.disturbed(reading):
             self.disturbed += 1

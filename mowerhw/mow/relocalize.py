@@ -153,8 +153,8 @@ class GlobalRelocalizer:
 
     def _within_compass(self, votes: NDArray[np.int64], psi: float, tol: float) -> None:
         """Zero the votes of the headings farther than ``tol`` (+ a bin) from ``psi``."""
-        bin_yaw = (np.arange(self.n_bins) + 1.0) * self.yaw_bin
-        off = np.abs(np.angle(np.exp(1j * (bin_yaw - psi))))
+        bin_yaw = (np.arange(self.n_bins, dtype=np.float64) + 1.0) * self.yaw_bin
+        off = np.abs(wrap_angle(bin_yaw - psi))
         votes[:, off > tol + self.yaw_bin] = 0
 
     def _hypotheses(self, votes: NDArray[np.int64]) -> list[tuple[float, float, float]]:
@@ -366,13 +366,15 @@ class GlobalRelocalizer:
             return done(f"{obs.shape[0]} bearings, {self.points.shape[0]} landmarks")
         azimuth = np.arctan2(obs[:, 1], obs[:, 0])
         elevation = np.arctan2(obs[:, 2], np.hypot(obs[:, 0], obs[:, 1]))
+        # the compass's heading and tolerance, when a search of the whole map may use it
         tol = self.compass_tolerance(heading) if near is None else None
+        compass = (heading[0], tol) if heading is not None and tol is not None else None
         if near is not None:
             hyps = [near]
         else:
             votes = self._votes(azimuth, elevation)
-            if tol is not None and heading is not None:
-                self._within_compass(votes, heading[0], tol)
+            if compass is not None:
+                self._within_compass(votes, *compass)
             hyps = self._hypotheses(votes)
         scored = []
         for hyp in hyps:
@@ -402,19 +404,20 @@ class GlobalRelocalizer:
             far = float(np.linalg.norm(p2[:2] - p_wb[:2])) > DISTINCT_M
             yaw2 = math.atan2(r2[1, 0], r2[0, 0])
             turned = abs(wrap_angle(yaw2 - yaw_best))
-            if tol is not None and heading is not None and abs(wrap_angle(yaw2 - heading[0])) > tol:
+            if compass is not None and abs(wrap_angle(yaw2 - compass[0])) > compass[1]:
                 continue  # a place the compass rules out is no rival
             if far or turned > DISTINCT_RAD:
                 runner = max(runner, n)
         if n_best < self.min_inliers:
             return done(f"{n_best} inliers (need {self.min_inliers})", len(hyps))
-        if tol is not None and heading is not None:
-            off = abs(wrap_angle(yaw_best - heading[0]))
-            if off > tol:
+        if compass is not None:
+            psi, tolerance = compass
+            off = abs(wrap_angle(yaw_best - psi))
+            if off > tolerance:
                 return done(
-                    f"the compass says {math.degrees(heading[0]):.0f}°, the best place faces "
+                    f"the compass says {math.degrees(psi):.0f}°, the best place faces "
                     f"{math.degrees(yaw_best):.0f}° ({math.degrees(off):.0f}° off, "
-                    f"tolerance {math.degrees(tol):.0f}°)",
+                    f"tolerance {math.degrees(tolerance):.0f}°)",
                     len(hyps),
                 )
         if runner > self.ambiguity_ratio * n_best and n_best - runner < self.ambiguity_margin:
@@ -429,7 +432,7 @@ class GlobalRelocalizer:
         gaps = np.diff(np.concatenate([az, az[:1] + 2 * math.pi]))
         if 2 * math.pi - gaps.max() < MIN_AZIMUTH_SPREAD_RAD:
             return done("inliers all on one side", len(hyps))
-        fitted = np.array([p_wb[0], p_wb[1], math.atan2(r_wb[1, 0], r_wb[0, 0])])
+        fitted = np.array([p_wb[0], p_wb[1], yaw_best])
         return Relocalization(
             True,
             r_wb,

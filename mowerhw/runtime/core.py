@@ -27,6 +27,7 @@ from mowerhw.common.buffer import SensorBuffer
 from mowerhw.common.geometry import quat_to_rotmat, tuple3
 from mowerhw.common.samples import ImuSample, SpeedSample, Stream
 from mowerhw.config import Config
+from mowerhw.estimation import compass
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.map import LawnMap
 from mowerhw.mow.containment import ContainmentResult
@@ -48,8 +49,6 @@ log = logging.getLogger("mowerhw.daemon")
 MODES = ("idle", "teach", "mow")
 #: localized poses are offered for saving (restarts resume from them) at most this often (s)
 POSE_SAVE_PERIOD_S = 0.1
-#: magnetometer readings go to the estimators at most this often (s; the compass keeps 10 Hz)
-MAG_PERIOD_S = 0.095
 FAULT_KINDS = ("nan", "exception")
 
 
@@ -128,7 +127,7 @@ class RuntimeCore:
         if self.pipeline is not None:
             self.pipeline.vision.imu(sample.t, gyro)  # the front end's derotation history
             if sample.mag is not None and sample.t >= self._next_mag_t:  # the compass: 10 Hz
-                self._next_mag_t = sample.t + MAG_PERIOD_S
+                self._next_mag_t = sample.t + compass.KEEP_AFTER_S
                 accel = None if sample.accel is None else self.r_bi @ sample.accel
                 self.pipeline.magnetometer(sample.t, self.r_bi @ sample.mag, accel)
         self._hold_pose()
