@@ -142,3 +142,64 @@ def test_a_lift_drops_the_pose_and_no_answer_pairs_across_it() -> None:
     plain = Localizer(m)  # bearing level, no relocalizer: the lock-out path recovers
     plain.lifted()
     assert not plain.searching
+
+
+def test_an_accepted_answer_hands_its_landmark_cross_covariance_to_the_filter() -> None:
+    """The filter restarts from an accepted answer knowing which map errors it shares with
+    it: the answer's cross-covariance lands in the filter's consider terms, in the columns
+    of the landmarks the answer names (map ids, not the answer's own order)."""
+    import dataclasses
+
+    base = _map()
+    lms = [Landmark(100 + lm.id, lm.xyz, lm.covariance) for lm in base.landmarks]
+    m = LawnMap(boundary=base.boundary, landmarks=lms, camera=None, teach={})
+    loc = Localizer(m)
+    loc.lose("since the start (no prior pose)")
+    truth = (1.0, -1.5, 2.0)
+    rows = [17, 3, 8]
+    cross = np.arange(1.0, 28.0).reshape(3, 9) * 1e-9
+    answer = dataclasses.replace(
+        _answer(*truth), inliers=[(k, 100 + r) for k, r in enumerate(rows)], landmark_cross=cross
+    )
+    accepted = False
+    _stand(loc, 0.0, 0.3)
+    for t in (0.3, 0.55):
+        accepted = loc.relocalization(t, answer) or accepted
+        _stand(loc, t, t + 0.25)
+    assert accepted and loc.counters.relocalizations == 1
+    pxl = loc.ekf.snapshot().pxl
+    for k, r in enumerate(rows):
+        got = pxl[np.ix_([0, 1, 5], range(3 * r, 3 * r + 3))]
+        assert np.allclose(got, cross[:, 3 * k : 3 * k + 3], rtol=0.05), (r, got)
+    others = np.setdiff1d(np.arange(pxl.shape[1]), [3 * r + a for r in rows for a in range(3)])
+    assert np.all(pxl[:, others] == 0.0)
+
+
+def test_the_map_check_finds_honest_landmark_covariances_honest_and_wide_ones_wide() -> None:
+    """:func:`map_landmark_nees` (the recovery benchmark's check of the map): landmarks off
+    their truth by draws from their own covariance, in a frame shifted, turned and scaled
+    from the truth's, average a NEES of 3; the same map saying 4× its σ reads 16× lower."""
+    from scipy.stats import chi2
+
+    from mowerhw.evaluation.recovery import map_landmark_nees
+
+    rng = np.random.default_rng(5)
+    truth = rng.uniform(-10, 10, (60, 3))
+    cov = np.diag([0.01, 0.012, 0.006]) ** 2
+    c, s = math.cos(0.3), math.sin(0.3)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    est = 1.01 * (truth + rng.normal(size=truth.shape) * np.sqrt(np.diag(cov))) @ turn.T + 2.0
+
+    def check(scale: float) -> float:
+        # the map's frame is turned and 1 % bigger: so are the errors' covariances there
+        in_map = turn @ cov @ turn.T * (1.01 * scale) ** 2
+        lms = [Landmark(i, est[i], in_map) for i in range(len(est))]
+        m = LawnMap(boundary=_map().boundary, landmarks=lms, camera=None, teach={})
+        m.teach["sim"] = {"landmark_truth": {str(i): truth[i].tolist() for i in range(60)}}
+        out = map_landmark_nees(m)
+        assert out is not None and out["landmarks"] == 60
+        return float(out["nees_mean"])
+
+    lo, hi = chi2.ppf([0.005, 0.995], 3 * 60) / 60
+    assert lo <= check(1.0) <= hi
+    assert check(4.0) < lo / 8

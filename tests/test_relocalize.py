@@ -123,3 +123,75 @@ def test_an_accepted_pose_starts_as_sure_as_its_answer_within_bounds() -> None:
     assert accepted_sigma(np.diag([1.0, 1.0, 1.0])) == (ACCEPT_SIGMA_M, ACCEPT_SIGMA_RAD)
     assert accepted_sigma(np.zeros((3, 3)))[0] == ACCEPT_MIN_SIGMA_M
     assert accepted_sigma(np.full((3, 3), np.nan)) == (ACCEPT_SIGMA_M, ACCEPT_SIGMA_RAD)
+
+
+def _map_with(pts: np.ndarray, cov: np.ndarray) -> LawnMap:
+    lms = [Landmark(i, pts[i], cov) for i in range(len(pts))]
+    ring = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    boundary = np.c_[5 * np.cos(ring), 4 * np.sin(ring)]
+    return LawnMap(boundary=boundary, landmarks=lms, camera=None, teach={})
+
+
+def test_an_answer_knows_how_much_of_its_error_is_the_maps() -> None:
+    """The answer's cross-covariance with its inliers' map positions (issue 18): with exact
+    bearings and a map whose landmarks are off by draws from their own covariance, the
+    answer's error is the map's errors through ``cross · P_L⁻¹`` — predicted, draw by draw,
+    to within a fifth of its size (a wrong sign or scale would miss by its whole size)."""
+    rng = np.random.default_rng(21)
+    truth = _ring(rng, 30)
+    p, yaw = np.array([0.8, -1.1, 0.0]), 0.7
+    bearings = _view(truth, p, yaw, rng, 0.0)
+    cov = np.diag([0.02, 0.02, 0.01]) ** 2
+    misses, sizes = [], []
+    for _ in range(6):
+        map_err = rng.normal(size=truth.shape) * np.sqrt(np.diag(cov))
+        res = GlobalRelocalizer(_map_with(truth + map_err, cov)).locate(bearings)
+        assert res.ok and res.landmark_cross is not None, res.why
+        err = np.r_[res.p_wb[:2] - p[:2], (res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi]
+        ids = np.array([i for _, i in res.inliers])
+        predicted = res.landmark_cross @ (map_err[ids] @ np.linalg.inv(cov)).reshape(-1)
+        misses.append(np.abs(err - predicted))
+        sizes.append(np.abs(err))
+    assert np.all(np.max(misses, axis=0) < 0.2 * np.max(sizes, axis=0)), (misses, sizes)
+
+
+def test_a_filter_started_from_an_answer_does_not_count_its_landmarks_twice() -> None:
+    """A filter restarted at an answer with its cross-covariance (issue 18), then updated
+    twenty times with the same landmarks as the answer saw them (standing still): the same
+    map errors are no news, and its NEES over random places — the map off its truth by
+    draws from its own covariance — stays inside the 99 % bounds; without the
+    cross-covariance the same runs are clearly over-confident."""
+    from scipy.stats import chi2
+
+    from mowerhw.common.geometry import quat_to_yaw, yaw_to_quat
+    from mowerhw.mow.ekf import LocalizerNoise, WorldPoseEKF
+    from mowerhw.mow.recovery import accepted_sigma
+
+    rng = np.random.default_rng(23)
+    map_xyz = _ring(rng, 30)
+    cov = np.diag([0.04, 0.04, 0.02]) ** 2
+    reloc = GlobalRelocalizer(_map_with(map_xyz, cov))
+    nees: dict[bool, list[float]] = {True: [], False: []}
+    for _ in range(20):
+        p, yaw = np.r_[rng.uniform(-2, 2, 2), 0.0], float(rng.uniform(-3, 3))
+        truth = map_xyz + rng.normal(size=map_xyz.shape) * np.sqrt(np.diag(cov))
+        bearings = _view(truth, p, yaw, rng, 0.0)
+        res = reloc.locate(bearings)
+        assert res.ok and res.covariance is not None and res.landmark_cross is not None
+        ids = np.array([i for _, i in res.inliers])
+        seen = np.array([r for r, _ in res.inliers])
+        for with_cross in (True, False):
+            ekf = WorldPoseEKF(LocalizerNoise(), np.repeat(cov[None], len(map_xyz), axis=0))
+            s_pos, s_yaw = accepted_sigma(res.covariance)
+            ekf.reset(res.p_wb, yaw_to_quat(res.yaw), s_pos, np.array([0.01, 0.01, s_yaw]))
+            if with_cross:
+                ekf.set_landmark_cross(ids, res.landmark_cross)
+            for _ in range(20):
+                ekf.update(ids, map_xyz[ids], bearings[seen], 1e-3)
+            yaw_err = (quat_to_yaw(ekf.q) - yaw + math.pi) % (2 * math.pi) - math.pi
+            err = np.r_[ekf.x[:2] - p[:2], yaw_err]
+            cov3 = ekf.P[np.ix_([0, 1, 5], [0, 1, 5])]
+            nees[with_cross].append(float(err @ np.linalg.solve(cov3, err)))
+    lo, hi = chi2.ppf([0.005, 0.995], 3 * 20) / 20
+    assert lo <= np.mean(nees[True]) <= hi, (np.mean(nees[True]), lo, hi)
+    assert np.mean(nees[False]) > 1.25 * np.mean(nees[True])  # what the test tells apart

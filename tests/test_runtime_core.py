@@ -153,7 +153,11 @@ def test_the_journal_codec_round_trips_exactly(tmp_path: Any) -> None:
     assert again_found is not None and again_found.inliers == found.inliers
     assert np.array_equal(again_found.r_wb, found.r_wb) and again_found.ms == found.ms
     assert again_found.covariance is None
-    sure = dataclasses.replace(found, covariance=np.diag([1e-4, 4e-5, 1e-6]))
+    sure = dataclasses.replace(
+        found,
+        covariance=np.diag([1e-4, 4e-5, 1e-6]),
+        landmark_cross=rng.normal(scale=1e-5, size=(3, 6)),
+    )
     rec = json.loads(
         json.dumps(
             enc.encode("tracks", {"tracks": dataclasses.replace(tracks, relocalization=sure)})
@@ -161,6 +165,8 @@ def test_the_journal_codec_round_trips_exactly(tmp_path: Any) -> None:
     )
     back_sure = dec.tracks(rec["tracks"]).relocalization
     assert back_sure is not None and np.array_equal(back_sure.covariance, sure.covariance)
+    assert back_sure.landmark_cross is not None
+    assert np.array_equal(back_sure.landmark_cross, sure.landmark_cross)
     assert [d.tolist() for d in back.descriptors] == [d.tolist() for d in tracks.descriptors]
     imu = ImuSample(0.1 + 1e-12, np.array([1e-7, -2.5, np.pi]), None, 12, 34)
     back_imu = dec.imu(json.loads(json.dumps(enc.encode("imu", {"s": imu})))["s"])

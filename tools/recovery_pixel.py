@@ -20,7 +20,7 @@ from typing import Any
 
 from mowerhw.config import Config
 from mowerhw.evaluation.pixel import run_teach_pixel
-from mowerhw.evaluation.recovery import kidnap_runs, start_runs
+from mowerhw.evaluation.recovery import kidnap_runs, map_landmark_nees, start_runs
 from mowerhw.evaluation.teach import sim_map
 from mowerhw.map import load as load_map
 
@@ -58,6 +58,8 @@ def main() -> None:
             lawn_map.save(args.save_map)
     out: dict[str, Any] = {"scenario": args.scenario, "seed": args.seed}
     out["teach_s"] = round(time.perf_counter() - t0, 1)
+    # the map's landmark covariances against their truth in the map's frame
+    out["map_landmarks"] = map_landmark_nees(lawn_map)
     if args.starts:
         t1 = time.perf_counter()
         out["starts"] = start_runs(

@@ -17,7 +17,10 @@ FloatArray = NDArray[np.float64]
 class Relocalization:
     """One frame's answer: ``r_wb``, ``p_wb`` (body in the map's world frame), the inlier
     pairs (observation row, map landmark id) and the runner-up's inliers, or why none;
-    ``covariance``: of (x, y, heading), from the fit's residuals (None: not computed)."""
+    ``covariance``: of (x, y, heading), from the fit's residuals (None: not computed);
+    ``landmark_cross``: (3, 3·len(inliers)) the cross-covariance of that (x, y, heading)
+    with the inlier landmarks' map positions, in the inliers' order — the answer's error
+    is largely theirs, and a filter that starts from it must know (None: not computed)."""
 
     ok: bool
     r_wb: FloatArray = field(default_factory=lambda: np.eye(3))
@@ -28,6 +31,7 @@ class Relocalization:
     ms: float = 0.0
     why: str = ""
     covariance: FloatArray | None = None
+    landmark_cross: FloatArray | None = None
 
     @property
     def yaw(self) -> float:

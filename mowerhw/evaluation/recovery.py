@@ -87,25 +87,63 @@ def _errors(out: MowOutcome) -> tuple[FloatArray, FloatArray]:
     return np.linalg.norm(e[:, :2], axis=1), np.abs(e[:, 2])
 
 
+def _landmark_truth(lawn_map: LawnMap, dims: int) -> tuple[FloatArray, FloatArray]:
+    """The map's landmarks whose true position the simulated teach recorded: (their map
+    rows, their true positions), the first ``dims`` coordinates."""
+    truth = (lawn_map.teach.get("sim") or {}).get("landmark_truth") or {}
+    ids = lawn_map.landmark_ids().tolist()
+    rows = np.array([k for k, i in enumerate(ids) if str(i) in truth], dtype=np.int64)
+    true = np.array([truth[str(ids[k])][:dims] for k in rows.tolist()], dtype=np.float64)
+    return rows, true.reshape(-1, dims)
+
+
+def _similarity(a: FloatArray, b: FloatArray) -> tuple[float, FloatArray, FloatArray]:
+    """``b ≈ s R a + t`` in least squares (Umeyama; a proper rotation), any dimension."""
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    u, sv, vt = np.linalg.svd((a - ma).T @ (b - mb))
+    flip = np.ones(a.shape[1])
+    flip[-1] = float(np.sign(np.linalg.det(vt.T @ u.T))) or 1.0
+    r = vt.T @ np.diag(flip) @ u.T
+    scale = float((sv * flip).sum() / ((a - ma) ** 2).sum())
+    return scale, r, mb - scale * r @ ma
+
+
 def map_alignment(lawn_map: LawnMap) -> Alignment | None:
     """The similarity that takes the map's frame onto the truth (least squares over the
     landmarks whose true position the simulated teach recorded), or None without them.
     Containment works in the map's frame — its boundary shares the landmarks' errors — so
     the localizer is judged against the truth expressed in that frame as well."""
-    truth = (lawn_map.teach.get("sim") or {}).get("landmark_truth") or {}
-    pts = lawn_map.landmark_positions()[:, :2]
-    rows = [(k, truth[str(i)]) for k, i in enumerate(lawn_map.landmark_ids()) if str(i) in truth]
-    if len(rows) < 3:
+    rows, true = _landmark_truth(lawn_map, 2)
+    if rows.size < 3:
         return None
-    a = pts[[k for k, _ in rows]]
-    b = np.array([v[:2] for _, v in rows], dtype=np.float64)
-    ma, mb = a.mean(axis=0), b.mean(axis=0)
-    u, sv, vt = np.linalg.svd((a - ma).T @ (b - mb))
-    r = vt.T @ u.T
-    if np.linalg.det(r) < 0:
+    scale, r, t = _similarity(lawn_map.landmark_positions()[rows, :2], true)
+    return scale, r, t, math.atan2(r[1, 0], r[0, 0])
+
+
+def map_landmark_nees(lawn_map: LawnMap) -> dict[str, Any] | None:
+    """How honest the map's landmark covariances are where the localizer uses them: each
+    landmark's NEES against its true position taken into the map's frame (the 3-D
+    similarity fitted over all of them, as :func:`map_alignment` in the plane), or None
+    without the truth. A mean far below 3 says the covariances are wider than the map's
+    errors (the localizer then takes the map to be worse than it is)."""
+    rows, true = _landmark_truth(lawn_map, 3)
+    if rows.size < 4:
         return None
-    scale = float(sv.sum() / ((a - ma) ** 2).sum())
-    return scale, r, mb - scale * r @ ma, math.atan2(r[1, 0], r[0, 0])
+    est = lawn_map.landmark_positions()[rows]
+    scale, r, t = _similarity(est, true)
+    err = est - (true - t) @ r / scale  # against the truth in the map's frame
+    cov = lawn_map.landmark_covariances()[rows]
+    nees = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+    return {
+        "landmarks": int(rows.size),
+        "nees_mean": round(float(nees.mean()), 3),
+        "nees_median": round(float(np.median(nees)), 3),
+        "dof": 3,
+        "error_mm_median": round(1e3 * float(np.median(np.linalg.norm(err, axis=1))), 2),
+        "sigma_mm_median": round(
+            1e3 * float(np.median(np.sqrt(np.trace(cov, axis1=1, axis2=2) / 3))), 2
+        ),
+    }
 
 
 def _nees(out: MowOutcome, align: Alignment | None = None) -> list[FloatArray]:

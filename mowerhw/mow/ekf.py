@@ -189,6 +189,29 @@ class WorldPoseEKF:
         self.P = p
         self.pxl[:] = 0.0
 
+    def set_landmark_cross(self, rows: NDArray[np.int64], cross: FloatArray) -> None:
+        """After :meth:`reset` at a fitted pose: the (x, y, heading) error's cross-covariance
+        (3, 3·len(rows)) with map landmarks ``rows`` — a pose fitted to landmarks shares
+        their errors, and the same landmarks seen again must not count as news. Scaled down
+        if it asks more correlation than the reset covariance allows (the joint covariance
+        stays positive semi-definite)."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        c = np.asarray(cross, dtype=np.float64).reshape(3, 3 * rows.size)
+        if rows.size == 0 or not np.all(np.isfinite(c)):
+            return
+        pose = np.array([0, 1, YAW])
+        blocks = c.reshape(3, rows.size, 3).transpose(1, 0, 2)  # (k, 3 pose, 3 axis)
+        explained = np.einsum(
+            "kia,kab,kjb->ij", blocks, np.linalg.pinv(self.landmark_cov[rows]), blocks
+        )
+        p3 = self.P[np.ix_(pose, pose)]
+        chol = np.linalg.cholesky(p3)
+        w = np.linalg.solve(chol, np.linalg.solve(chol, explained).T)
+        most = float(np.linalg.eigvalsh(0.5 * (w + w.T))[-1])
+        scale = 1.0 if most <= 0.999 else math.sqrt(0.999 / most)
+        cols = (3 * rows[:, None] + np.arange(3)[None, :]).reshape(-1)
+        self.pxl[np.ix_(pose, cols)] = scale * c
+
     def set_bias(self, bias: FloatArray, var: float) -> None:
         """As :meth:`EkfState.set_bias`."""
         _set_bias(self, bias, var)

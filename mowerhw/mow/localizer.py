@@ -339,6 +339,10 @@ class Localizer:
         self.reinitialise(
             (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)), *accepted_sigma(answer.covariance)
         )
+        if answer.landmark_cross is not None:
+            rows = np.array([self._row.get(i, -1) for _, i in answer.inliers], dtype=np.int64)
+            if np.all(rows >= 0):
+                self.ekf.set_landmark_cross(rows, answer.landmark_cross)
         if search.near and search.checks_prior:  # a start pose confirmed: as it would be
             self.require_frames(self._frames_needed, "since the prior pose was confirmed")
         else:

@@ -88,9 +88,10 @@ class GlobalRelocalizer:
         self.points = self.points.reshape(-1, 3)
         # each landmark's position variance (m², the mean of its three axes): how much its
         # bearing may be off whatever the pose (the answer's covariance)
-        self._point_var = np.array(
-            [float(np.trace(lm.covariance)) / 3.0 for lm in lawn_map.landmarks], dtype=np.float64
-        )
+        self._point_cov = np.array(
+            [lm.covariance for lm in lawn_map.landmarks], dtype=np.float64
+        ).reshape(-1, 3, 3)
+        self._point_var = np.trace(self._point_cov, axis1=1, axis2=2) / 3.0
         self.grid_m = grid_m
         self.yaw_bin = yaw_bin_rad
         self.n_bins = math.ceil(2 * math.pi / yaw_bin_rad)
@@ -312,32 +313,50 @@ class GlobalRelocalizer:
 
     def covariance(
         self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], state: FloatArray
-    ) -> FloatArray:
-        """The (x, y, heading) covariance of a fitted pose: (Σ Jᵢᵀ Jᵢ / σᵢ²)⁻¹ over the
-        inliers' angular residuals (Gauss–Newton, J by central differences), where a
-        bearing's σᵢ² is the inliers' residual RMS per axis (at least
-        :attr:`MIN_RESIDUAL_RAD`) squared plus its landmark's position variance seen from
-        the pose (σ²_landmark / range²): the map's errors move the answer too."""
+    ) -> tuple[FloatArray, FloatArray]:
+        """The (x, y, heading) covariance of a fitted pose over the inliers' angular
+        residuals (linearised, J by central differences), where a bearing's σᵢ² is the
+        inliers' residual RMS per axis (at least :attr:`MIN_RESIDUAL_RAD`) squared plus its
+        landmark's position variance seen from the pose (σ²_landmark / range²): the map's
+        errors move the answer too. And how much they move it: the cross-covariance with
+        the inliers' landmark positions (J_L: the residual's derivative with respect to the
+        landmark; P_L its map covariance), (3, 3·n) in the inliers' order."""
 
-        def residual(x: FloatArray) -> FloatArray:
-            out: FloatArray = np.cross(obs[rows], self._predict(*self._pose(x), cols)).ravel()
+        pts = self.points[cols]
+
+        def residual(x: FloatArray, points: FloatArray = pts) -> FloatArray:
+            r_wb, p_wb = self._pose(x)
+            d = (points - p_wb) @ r_wb
+            out: FloatArray = np.cross(obs[rows], d / np.linalg.norm(d, axis=1, keepdims=True))
             return out
 
         r0 = residual(state)
         steps = (1e-4, 1e-4, 1e-5)
-        jac = np.empty((r0.size, 3))
+        jac = np.empty((r0.shape[0], 3, 3))  # (n, residual, pose)
         for k, h in enumerate(steps):
             d = np.zeros(3)
             d[k] = h
-            jac[:, k] = (residual(state + d) - residual(state - d)) / (2 * h)
+            jac[:, :, k] = (residual(state + d) - residual(state - d)) / (2 * h)
+        # each residual depends on its own landmark only: one shift of all of them per axis
+        jac_l = np.empty((r0.shape[0], 3, 3))  # (n, residual, landmark axis)
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = 1e-4
+            jac_l[:, :, k] = (residual(state, pts + d) - residual(state, pts - d)) / 2e-4
         dof = max(1, 2 * rows.size - 3)  # a bearing's residual has two free directions
-        s2 = max(float(r0 @ r0) / dof, self.MIN_RESIDUAL_RAD**2)
+        s2 = max(float(np.sum(r0 * r0)) / dof, self.MIN_RESIDUAL_RAD**2)
         _, p_wb = self._pose(state)
-        range2 = np.sum((self.points[cols] - p_wb) ** 2, axis=1)
+        range2 = np.sum((pts - p_wb) ** 2, axis=1)
         var = s2 + self._point_var[cols] / np.maximum(range2, 0.25)  # (n,) per bearing
-        weight = np.repeat(1.0 / var, 3)  # the residual's three components
-        cov: FloatArray = np.linalg.pinv(jac.T @ (jac * weight[:, None]))
-        return cov
+        # the fit weighs every bearing alike (:meth:`_fit`): its error is −A (n + J_L δL)
+        # with A = (Σ Jᵢᵀ Jᵢ)⁻¹ Jᵀ, so its covariance is A diag(σᵢ²) Aᵀ (a sandwich) …
+        gain = np.linalg.pinv(np.einsum("nri,nrj->ij", jac, jac))
+        spread = np.einsum("nri,nrj,n->ij", jac, jac, var)
+        cov: FloatArray = gain @ spread @ gain
+        # … and its cross-covariance with landmark i's position −A Jᵢᵀ J_Lᵢ P_Lᵢ
+        jt_jl_pl = np.einsum("nri,nrk,nkl->nil", jac, jac_l, self._point_cov[cols])
+        cross: FloatArray = -gain @ np.transpose(jt_jl_pl, (1, 0, 2)).reshape(3, -1)
+        return cov, cross
 
     def _pose(self, state: FloatArray) -> tuple[FloatArray, FloatArray]:
         return yaw_rotation(float(state[2])), np.array([state[0], state[1], self.height])
@@ -433,6 +452,7 @@ class GlobalRelocalizer:
         if 2 * math.pi - gaps.max() < MIN_AZIMUTH_SPREAD_RAD:
             return done("inliers all on one side", len(hyps))
         fitted = np.array([p_wb[0], p_wb[1], yaw_best])
+        cov, cross = self.covariance(obs, rows, cols, fitted)
         return Relocalization(
             True,
             r_wb,
@@ -441,5 +461,6 @@ class GlobalRelocalizer:
             runner,
             len(hyps),
             1e3 * (time.perf_counter() - t0),
-            covariance=self.covariance(obs, rows, cols, fitted),
+            covariance=cov,
+            landmark_cross=cross,
         )

@@ -95,6 +95,7 @@ class JournalEncoder:
                 "ms": v.ms,
                 "why": v.why,
                 "covariance": None if v.covariance is None else _floats(v.covariance),
+                "landmark_cross": None if v.landmark_cross is None else _floats(v.landmark_cross),
             }
         if isinstance(v, LawnMap):
             if v.checksum in self._maps:
@@ -172,6 +173,9 @@ class JournalDecoder:
             None
             if d.get("covariance") is None
             else np.asarray(d["covariance"], dtype=np.float64).reshape(3, 3),
+            None
+            if d.get("landmark_cross") is None
+            else np.asarray(d["landmark_cross"], dtype=np.float64).reshape(3, -1),
         )
 
     def lawn_map(self, d: dict[str, Any]) -> LawnMap:
