@@ -15,7 +15,7 @@ from mowerhw.cli import main
 from mowerhw.cli.sim_cmd import _save_sim_map
 from mowerhw.config import Config
 from mowerhw.evaluation.mow import run_mow
-from mowerhw.evaluation.pixel import run_teach_pixel
+from mowerhw.evaluation.pixel import bearing_error_figures, run_teach_pixel
 from mowerhw.map import MapError, load
 
 pytestmark = pytest.mark.slow
@@ -65,6 +65,11 @@ def test_mow_re_identifies_map_landmarks_in_rendered_images(taught):
     assert m["association_precision"] >= 0.95
     assert m["localizer"]["frames_with_fix"] >= 0.9 * m["localizer"]["frames"]
     assert np.isfinite(m["frontend_ms_per_frame"])
+    # every right association's bearing error against the truth: sub-degree, and far
+    # from the 0.46° white noise the localizer assumes only in being alike frame to frame
+    errors = bearing_error_figures(out.bearing_errors)
+    assert errors["bearings"] > 150 and errors["frames"] > 50
+    assert 0.0 < errors["azimuth_rms_deg"] < 0.5 and 0.0 < errors["elevation_rms_deg"] < 0.5
 
 
 def test_cli_refuses_a_bearing_level_map_for_pixel_mowing(tmp_path, capsys):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from mowerhw.common.geometry import yaw_rotation
 from mowerhw.map import Landmark, LawnMap
@@ -203,3 +204,29 @@ def test_the_map_check_finds_honest_landmark_covariances_honest_and_wide_ones_wi
     lo, hi = chi2.ppf([0.005, 0.995], 3 * 60) / 60
     assert lo <= check(1.0) <= hi
     assert check(4.0) < lo / 8
+
+
+def test_bearing_errors_are_told_apart_into_what_stays_and_what_changes() -> None:
+    """:func:`bearing_error_figures` (issue 18's measurement of the pixel-level bearings):
+    on made-up errors — a per-landmark bias of 0.1°, then AR(1) noise of 0.05° whose
+    frame-to-frame correlation is 0.8 — it finds each part; and :func:`bearing_error` reads
+    a bearing turned 0.2° to the left as +0.2° of azimuth."""
+    from mowerhw.evaluation.pixel import bearing_error, bearing_error_figures
+
+    rng = np.random.default_rng(8)
+    rows = []
+    for landmark in range(40):
+        bias, ar = rng.normal(0.0, math.radians(0.1)), 0.0
+        for k in range(200):
+            ar = 0.8 * ar + rng.normal(0.0, math.radians(0.05) * math.sqrt(1 - 0.64))
+            rows.append((0.25 * k, landmark, bias + ar, 0.0))
+    fig = bearing_error_figures(np.array(rows))
+    assert fig["landmarks"] == 40 and fig["frames"] == 200
+    assert 0.07 < fig["landmark_bias_rms_deg"] < 0.13
+    assert 0.04 < fig["within_landmark_rms_deg"] < 0.06
+    assert 0.7 < fig["next_frame_correlation"] < 0.85
+    assert 0.25 < fig["fourth_frame_correlation"] < 0.55  # 0.8⁴ = 0.41
+    point = np.array([10.0, 0.0, 1.0])
+    turned = yaw_rotation(math.radians(0.2)) @ (point / np.linalg.norm(point))
+    az, el = bearing_error(np.zeros(2), 0.0, turned, point)
+    assert az == pytest.approx(math.radians(0.2), abs=1e-9) and abs(el) < 1e-9

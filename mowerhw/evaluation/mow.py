@@ -36,7 +36,7 @@ from mowerhw.common.geometry import yaw_to_quat
 from mowerhw.common.reasons import Reason
 from mowerhw.config import Config, FrontendConfig, SafetyConfig
 from mowerhw.estimation.safety import SafetyMonitor
-from mowerhw.evaluation.pixel import frontend_figures, sees_point
+from mowerhw.evaluation.pixel import bearing_error, frontend_figures, sees_point
 from mowerhw.evaluation.scoring import score_halts
 from mowerhw.map import LawnMap
 from mowerhw.mow import LawnGeometry, Localizer
@@ -74,6 +74,9 @@ class MowOutcome:
     relocalizations: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     searching: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     details: NDArray[Any] = field(default_factory=lambda: np.zeros(0, object))  # why halted
+    #: pixel level: each right association's bearing error against the truth (frame time,
+    #: landmark id, azimuth and elevation error in rad), (K, 4)
+    bearing_errors: FloatArray | None = None
 
 
 def run_mow(
@@ -122,6 +125,7 @@ def run_mow(
         vision = MowVision(loc, world.camera, world.q_bc, fe_cfg, run_seed, px_sigma)
         truth = _association_truth(lawn_map)
         verdicts: list[bool] = []
+        bearing_errors: list[tuple[float, int, float, float]] = []
     geom = loc.geometry
     controller = BangBangMower(geom.inward_direction, np.random.default_rng([run_seed, 30]))
     truth_geom = LawnGeometry(
@@ -201,7 +205,9 @@ def run_mow(
                 loc.bearings(f.t, f.ids, f.bearings)
                 continue
             vision.frame(f.t, f.image)
-            verdicts += _judge(vision, plant, f, truth)
+            judged, errors = _judge(vision, plant, f, truth)
+            verdicts += judged
+            bearing_errors += errors
     wall = time.perf_counter() - wall0
     # -- scoring against the truth ----------------------------------------------------------
     s_true = truth_geom.signed_distances(true_xy)
@@ -265,6 +271,7 @@ def run_mow(
         relocalized,
         searching,
         detail,
+        np.array(bearing_errors, dtype=np.float64).reshape(-1, 4) if vision is not None else None,
     )
 
 
@@ -275,14 +282,18 @@ def _association_truth(lawn_map: LawnMap) -> dict[int, FloatArray]:
     return {int(k): np.asarray(v, dtype=np.float64) for k, v in raw.items()}
 
 
-def _judge(vision: Any, plant: MowerPlant, frame: Any, truth: dict[int, FloatArray]) -> list[bool]:
+def _judge(
+    vision: Any, plant: MowerPlant, frame: Any, truth: dict[int, FloatArray]
+) -> tuple[list[bool], list[tuple[float, int, float, float]]]:
     """For each association of this frame: did the localizer get a bearing of that map
     landmark? Judged from the true pose at the frame: the bearing's ray must pass within
     ``SAME_POINT_M`` of the landmark's true position (landmarks without a known true
-    position — features that are not fixed points — are not judged)."""
+    position — features that are not fixed points — are not judged). And for each right
+    one, its error against the truth: (frame time, landmark id, azimuth and elevation
+    error in rad)."""
     _, lm, _ = vision.last_associated
     if lm.size == 0:
-        return []
+        return [], []
     f = plant.frame  # the pixel level is flat: world = map turned and shifted in the plane
     x, y, yaw_map = frame.map_pose
     c, s = np.cos(f.yaw), np.sin(f.yaw)
@@ -290,13 +301,18 @@ def _judge(vision: Any, plant: MowerPlant, frame: Any, truth: dict[int, FloatArr
     xy_w = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
     yaw_w = yaw_map - f.yaw
     bearings = vision.last_bearings
-    out = []
+    verdicts, errors = [], []
     nan = np.full(3, np.nan)
     for k, lid in enumerate(lm.tolist()):
-        verdict = sees_point(xy_w, yaw_w, bearings[k], truth.get(lid, nan))
-        if verdict is not None:
-            out.append(verdict)
-    return out
+        point = truth.get(lid, nan)
+        verdict = sees_point(xy_w, yaw_w, bearings[k], point)
+        if verdict is None:
+            continue
+        verdicts.append(verdict)
+        if verdict:
+            az, el = bearing_error(xy_w, yaw_w, bearings[k], point)
+            errors.append((float(frame.t), int(lid), az, el))
+    return verdicts, errors
 
 
 #: the halt reason each kind of handling must give

@@ -17,6 +17,7 @@ re-identifies (:mod:`mowerhw.vision`). The truth is used only to score:
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -24,7 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mowerhw.common.geometry import yaw_rotation
+from mowerhw.common.geometry import wrap_angle, yaw_rotation
 from mowerhw.config import Config, FrontendConfig, TeachConfig
 from mowerhw.evaluation.teach import teach_metrics
 from mowerhw.sim import TeachRun, simulate_teach
@@ -103,6 +104,67 @@ def sees_point(
     if along <= 0:
         return False
     return bool(np.linalg.norm(d - along * ray) <= SAME_POINT_M)
+
+
+def bearing_error(
+    position: FloatArray, yaw: float, bearing_b: FloatArray, point: FloatArray
+) -> tuple[float, float]:
+    """A body-frame bearing's azimuth and elevation error (rad) against the direction from
+    a (true) planar pose to ``point`` (world frame; the camera at the body origin)."""
+    ray = yaw_rotation(yaw) @ np.asarray(bearing_b, dtype=np.float64)
+    d = point - np.array([position[0], position[1], 0.0])
+    az = wrap_angle(math.atan2(ray[1], ray[0]) - math.atan2(d[1], d[0]))
+    el = math.atan2(ray[2], math.hypot(ray[0], ray[1])) - math.atan2(d[2], math.hypot(d[0], d[1]))
+    return float(az), float(el)
+
+
+def bearing_error_figures(errors: FloatArray, min_frames: int = 12) -> dict[str, Any]:
+    """What the bearings' errors against the truth are made of (rows: frame time, landmark
+    id, azimuth and elevation error in rad; :func:`mowerhw.evaluation.mow.run_mow`), in
+    degrees: their RMS; the frame's mean over its landmarks (what all share: a clock or
+    heading error) against what independent errors would average to; per landmark seen in
+    at least ``min_frames`` frames, the spread of their means (a bias that stays with the
+    landmark) and of what is left, and how alike the errors of one landmark are from one
+    of its frames to the next and to the fourth next (1: the same error again)."""
+    e = np.asarray(errors, dtype=np.float64).reshape(-1, 4)
+    if e.shape[0] == 0:
+        return {"bearings": 0}
+    t, lid, az = e[:, 0], e[:, 1].astype(np.int64), e[:, 2]
+    frames, frame_of = np.unique(t, return_inverse=True)
+    per_frame = np.bincount(frame_of, az) / np.bincount(frame_of)
+    n_per_frame = np.bincount(frame_of)
+    left = az - per_frame[frame_of]
+    means, lag1, lag4, kept = [], [], [], []
+    for landmark in np.unique(lid):
+        track = left[lid == landmark]
+        if track.size < min_frames:
+            continue
+        means.append(float(track.mean()))
+        centred = track - track.mean()
+        kept.append(centred)
+        if centred.var() > 0:
+            lag1.append(float(np.corrcoef(centred[:-1], centred[1:])[0, 1]))
+            lag4.append(float(np.corrcoef(centred[:-4], centred[4:])[0, 1]))
+
+    def deg(v: float) -> float:
+        return round(math.degrees(v), 4)
+
+    rest = np.concatenate(kept) if kept else np.zeros(0)
+    return {
+        "bearings": int(e.shape[0]),
+        "frames": int(frames.size),
+        "azimuth_rms_deg": deg(float(np.sqrt(np.mean(az**2)))),
+        "elevation_rms_deg": deg(float(np.sqrt(np.mean(e[:, 3] ** 2)))),
+        "frame_mean_rms_deg": deg(float(np.sqrt(np.mean(per_frame**2)))),
+        "frame_mean_rms_if_independent_deg": deg(
+            float(np.sqrt(np.mean(np.mean(az**2) / n_per_frame)))
+        ),
+        "landmarks": len(means),
+        "landmark_bias_rms_deg": deg(float(np.sqrt(np.mean(np.square(means))))) if means else None,
+        "within_landmark_rms_deg": deg(float(np.sqrt(np.mean(rest**2)))) if rest.size else None,
+        "next_frame_correlation": round(float(np.nanmean(lag1)), 3) if lag1 else None,
+        "fourth_frame_correlation": round(float(np.nanmean(lag4)), 3) if lag4 else None,
+    }
 
 
 def same_point(a: FloatArray, b: FloatArray) -> bool | None:

@@ -192,9 +192,10 @@ class WorldPoseEKF:
     def set_landmark_cross(self, rows: NDArray[np.int64], cross: FloatArray) -> None:
         """After :meth:`reset` at a fitted pose: the (x, y, heading) error's cross-covariance
         (3, 3·len(rows)) with map landmarks ``rows`` — a pose fitted to landmarks shares
-        their errors, and the same landmarks seen again must not count as news. Scaled down
-        if it asks more correlation than the reset covariance allows (the joint covariance
-        stays positive semi-definite)."""
+        their errors, and the same landmarks seen again must not count as news. The pose's
+        covariance is raised, where it is less than the part of it those errors explain
+        (``C P_L⁻¹ Cᵀ``), to that part: the joint covariance stays positive semi-definite
+        and the pose is never surer than the map allows."""
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         c = np.asarray(cross, dtype=np.float64).reshape(3, 3 * rows.size)
         if rows.size == 0 or not np.all(np.isfinite(c)):
@@ -204,13 +205,10 @@ class WorldPoseEKF:
         explained = np.einsum(
             "kia,kab,kjb->ij", blocks, np.linalg.pinv(self.landmark_cov[rows]), blocks
         )
-        p3 = self.P[np.ix_(pose, pose)]
-        chol = np.linalg.cholesky(p3)
-        w = np.linalg.solve(chol, np.linalg.solve(chol, explained).T)
-        most = float(np.linalg.eigvalsh(0.5 * (w + w.T))[-1])
-        scale = 1.0 if most <= 0.999 else math.sqrt(0.999 / most)
+        short, basis = np.linalg.eigh(1.001 * explained - self.P[np.ix_(pose, pose)])
+        self.P[np.ix_(pose, pose)] += (basis * np.maximum(short, 0.0)) @ basis.T
         cols = (3 * rows[:, None] + np.arange(3)[None, :]).reshape(-1)
-        self.pxl[np.ix_(pose, cols)] = scale * c
+        self.pxl[np.ix_(pose, cols)] = c
 
     def set_bias(self, bias: FloatArray, var: float) -> None:
         """As :meth:`EkfState.set_bias`."""

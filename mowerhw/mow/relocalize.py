@@ -307,19 +307,20 @@ class GlobalRelocalizer:
         rival = max(others) / top if others and top > 0 else 0.0
         return best, rival
 
-    #: the bearing σ of the covariance is the inliers' own residual, at least this (rad): a
-    #: pose that fits its inliers better than the corners can be located is not that sure
+    #: a bearing's σ in the covariance is at least this (rad): a pose that fits its inliers
+    #: better than the corners can be located is not that sure
     MIN_RESIDUAL_RAD = math.radians(0.1)
 
     def covariance(
         self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], state: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
         """The (x, y, heading) covariance of a fitted pose over the inliers' angular
-        residuals (linearised, J by central differences), where a bearing's σᵢ² is the
-        inliers' residual RMS per axis (at least :attr:`MIN_RESIDUAL_RAD`) squared plus its
-        landmark's position variance seen from the pose (σ²_landmark / range²): the map's
-        errors move the answer too. And how much they move it: the cross-covariance with
-        the inliers' landmark positions (J_L: the residual's derivative with respect to the
+        residuals (linearised, J by central differences), where a bearing's σᵢ² is its
+        landmark's position variance seen from the pose (σ²_landmark / range²: the map's
+        errors move the answer too) plus the bearings' own noise — the inliers' residual
+        variance per axis beyond the map's mean part — at least :attr:`MIN_RESIDUAL_RAD`
+        squared. And how much the map's errors move it: the cross-covariance with the
+        inliers' landmark positions (J_L: the residual's derivative with respect to the
         landmark; P_L its map covariance), (3, 3·n) in the inliers' order."""
 
         pts = self.points[cols]
@@ -344,10 +345,14 @@ class GlobalRelocalizer:
             d[k] = 1e-4
             jac_l[:, :, k] = (residual(state, pts + d) - residual(state, pts - d)) / 2e-4
         dof = max(1, 2 * rows.size - 3)  # a bearing's residual has two free directions
-        s2 = max(float(np.sum(r0 * r0)) / dof, self.MIN_RESIDUAL_RAD**2)
+        s2 = float(np.sum(r0 * r0)) / dof
         _, p_wb = self._pose(state)
         range2 = np.sum((pts - p_wb) ** 2, axis=1)
-        var = s2 + self._point_var[cols] / np.maximum(range2, 0.25)  # (n,) per bearing
+        seen_from_here = self._point_var[cols] / np.maximum(range2, 0.25)  # the map's part
+        # the residuals show the map's errors too: the bearings' own noise is what they
+        # show beyond them (moments: E[s²] = noise² + mean map part), not all of it again
+        noise2 = max(0.0, s2 - float(seen_from_here.mean()))
+        var = np.maximum(noise2 + seen_from_here, self.MIN_RESIDUAL_RAD**2)  # (n,) per bearing
         # the fit weighs every bearing alike (:meth:`_fit`): its error is −A (n + J_L δL)
         # with A = (Σ Jᵢᵀ Jᵢ)⁻¹ Jᵀ, so its covariance is A diag(σᵢ²) Aᵀ (a sandwich) …
         gain = np.linalg.pinv(np.einsum("nri,nrj->ij", jac, jac))

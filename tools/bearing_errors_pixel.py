@@ -1,0 +1,76 @@
+#!/usr/bin/env python3
+"""What the pixel-level bearings' errors are made of while mowing (issue 18's NEES): prints
+JSON.
+
+Mows ``--duration`` seconds from the dock at pixel level (rendered frames, the front end,
+the localizer) with the map of ``--scenario``/``--seed`` (``--map``: a map a pixel-level
+teach saved, else it teaches one), and splits every right association's bearing error
+against the truth (:func:`mowerhw.evaluation.pixel.bearing_error_figures`): what all
+landmarks of a frame share, a bias that stays with a landmark, what is left and how alike it
+is from frame to frame — beside the white bearing σ the localizer assumes and the map's
+landmark σ (the localizer's model of a bearing: white noise, plus the landmark's map error
+held for as long as it is seen).
+
+    .venv/bin/python tools/bearing_errors_pixel.py --scenario paper --seed 1 --duration 60
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+
+from mowerhw.config import Config
+from mowerhw.evaluation.mow import run_mow
+from mowerhw.evaluation.pixel import bearing_error_figures, run_teach_pixel
+from mowerhw.evaluation.recovery import map_landmark_nees
+from mowerhw.evaluation.teach import sim_map
+from mowerhw.map import load as load_map
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="paper")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--duration", type=float, default=60.0)
+    ap.add_argument("--mow-seed", type=int, default=11)
+    ap.add_argument("--map", help="a map taught before at pixel level (skips the teach)")
+    args = ap.parse_args()
+    cfg = Config()
+    if args.map:
+        lawn_map = load_map(args.map)
+    else:
+        taught = run_teach_pixel(args.scenario, args.seed, cfg)
+        if taught.result is None:
+            raise SystemExit(f"teach failed: {taught.error}")
+        lawn_map = sim_map(taught.result, args.scenario, args.seed, "pixel", taught.landmark_truth)
+    t0 = time.perf_counter()
+    out = run_mow(
+        lawn_map,
+        args.scenario,
+        args.seed,
+        args.duration,
+        cfg,
+        mow_seed=args.mow_seed,
+        level="pixel",
+    )
+    if out.bearing_errors is None:
+        raise SystemExit("no bearing errors: not a pixel-level run")
+    print(
+        json.dumps(
+            {
+                "scenario": args.scenario,
+                "seed": args.seed,
+                "mow_s": args.duration,
+                "localizer_bearing_sigma_deg": round(math.degrees(cfg.mow.bearing_sigma_rad), 3),
+                "map_landmarks": map_landmark_nees(lawn_map),
+                "bearing_errors": bearing_error_figures(out.bearing_errors),
+                "wall_s": round(time.perf_counter() - t0, 1),
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
