@@ -23,10 +23,8 @@ import time
 
 from mowerhw.config import Config
 from mowerhw.evaluation.mow import run_mow
-from mowerhw.evaluation.pixel import bearing_error_figures, run_teach_pixel
+from mowerhw.evaluation.pixel import bearing_error_figures, pixel_map
 from mowerhw.evaluation.recovery import map_landmark_nees
-from mowerhw.evaluation.teach import sim_map
-from mowerhw.map import load as load_map
 
 
 def main() -> None:
@@ -38,13 +36,7 @@ def main() -> None:
     ap.add_argument("--map", help="a map taught before at pixel level (skips the teach)")
     args = ap.parse_args()
     cfg = Config()
-    if args.map:
-        lawn_map = load_map(args.map)
-    else:
-        taught = run_teach_pixel(args.scenario, args.seed, cfg)
-        if taught.result is None:
-            raise SystemExit(f"teach failed: {taught.error}")
-        lawn_map = sim_map(taught.result, args.scenario, args.seed, "pixel", taught.landmark_truth)
+    lawn_map = pixel_map(args.scenario, args.seed, cfg, args.map)
     t0 = time.perf_counter()
     out = run_mow(
         lawn_map,

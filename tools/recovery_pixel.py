@@ -19,10 +19,8 @@ import time
 from typing import Any
 
 from mowerhw.config import Config
-from mowerhw.evaluation.pixel import run_teach_pixel
+from mowerhw.evaluation.pixel import pixel_map
 from mowerhw.evaluation.recovery import kidnap_runs, map_landmark_nees, start_runs
-from mowerhw.evaluation.teach import sim_map
-from mowerhw.map import load as load_map
 
 
 def _progress(kind: str) -> Any:
@@ -46,16 +44,7 @@ def main() -> None:
     args = ap.parse_args()
     cfg = Config()
     t0 = time.perf_counter()
-    if args.map:
-        lawn_map = load_map(args.map)
-    else:
-        taught = run_teach_pixel(args.scenario, args.seed, cfg)
-        if taught.result is None:
-            raise SystemExit(f"teach failed: {taught.error}")
-        # with the landmarks' true positions (the NEES in the map's frame)
-        lawn_map = sim_map(taught.result, args.scenario, args.seed, "pixel", taught.landmark_truth)
-        if args.save_map:
-            lawn_map.save(args.save_map)
+    lawn_map = pixel_map(args.scenario, args.seed, cfg, args.map, args.save_map)
     out: dict[str, Any] = {"scenario": args.scenario, "seed": args.seed}
     out["teach_s"] = round(time.perf_counter() - t0, 1)
     # the map's landmark covariances against their truth in the map's frame

@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 
 from mowerhw.common.geometry import wrap_angle, yaw_rotation
 from mowerhw.config import Config, FrontendConfig, TeachConfig
-from mowerhw.evaluation.teach import teach_metrics
+from mowerhw.evaluation.teach import sim_map, teach_metrics
 from mowerhw.sim import TeachRun, simulate_teach
 from mowerhw.sim.render import OmniRenderer
 from mowerhw.teach import BoundaryError, Teacher, TeachError, TeachResult
@@ -298,3 +298,22 @@ def run_teach_pixel(
     return PixelTeachOutcome(
         run, result, metrics, vision, track_truth, landmark_truth, images=images
     )
+
+
+def pixel_map(
+    scenario: str, seed: int, config: Config, path: str | None = None, save: str | None = None
+) -> Any:
+    """A pixel-level map of the yard ``scenario``/``seed``: the one a teach saved at ``path``,
+    or one taught now on rendered images, with its landmarks' true positions (the NEES in
+    the map's frame, the bearings' errors), written to ``save`` when given."""
+    from mowerhw.map import load
+
+    if path:
+        return load(path)
+    taught = run_teach_pixel(scenario, seed, config)
+    if taught.result is None:
+        raise RuntimeError(f"the pixel-level teach of {scenario}/{seed} failed: {taught.error}")
+    lawn_map = sim_map(taught.result, scenario, seed, "pixel", taught.landmark_truth)
+    if save:
+        lawn_map.save(save)
+    return lawn_map
