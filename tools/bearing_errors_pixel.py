@@ -23,17 +23,15 @@ import time
 
 from mowerhw.config import Config
 from mowerhw.evaluation.mow import run_mow
-from mowerhw.evaluation.pixel import bearing_error_figures, pixel_map
+from mowerhw.evaluation.pixel import bearing_error_figures, pixel_map, yard_arguments
 from mowerhw.evaluation.recovery import map_landmark_nees
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenario", default="paper")
-    ap.add_argument("--seed", type=int, default=1)
+    yard_arguments(ap)
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--mow-seed", type=int, default=11)
-    ap.add_argument("--map", help="a map taught before at pixel level (skips the teach)")
     args = ap.parse_args()
     cfg = Config()
     lawn_map = pixel_map(args.scenario, args.seed, cfg, args.map)

@@ -19,7 +19,7 @@ import time
 from typing import Any
 
 from mowerhw.config import Config
-from mowerhw.evaluation.pixel import pixel_map
+from mowerhw.evaluation.pixel import pixel_map, yard_arguments
 from mowerhw.evaluation.recovery import kidnap_runs, map_landmark_nees, start_runs
 
 
@@ -32,12 +32,10 @@ def _progress(kind: str) -> Any:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenario", default="paper")
-    ap.add_argument("--seed", type=int, default=1)
+    yard_arguments(ap)
     ap.add_argument("--starts", type=int, default=100)
     ap.add_argument("--kidnaps", type=int, default=20)
     ap.add_argument("--no-lift", action="store_true")
-    ap.add_argument("--map", help="a map taught before (skips the teach)")
     ap.add_argument("--save-map", help="write the taught map here")
     ap.add_argument("--per-run", action="store_true")
     ap.add_argument("--no-compass", action="store_true", help="the search without the magnetometer")

@@ -26,7 +26,7 @@ import numpy as np
 import shapely
 
 from mowerhw.config import Config
-from mowerhw.evaluation.pixel import run_teach_pixel
+from mowerhw.evaluation.pixel import run_teach_pixel, yard_arguments
 from mowerhw.evaluation.recovery import random_pose
 from mowerhw.frontend.tracker import FrontEnd
 from mowerhw.map import LawnMap
@@ -45,8 +45,7 @@ def _pct(a: list[float], q: float) -> float | None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenario", default="paper")
-    ap.add_argument("--seed", type=int, default=1)
+    yard_arguments(ap, with_map=False)
     ap.add_argument("--starts", type=int, default=100)
     ap.add_argument("--seconds", type=float, default=5.0)
     args = ap.parse_args()

@@ -17,6 +17,7 @@ re-identifies (:mod:`mowerhw.vision`). The truth is used only to score:
 
 from __future__ import annotations
 
+import argparse
 import math
 import time
 from dataclasses import dataclass, field
@@ -298,6 +299,15 @@ def run_teach_pixel(
     return PixelTeachOutcome(
         run, result, metrics, vision, track_truth, landmark_truth, images=images
     )
+
+
+def yard_arguments(parser: argparse.ArgumentParser, with_map: bool = True) -> None:
+    """The pixel-level benchmarks' common options: the simulated yard (``--scenario``,
+    ``--seed``) and, ``with_map``, a map taught before (``--map``, for :func:`pixel_map`)."""
+    parser.add_argument("--scenario", default="paper")
+    parser.add_argument("--seed", type=int, default=1)
+    if with_map:
+        parser.add_argument("--map", help="a map a pixel-level teach saved (skips the teach)")
 
 
 def pixel_map(
