@@ -21,7 +21,7 @@ import json
 import math
 import time
 
-from mowerhw.config import Config
+from mowerhw.evaluation.campaign import scenario_config
 from mowerhw.evaluation.mow import run_mow
 from mowerhw.evaluation.pixel import bearing_error_figures, pixel_map, yard_arguments
 from mowerhw.evaluation.recovery import map_landmark_nees
@@ -33,7 +33,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--mow-seed", type=int, default=11)
     args = ap.parse_args()
-    cfg = Config()
+    cfg = scenario_config(args.scenario)  # the yard mower's own IMU grade
     lawn_map = pixel_map(args.scenario, args.seed, cfg, args.map)
     t0 = time.perf_counter()
     out = run_mow(

@@ -18,7 +18,7 @@ import sys
 import time
 from typing import Any
 
-from mowerhw.config import Config
+from mowerhw.evaluation.campaign import scenario_config
 from mowerhw.evaluation.pixel import pixel_map, yard_arguments
 from mowerhw.evaluation.recovery import kidnap_runs, map_landmark_nees, start_runs
 
@@ -40,7 +40,7 @@ def main() -> None:
     ap.add_argument("--per-run", action="store_true")
     ap.add_argument("--no-compass", action="store_true", help="the search without the magnetometer")
     args = ap.parse_args()
-    cfg = Config()
+    cfg = scenario_config(args.scenario)  # the yard mower's own IMU grade
     t0 = time.perf_counter()
     lawn_map = pixel_map(args.scenario, args.seed, cfg, args.map, args.save_map)
     out: dict[str, Any] = {"scenario": args.scenario, "seed": args.seed}

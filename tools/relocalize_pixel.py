@@ -25,7 +25,7 @@ import time
 import numpy as np
 import shapely
 
-from mowerhw.config import Config
+from mowerhw.evaluation.campaign import scenario_config
 from mowerhw.evaluation.pixel import run_teach_pixel, yard_arguments
 from mowerhw.evaluation.recovery import random_pose
 from mowerhw.frontend.tracker import FrontEnd
@@ -49,7 +49,7 @@ def main() -> None:
     ap.add_argument("--starts", type=int, default=100)
     ap.add_argument("--seconds", type=float, default=5.0)
     args = ap.parse_args()
-    cfg = Config()
+    cfg = scenario_config(args.scenario)  # the yard mower's own IMU grade
     t0 = time.perf_counter()
     taught = run_teach_pixel(args.scenario, args.seed, cfg)
     if taught.result is None:
