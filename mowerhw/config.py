@@ -422,6 +422,13 @@ class MowConfig(MotionNoiseConfig):
         gt=0.0,
         le=600.0,
     )
+    frame_stamp_sigma_s: float = opt(
+        0.0,
+        "1σ of a frame's capture timestamp (s): a frame stamped that far off shows every "
+        "bearing turned by the body rate times it, all together (0: exact stamps)",
+        ge=0.0,
+        le=0.1,
+    )
 
 
 @dataclass(frozen=True)

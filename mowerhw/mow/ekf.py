@@ -273,14 +273,23 @@ class WorldPoseEKF:
         landmarks_w: FloatArray,
         bearings: FloatArray,
         sigma: float,
+        rate: FloatArray | None = None,
+        stamp_sigma: float = 0.0,
     ) -> UpdateOutcome:
-        """Update with bearings (body frame) of map landmarks ``rows`` at ``landmarks_w``."""
+        """Update with bearings (body frame) of map landmarks ``rows`` at ``landmarks_w``.
+        ``stamp_sigma``: the frame's timestamp 1σ (s); with the body ``rate`` (rad/s) it
+        turns every bearing alike, ``∂z/∂t = −ω × h`` — one error the frame's bearings share,
+        not one each."""
         n = rows.size
         if n == 0:
             return UpdateOutcome(np.zeros(0, bool), np.zeros(0))
         h, bt, hx, hl, s_each = _bearing_model(
             self.snapshot_view(), self.landmark_cov, rows, landmarks_w, bearings, sigma
         )
+        shared = None  # (N, 2): each residual's change per second of stamp error
+        if stamp_sigma > 0.0 and rate is not None:
+            shared = np.einsum("nij,nj->ni", bt, -np.cross(np.asarray(rate, np.float64), h))
+            s_each = s_each + stamp_sigma**2 * np.einsum("ni,nj->nij", shared, shared)
         res = np.einsum("nij,nj->ni", bt, bearings - h)
         nis = np.einsum("ni,nij,nj->n", res, np.linalg.inv(s_each), res)
         ok = np.isfinite(nis) & (nis <= self.gate)
@@ -300,6 +309,9 @@ class WorldPoseEKF:
         ph = self.P @ Hx.T + self.pxl @ hl_full.T  # (10, 2k)
         S = Hx @ ph + hl_full @ (self.pxl.T @ Hx.T) + pll_hl @ hl_full.T
         S += sigma**2 * np.eye(2 * k)
+        if shared is not None:
+            g = shared[ok].reshape(-1)
+            S += stamp_sigma**2 * np.outer(g, g)
         K = np.linalg.solve(S, ph.T).T
         dx = K @ res[ok].reshape(-1)
         self.P = self.P - K @ S @ K.T

@@ -599,7 +599,7 @@ class Localizer:
             nxt = after[0]
             self._propagate(hist[k].t1, t, nxt.gyro, nxt.speed)
         resets = self._resets
-        self._frame_update(t, rows, u, refused)
+        self._frame_update(t, rows, u, refused, after[0].gyro if after else None)
         if self._resets != resets:  # the update re-initialised the filter at t: replay since
             for j, st in enumerate(after):
                 t0 = t if j == 0 and t > st.t0 else st.t0
@@ -619,10 +619,25 @@ class Localizer:
             )
 
     def _frame_update(
-        self, t: float, rows: NDArray[np.int64], u: FloatArray, refused: int = 0
+        self,
+        t: float,
+        rows: NDArray[np.int64],
+        u: FloatArray,
+        refused: int = 0,
+        gyro: FloatArray | None = None,
     ) -> None:
+        """One frame's update at its time ``t`` (``gyro``: the reading then, for what a
+        stamp error turns; default the latest)."""
         c = self.cfg
-        out = self.ekf.update(rows, self.landmarks[rows], u, self._bearing_sigma())
+        rate = self.ekf.corrected_rate(self._w_last if gyro is None else gyro)
+        out = self.ekf.update(
+            rows,
+            self.landmarks[rows],
+            u,
+            self._bearing_sigma(),
+            rate=rate,
+            stamp_sigma=c.frame_stamp_sigma_s,
+        )
         self.last_rejected = self.ids[rows[~out.accepted]]
         self.counters.bearings_used += out.used
         self.counters.bearings_rejected += out.rejected
