@@ -123,7 +123,7 @@ def run_mow(
         fe_cfg = config.frontend if isinstance(config, Config) else FrontendConfig()
         px_sigma = config.camera.pixel_sigma if isinstance(config, Config) else 1.0
         vision = MowVision(loc, world.camera, world.q_bc, fe_cfg, run_seed, px_sigma)
-        truth = _association_truth(lawn_map)
+        truth = landmark_truth(lawn_map)
         verdicts: list[bool] = []
         bearing_errors: list[tuple[float, int, float, float]] = []
     geom = loc.geometry
@@ -275,7 +275,7 @@ def run_mow(
     )
 
 
-def _association_truth(lawn_map: LawnMap) -> dict[int, FloatArray]:
+def landmark_truth(lawn_map: LawnMap) -> dict[int, FloatArray]:
     """True world position of each map landmark, as the simulated teach run recorded it."""
     sim = lawn_map.teach.get("sim") or {}
     raw = sim.get("landmark_truth") or {}

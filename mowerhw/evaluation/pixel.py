@@ -90,6 +90,15 @@ def majority_point(pts: FloatArray) -> FloatArray:
     return sub[d[best]].mean(axis=0)
 
 
+def _ray_and_offset(
+    position: FloatArray, yaw: float, bearing_b: FloatArray, point: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """A body-frame bearing as a world ray from a (true) planar pose, and ``point`` (world
+    frame) from there: the camera at the body origin, the pixel level flat."""
+    ray = yaw_rotation(yaw) @ np.asarray(bearing_b, dtype=np.float64)
+    return ray, point - np.array([position[0], position[1], 0.0])
+
+
 def sees_point(
     position: FloatArray, yaw: float, bearing_b: FloatArray, point: FloatArray
 ) -> bool | None:
@@ -99,8 +108,7 @@ def sees_point(
     of that landmark, or of something next to it?"""
     if not np.all(np.isfinite(point)):
         return None
-    ray = yaw_rotation(yaw) @ np.asarray(bearing_b, dtype=np.float64)
-    d = point - np.array([position[0], position[1], 0.0])
+    ray, d = _ray_and_offset(position, yaw, bearing_b, point)
     along = float(d @ ray)
     if along <= 0:
         return False
@@ -112,8 +120,7 @@ def bearing_error(
 ) -> tuple[float, float]:
     """A body-frame bearing's azimuth and elevation error (rad) against the direction from
     a (true) planar pose to ``point`` (world frame; the camera at the body origin)."""
-    ray = yaw_rotation(yaw) @ np.asarray(bearing_b, dtype=np.float64)
-    d = point - np.array([position[0], position[1], 0.0])
+    ray, d = _ray_and_offset(position, yaw, bearing_b, point)
     az = wrap_angle(math.atan2(ray[1], ray[0]) - math.atan2(d[1], d[0]))
     el = math.atan2(ray[2], math.hypot(ray[0], ray[1])) - math.atan2(d[2], math.hypot(d[0], d[1]))
     return float(az), float(el)
@@ -132,8 +139,8 @@ def bearing_error_figures(errors: FloatArray, min_frames: int = 12) -> dict[str,
         return {"bearings": 0}
     t, lid, az = e[:, 0], e[:, 1].astype(np.int64), e[:, 2]
     frames, frame_of = np.unique(t, return_inverse=True)
-    per_frame = np.bincount(frame_of, az) / np.bincount(frame_of)
     n_per_frame = np.bincount(frame_of)
+    per_frame = np.bincount(frame_of, az) / n_per_frame
     left = az - per_frame[frame_of]
     means, lag1, lag4, kept = [], [], [], []
     for landmark in np.unique(lid):

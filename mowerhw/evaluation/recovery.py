@@ -32,7 +32,7 @@ from scipy.stats import chi2
 
 from mowerhw.common.geometry import quat_to_yaw, wrap_angle
 from mowerhw.config import Config
-from mowerhw.evaluation.mow import MowOutcome, run_mow
+from mowerhw.evaluation.mow import MowOutcome, landmark_truth, run_mow
 from mowerhw.map import LawnMap
 from mowerhw.sim import make_world
 from mowerhw.sim.handling import Kidnap
@@ -90,10 +90,10 @@ def _errors(out: MowOutcome) -> tuple[FloatArray, FloatArray]:
 def _landmark_truth(lawn_map: LawnMap, dims: int) -> tuple[FloatArray, FloatArray]:
     """The map's landmarks whose true position the simulated teach recorded: (their map
     rows, their true positions), the first ``dims`` coordinates."""
-    truth = (lawn_map.teach.get("sim") or {}).get("landmark_truth") or {}
+    truth = landmark_truth(lawn_map)
     ids = lawn_map.landmark_ids().tolist()
-    rows = np.array([k for k, i in enumerate(ids) if str(i) in truth], dtype=np.int64)
-    true = np.array([truth[str(ids[k])][:dims] for k in rows.tolist()], dtype=np.float64)
+    rows = np.array([k for k, i in enumerate(ids) if i in truth], dtype=np.int64)
+    true = np.array([truth[ids[k]][:dims] for k in rows.tolist()], dtype=np.float64)
     return rows, true.reshape(-1, dims)
 
 

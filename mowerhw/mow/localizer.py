@@ -340,7 +340,7 @@ class Localizer:
             (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)), *accepted_sigma(answer.covariance)
         )
         if answer.landmark_cross is not None:
-            rows = np.array([self._row.get(i, -1) for _, i in answer.inliers], dtype=np.int64)
+            rows = self._rows_of([i for _, i in answer.inliers])
             if np.all(rows >= 0):
                 self.ekf.set_landmark_cross(rows, answer.landmark_cross)
         if search.near and search.checks_prior:  # a start pose confirmed: as it would be
@@ -359,6 +359,10 @@ class Localizer:
             self.probation.frames_needed = need
             return
         self.probation = Probation(kind, None, need)
+
+    def _rows_of(self, ids: Sequence[int]) -> NDArray[np.int64]:
+        """The filter's rows of map landmark ``ids`` (−1: not in the map)."""
+        return np.array([self._row.get(int(i), -1) for i in ids], dtype=np.int64)
 
     @staticmethod
     def _pose2d(state: EkfState) -> Pose2D:
@@ -463,7 +467,7 @@ class Localizer:
         norms = np.linalg.norm(u, axis=1)
         good = np.all(np.isfinite(u), axis=1) & (norms > 0.5)
         self.counters.nonfinite_inputs += int((~good).sum())
-        rows = np.array([self._row.get(int(i), -1) for i in ids.tolist()], dtype=np.int64)
+        rows = self._rows_of(ids.tolist())
         self.counters.unknown_ids += int(np.sum(good & (rows < 0)))
         keep = good & (rows >= 0)
         rows, u = rows[keep], u[keep] / norms[keep, None]
@@ -629,7 +633,9 @@ class Localizer:
         """One frame's update at its time ``t`` (``gyro``: the reading then, for what a
         stamp error turns; default the latest)."""
         c = self.cfg
-        rate = self.ekf.corrected_rate(self._w_last if gyro is None else gyro)
+        rate = None  # only a stamp error needs the body rate
+        if c.frame_stamp_sigma_s > 0.0:
+            rate = self.ekf.corrected_rate(self._w_last if gyro is None else gyro)
         out = self.ekf.update(
             rows,
             self.landmarks[rows],

@@ -180,10 +180,15 @@ class GlobalRelocalizer:
     # ---------------------------------------------------------------------------- refine
 
     def _predict(
-        self, r_wb: FloatArray, p_wb: FloatArray, cols: NDArray[np.int64] | None = None
+        self,
+        r_wb: FloatArray,
+        p_wb: FloatArray,
+        cols: NDArray[np.int64] | None = None,
+        points: FloatArray | None = None,
     ) -> FloatArray:
-        """Unit bearings (body frame) of the landmarks (those of ``cols``, else all)."""
-        pts = self.points if cols is None else self.points[cols]
+        """Unit bearings (body frame) of the landmarks (those of ``cols``, else all), or of
+        ``points`` (world frame) instead."""
+        pts = points if points is not None else self.points if cols is None else self.points[cols]
         d = (pts - p_wb) @ r_wb
         out: FloatArray = d / np.linalg.norm(d, axis=1, keepdims=True)
         return out
@@ -326,9 +331,7 @@ class GlobalRelocalizer:
         pts = self.points[cols]
 
         def residual(x: FloatArray, points: FloatArray = pts) -> FloatArray:
-            r_wb, p_wb = self._pose(x)
-            d = (points - p_wb) @ r_wb
-            out: FloatArray = np.cross(obs[rows], d / np.linalg.norm(d, axis=1, keepdims=True))
+            out: FloatArray = np.cross(obs[rows], self._predict(*self._pose(x), points=points))
             return out
 
         r0 = residual(state)
