@@ -101,6 +101,20 @@ class SpeedTrack:
         v = v2 + (v2 - v1) / (t2 - t1) * ahead
         return v if v * v2 > 0 else 0.0  # never extrapolate through a stop
 
+    def known(self, t_mid: float) -> float:
+        """Speed for an interval centred at ``t_mid`` with what is known now: linear
+        interpolation between the samples around it; past the newest, :meth:`at`."""
+        s = self.samples
+        if len(s) < 2 or t_mid >= s[-1][0]:
+            return self.at(t_mid)
+        k = len(s) - 1
+        while k > 1 and s[k - 1][0] > t_mid:
+            k -= 1
+        (ta, va), (tb, vb) = s[k - 1], s[k]
+        if t_mid <= ta or tb <= ta:
+            return va
+        return va + (vb - va) * (t_mid - ta) / (tb - ta)
+
     def interpolate(self, t: FloatArray) -> FloatArray:
         """After the fact: linear interpolation at times ``t``."""
         if len(self.samples) < 2:

@@ -54,11 +54,22 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mowerhw.common.geometry import quat_to_yaw, rotmat_to_quat, yaw_rotation, yaw_to_quat
+from mowerhw.common.geometry import (
+    quat_to_rotmat,
+    quat_to_yaw,
+    rotmat_to_quat,
+    yaw_rotation,
+    yaw_to_quat,
+)
 from mowerhw.common.relocalization import Relocalization
 from mowerhw.config import Config, ContainmentConfig, MowConfig, stale_limits_s, with_imu_noise
 from mowerhw.estimation.compass import Compass
-from mowerhw.estimation.odometry import BodyMotion, SpeedTrack, camera_velocity
+from mowerhw.estimation.odometry import (
+    BodyMotion,
+    SpeedTrack,
+    camera_velocity,
+    left_jacobian_times,
+)
 from mowerhw.estimation.posefit import fit_pose_to_bearings
 from mowerhw.estimation.standstill import StandstillCalibrator
 from mowerhw.map import LawnMap
@@ -125,6 +136,7 @@ class _Step:
     state: EkfState = field(repr=False)
     held: bool = False  # a start-up calibration step: the pose was held, not propagated
     widen: tuple[float, float] = (0.0, 0.0)  # (xy variance, yaw variance) added after it
+    speed_known: bool = True  # False: no fresh ground speed then (driven at 0, widened)
 
 
 def _configs(config: Any) -> tuple[MowConfig, ContainmentConfig, dict[str, float]]:
@@ -448,10 +460,13 @@ class Localizer:
         if not (math.isfinite(t) and math.isfinite(v)):
             self.counters.nonfinite_inputs += 1
             return
+        previous = self._speeds.last_time
         self._speeds.add(t, v)
         self.t_speed = float(t) if self.t_speed is None else max(self.t_speed, float(t))
         if self.calibrating and v != 0.0:
             self._end_calibration()
+        if previous is not None and 0.0 < t - previous <= self.stale_s["speed"]:
+            self._respeed(previous)
 
     def bearings(self, t: float, ids: ArrayLike, unit_xyz: ArrayLike, refused: int = 0) -> None:
         """Unit bearings (body frame) of map landmarks ``ids`` seen in the frame taken at ``t``;
@@ -514,8 +529,11 @@ class Localizer:
         speed: float,
         held: bool = False,
         widen: tuple[float, float] = (0.0, 0.0),
+        speed_known: bool = True,
     ) -> None:
-        self._history.append(_Step(t0, t1, gyro.copy(), speed, self.ekf.snapshot(), held, widen))
+        self._history.append(
+            _Step(t0, t1, gyro.copy(), speed, self.ekf.snapshot(), held, widen, speed_known)
+        )
         horizon = t1 - self.cfg.history_s
         while len(self._history) > 2 and self._history[1].t1 < horizon:
             self._history.popleft()
@@ -579,8 +597,44 @@ class Localizer:
         self._moved_m += abs(speed) * (t1 - t0)
         self._turned_rad += float(np.linalg.norm(self._w_last - self.ekf.bg)) * (t1 - t0)
         self._widen((pos_var, yaw_var))
-        self._remember(t0, t1, gyro, speed, widen=(pos_var, yaw_var))
+        self._remember(t0, t1, gyro, speed, widen=(pos_var, yaw_var), speed_known=not speed_stale)
         self._check_fault()
+
+    def _respeed(self, since: float) -> None:
+        """A ground-speed sample has come: the IMU intervals after the one before it (at
+        ``since``) were driven at a speed extrapolated from older samples — at a start, at 0
+        for a whole sample period while the mower already rolled. Now the speed then is
+        known (:meth:`SpeedTrack.known`; the first speed that ends the start-up calibration
+        included): the pose, and every stored state after, moves by
+        the distance missed. Position is linear in the speed (``v = s x̂ − ω × p``), so an
+        interval's share is ``R J_l(ω dt) x̂ δs dt`` (the propagation's own increment,
+        :class:`BodyMotion`); the covariance is unchanged to first order."""
+        hist = self._history
+        k = len(hist)
+        while k > 0 and 0.5 * (hist[k - 1].t0 + hist[k - 1].t1) > since:
+            k -= 1
+        if k == 0 or k == len(hist):
+            return
+        shift = np.zeros(3)
+        for j in range(k, len(hist)):
+            st = hist[j]
+            if st.speed_known:
+                dt = st.t1 - st.t0
+                known = self._speeds.known(0.5 * (st.t0 + st.t1))
+                ds = known - st.speed
+                if ds != 0.0:
+                    before = hist[j - 1].state
+                    w = st.gyro - before.bg
+                    w[2] *= 1.0 - before.k
+                    step = left_jacobian_times(w * dt, np.array([ds * dt, 0.0, 0.0]))
+                    shift = shift + quat_to_rotmat(before.q) @ step
+                    # a step held for the start-up calibration rolled after all: it counts
+                    # as driven (a late frame's re-propagation drives it again)
+                    st.speed, st.held = known, False
+            if shift.any():
+                st.state.x = st.state.x + shift
+        if shift.any():
+            self.ekf.x = self.ekf.x + shift
 
     def _widen(self, widen: tuple[float, float]) -> None:
         """Add uncertainty the motion model does not know about (kept in the history, so a
@@ -619,7 +673,14 @@ class Localizer:
                 self._propagate(t0, st.t1, st.gyro, st.speed)
             self._widen(st.widen)
             hist[k + 1 + j] = _Step(
-                st.t0, st.t1, st.gyro, st.speed, self.ekf.snapshot(), st.held, st.widen
+                st.t0,
+                st.t1,
+                st.gyro,
+                st.speed,
+                self.ekf.snapshot(),
+                st.held,
+                st.widen,
+                st.speed_known,
             )
 
     def _frame_update(
