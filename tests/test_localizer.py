@@ -275,3 +275,35 @@ def test_a_mower_that_rolls_off_is_where_it_rolled_once_the_speed_says_so(lawn_m
                 worst = max(worst, abs(along - travelled(t)))
     assert travelled(3.0) > 0.3  # it did roll
     assert worst < 2e-4, worst  # without: 4.5 mm from the first sample on
+
+
+def test_a_turn_on_the_spot_after_the_standstill_is_neither_bias_nor_lost(lawn_map):
+    """A turn begins before a gyro reading crosses the standstill's turning line (0.05
+    rad/s): its first readings went into the bias (here 6·10⁻⁴ rad/s off) and into steps
+    held still that the heading never saw (1.5 mrad). Now the last 0.2 s before the end are
+    left out of the bias and driven once it ends: the bias is the standstill's own to its
+    noise, and the heading after the turn is the true one."""
+    from mowerhw.common.geometry import quat_to_yaw, wrap_angle
+    from mowerhw.estimation.standstill import StandstillCalibrator
+
+    rng = np.random.default_rng(5)
+    bias, noise = np.array([0.001, -0.002, 0.0027]), 6e-4  # a VN-100's noise at 100 Hz
+    times = 0.01 * np.arange(1, 401)
+    rate = np.clip(times - 2.5, 0.0, 0.8)  # stands 2.5 s, then 1 rad/s² up to 0.8 rad/s
+    readings = bias + np.c_[np.zeros((400, 2)), rate] + rng.normal(0.0, noise, (400, 3))
+
+    cal = StandstillCalibrator()
+    k = next(i for i, g in enumerate(readings) if not cal.add(float(times[i]), g))
+    cal.stop()
+    assert 2.53 < times[k] < 2.58  # the turn is seen some 50 ms after it began
+    assert abs(cal.bias()[2] - bias[2]) < 4 * noise / math.sqrt(cal.used)
+
+    loc = Localizer(lawn_map)
+    yaw0 = quat_to_yaw(loc.pose().quaternion)
+    for t, g in zip(times.tolist(), readings, strict=True):
+        loc.imu(t, g)
+        if round(100 * t) % 10 == 0:
+            loc.speed(t, 0.0)  # turning on the spot: the wheels' speed stays 0
+    turned = float(np.sum(rate) * 0.01)
+    assert turned > 0.8  # 51°
+    assert abs(wrap_angle(quat_to_yaw(loc.pose().quaternion) - yaw0 - turned)) < 5e-4

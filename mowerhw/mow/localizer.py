@@ -55,6 +55,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mowerhw.common.geometry import (
+    quat_multiply,
+    quat_normalize,
     quat_to_rotmat,
     quat_to_yaw,
     rotmat_to_quat,
@@ -440,7 +442,7 @@ class Localizer:
             return
         if t <= self.t_imu:
             return
-        if self.calibrating and not self._standstill.add(gyro):
+        if self.calibrating and not self._standstill.add(float(t), gyro):
             self._end_calibration()  # it is turning: not a standstill any more
         if self.calibrating:  # standing still at the start: hold the pose, learn the bias
             self._remember(self.t_imu, float(t), gyro, 0.0, held=True)
@@ -514,12 +516,39 @@ class Localizer:
         if not self._standstill.calibrated:
             return
         bias = self._standstill.bias()
-        var = self.cfg.gyro()[0] ** 2 * 100 / self._standstill.n
+        var = self.cfg.gyro()[0] ** 2 * 100 / self._standstill.used
         # The bias is set out of band: every stored state gets it too, or a late frame from
         # before this moment would restore the uncalibrated bias.
         self.ekf.set_bias(bias, var)
         for st in self._history:
             st.state.set_bias(bias, var)
+        self._drive_held(self._standstill.tail_start)
+
+    def _drive_held(self, since: float | None) -> None:
+        """The standstill is over: the steps held since ``since`` (the calibrator's tail,
+        left out of the bias — a turn or a roll that had already begun) are driven now, at
+        the bias just learnt and the ground speed now known. The pose, and every stored state
+        after, moves by that motion (composed in the body frame where the tail began; held
+        steps kept the covariance as it was, and so do these)."""
+        if since is None:
+            return
+        hist = self._history
+        k = len(hist)
+        while k > 0 and hist[k - 1].t1 >= since:
+            k -= 1
+        dq, dp = np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3)  # the tail's motion so far
+        for j in range(k, len(hist)):
+            st = hist[j]
+            if st.held:
+                w = self.ekf.corrected_rate(st.gyro)
+                speed = self._speeds.known(0.5 * (st.t0 + st.t1))
+                v = camera_velocity(speed, w, self.cfg.speed_contact_m)
+                m = BodyMotion.of(w, v, st.t1 - st.t0)
+                dp = dp + quat_to_rotmat(dq) @ m.disp
+                dq = quat_multiply(dq, m.dq)
+                st.speed, st.held = speed, False
+            _move(st.state, dq, dp)
+        _move(self.ekf, dq, dp)
 
     def _remember(
         self,
@@ -604,8 +633,8 @@ class Localizer:
         """A ground-speed sample has come: the IMU intervals after the one before it (at
         ``since``) were driven at a speed extrapolated from older samples — at a start, at 0
         for a whole sample period while the mower already rolled. Now the speed then is
-        known (:meth:`SpeedTrack.known`; the first speed that ends the start-up calibration
-        included): the pose, and every stored state after, moves by
+        known (:meth:`SpeedTrack.known`; steps held for the start-up calibration are
+        :meth:`_drive_held`'s): the pose, and every stored state after, moves by
         the distance missed. Position is linear in the speed (``v = s x̂ − ω × p``), so an
         interval's share is ``R J_l(ω dt) x̂ δs dt`` (the propagation's own increment,
         :class:`BodyMotion`); the covariance is unchanged to first order."""
@@ -618,7 +647,7 @@ class Localizer:
         shift = np.zeros(3)
         for j in range(k, len(hist)):
             st = hist[j]
-            if st.speed_known:
+            if not st.held and st.speed_known:
                 dt = st.t1 - st.t0
                 known = self._speeds.known(0.5 * (st.t0 + st.t1))
                 ds = known - st.speed
@@ -628,9 +657,7 @@ class Localizer:
                     w[2] *= 1.0 - before.k
                     step = left_jacobian_times(w * dt, np.array([ds * dt, 0.0, 0.0]))
                     shift = shift + quat_to_rotmat(before.q) @ step
-                    # a step held for the start-up calibration rolled after all: it counts
-                    # as driven (a late frame's re-propagation drives it again)
-                    st.speed, st.held = known, False
+                    st.speed = known
             if shift.any():
                 st.state.x = st.state.x + shift
         if shift.any():
@@ -963,6 +990,12 @@ class Localizer:
             "sigma_deg": None if found is None else round(math.degrees(found[1]), 1),
             "disturbed_readings": self.compass.disturbed,
         }
+
+
+def _move(s: EkfState | WorldPoseEKF, dq: FloatArray, dp: FloatArray) -> None:
+    """Move a pose by a motion ``(dq, dp)`` given in its own body frame."""
+    s.x = s.x + quat_to_rotmat(s.q) @ dp
+    s.q = quat_normalize(quat_multiply(s.q, dq))
 
 
 def _finite(s: EkfState) -> bool:

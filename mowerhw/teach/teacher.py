@@ -306,7 +306,7 @@ class Teacher:
         if self.phase == "standstill":
             self.t_imu = float(t)
             self._record()
-            if not self._standstill.add(gyro):  # it turned: the standstill is over
+            if not self._standstill.add(float(t), gyro):  # it turned: the standstill is over
                 self._start_driving()
             return
         if self.phase != "driving" or t <= self.t_imu:  # type: ignore[operator]
@@ -448,7 +448,7 @@ class Teacher:
         else:
             log.warning("teach: no standstill before driving; gyro bias not calibrated")
             self.ekf.set_bias(np.zeros(3), self._bias_var)
-        self.standstill_samples = still.n
+        self.standstill_samples = still.used
         self._bias_at_start = self.ekf.bg.copy()
         self._still_t = t_start
         self.keyframes.append(
