@@ -96,3 +96,17 @@ def test_characterize_refuses_what_it_cannot_use(tmp_path, capsys):
     np.savetxt(short, np.column_stack([np.arange(50) * 0.01, np.zeros((50, 3))]), delimiter=",")
     assert main(["imu", "characterize", str(short)]) == 1
     assert "at least 1000" in capsys.readouterr().err
+
+
+def test_a_yards_mower_is_configured_with_its_own_sensors():
+    """The evaluation's localizer is configured as that yard's user would configure theirs:
+    the IMU's grade, and the camera's stamp jitter where it has one (none: nothing set)."""
+    from mowerhw.evaluation.campaign import scenario_config
+    from mowerhw.sim.scenarios import SCENARIOS
+
+    for name, scenario in SCENARIOS.items():
+        cfg = scenario_config(name)
+        assert cfg.imu.grade == scenario.sensors.imu.name
+        assert cfg.mow.frame_stamp_sigma_s == scenario.sensors.camera.stamp_jitter_s
+    assert scenario_config("trees-dense").mow.frame_stamp_sigma_s == 0.003
+    assert scenario_config("paper").mow.frame_stamp_sigma_s == 0.0

@@ -158,11 +158,17 @@ def _scale_free_mow_rmse(mowed: Any, map_scale: float | None) -> float | None:
 
 def scenario_config(scenario: str) -> Any:
     """The configuration a user of that yard's mower would write: the defaults with the
-    gyro grade of the scenario's IMU (its datasheet noise, the estimators' process noise)."""
+    gyro grade of the scenario's IMU (its datasheet noise, the estimators' process noise)
+    and, where its camera's capture stamps jitter, that jitter (``mow.frame_stamp_sigma_s``:
+    measured once on the mower, like the IMU's grade)."""
     from mowerhw.config import config_from_dict
     from mowerhw.sim.scenarios import SCENARIOS
 
-    return config_from_dict({"imu": {"grade": SCENARIOS[scenario].sensors.imu.name}})
+    sensors = SCENARIOS[scenario].sensors
+    raw: dict[str, Any] = {"imu": {"grade": sensors.imu.name}}
+    if sensors.camera.stamp_jitter_s > 0.0:
+        raw["mow"] = {"frame_stamp_sigma_s": sensors.camera.stamp_jitter_s}
+    return config_from_dict(raw)
 
 
 def with_bed_keepouts(lawn_map: Any, scenario: str, seed: int) -> Any:
