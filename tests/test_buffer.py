@@ -123,3 +123,26 @@ def test_observation_shapes_are_checked():
         ImuSample(t=0.0, gyro=[1, 2])
     with pytest.raises(ValueError, match="finite speed"):
         SpeedSample(t=0.0, speed_mps=float("nan"), valid=True)
+
+
+def test_an_imu_sample_is_frozen_checked_and_knows_when_it_is_not_finite():
+    """A sample's vectors are read-only float64 3-vectors whatever it was given (a driver's
+    own array is not copied, but cannot be written through the sample), a wrong shape is
+    refused by name, and a NaN or an infinity in time, rate or acceleration is not finite."""
+    own = np.array([0.0, 0.0, 0.1])
+    s = ImuSample(t=1.0, gyro=own, accel=[0, 0, 9.8])
+    assert s.gyro.dtype == np.float64 and s.accel is not None and s.accel.dtype == np.float64
+    with pytest.raises(ValueError):
+        s.gyro[0] = 1.0
+    assert np.shares_memory(s.gyro, own) and own.flags.writeable  # the driver's is its own
+    with pytest.raises(ValueError, match="gyro must have 3 components"):
+        ImuSample(t=1.0, gyro=[0.0, 0.1])
+    with pytest.raises(ValueError, match="accel must have 3 components"):
+        ImuSample(t=1.0, gyro=own, accel=np.zeros(4))
+    assert s.finite and ImuSample(t=1.0, gyro=np.float32([0, 0, 1])).finite
+    bad = (np.nan, np.inf, -np.inf)
+    for v in bad:
+        assert not ImuSample(t=v, gyro=own).finite
+        assert not ImuSample(t=1.0, gyro=[0.0, v, 0.0]).finite
+        assert not ImuSample(t=1.0, gyro=own, accel=[v, 0.0, 9.8]).finite
+    assert not ImuSample(t=1.0, gyro=[np.inf, -np.inf, 0.0]).finite  # inf − inf is NaN

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -60,3 +62,27 @@ def test_the_worker_relocalizes_a_frame_when_asked() -> None:
         assert asked.relocalization is not None and asked.relocalization.ms > 0
     finally:
         worker.close()
+
+
+def test_a_frame_slot_hands_pixels_over_through_shared_memory() -> None:
+    """The frame's pixels go through a memory file, not the pipe: what the worker's side
+    reads is the sender's frame, a copy (the next frame may overwrite the slot), for any
+    size or type the camera gives (a larger frame grows the file)."""
+    from mowerhw.runtime.frontend_worker import FrameSlot
+
+    rng = np.random.default_rng(4)
+    sender = FrameSlot()
+    reader = FrameSlot(os.dup(sender.fd))  # as the worker holds it: another descriptor
+    try:
+        for shape, dtype in (((48, 64), np.uint8), ((120, 90, 3), np.uint8), ((30, 40), ">u2")):
+            image = rng.integers(0, 200, size=shape).astype(dtype)
+            got = reader.take(*sender.put(image))
+            assert got.shape == image.shape and got.dtype == image.dtype
+            assert np.array_equal(got, image)
+            sender.put(np.zeros_like(image))  # the next frame: the copy taken stays as it was
+            assert np.array_equal(got, image)
+        view = rng.integers(0, 255, size=(64, 64), dtype=np.uint8)[::2, ::2]  # not contiguous
+        assert np.array_equal(reader.take(*sender.put(view)), view)
+    finally:
+        sender.close()
+        reader.close()

@@ -14,7 +14,7 @@ from drivers.can.mock_mower import MockMowerController
 from drivers.can.mock_speed import MockSpeedSensor
 from drivers.can.permit import HB_ERROR
 from mowerhw.config import config_from_dict, config_to_dict, default_config
-from mowerhw.mow.containment import Reason
+from mowerhw.mow.containment import Reason, State
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.supervisor.mock_estimator import scripted_estimator
 from mowerhw.supervisor.process import Supervisor
@@ -136,3 +136,72 @@ def test_a_failing_can_bus_is_reopened_with_backoff_and_logged_per_change(
     assert port.ensure(t0 + 1e6) and "open again after" in caplog.text
     assert tries
     port.bus.shutdown()  # type: ignore[union-attr]
+
+
+def test_a_lease_goes_up_the_pipe_as_plain_values_and_comes_back_the_same() -> None:
+    """A lease crosses the pipe as a tuple of numbers and strings (enum members become their
+    values) and the supervisor makes the same lease from it."""
+    import pickle
+
+    lease = Lease(
+        False,
+        State.NEAR_EDGE,
+        Reason.OUTSIDE,
+        "past the edge",
+        -0.2,
+        1.5,
+        -2.0,
+        0.3,
+        12.5,
+        (0.1, -0.2, 9.8),
+    )
+    wire = pickle.loads(pickle.dumps(lease.wire()))
+    assert all(type(v) in (bool, str, float, tuple) for v in wire)
+    again = Lease.from_wire(wire)
+    assert again == lease and type(again.reason) is str and again.accel == (0.1, -0.2, 9.8)
+
+
+def test_the_link_reads_the_supervisor_on_the_event_loop() -> None:
+    """In the estimation process the supervisor's messages are read on the daemon's event
+    loop (no reader thread): a ground-speed frame reaches the daemon's callback, a lift
+    notice too, and the supervisor's stop — or its pipe closing — ends the process."""
+    import asyncio
+    import multiprocessing
+
+    from drivers.can.speed import encode_speed
+
+    cfg = default_config()
+    ours, theirs = multiprocessing.Pipe(duplex=True)
+    got: dict[str, list[Any]] = {"speed": [], "lost": [], "lifted": []}
+
+    async def main(stop_by: str) -> None:
+        from mowerhw.supervisor.link import SupervisorLink
+
+        link = SupervisorLink(ours)
+        link.output(cfg, got["speed"].append, got["lost"].append, None, got["lifted"].append)
+        assert link.open()
+        assert theirs.recv() == ("ready", None)
+        assert not any(t.name == "supervisor-rx" for t in threading.enumerate())
+        can_id, data = encode_speed(0.42)
+        theirs.send(("can", (time.monotonic(), can_id, data, True)))
+        theirs.send(("lifted", True))
+        for _ in range(100):
+            await asyncio.sleep(0.01)
+            if got["speed"] and got["lifted"]:
+                break
+        if stop_by == "stop":
+            theirs.send(("stop", None))
+        else:
+            theirs.close()
+        for _ in range(100):
+            await asyncio.sleep(0.01)
+            if got["lost"]:
+                break
+
+    asyncio.run(main("stop"))
+    assert [round(s.speed_mps, 2) for s in got["speed"]] == [0.42]
+    assert got["lifted"] == [True] and got["lost"] == ["the supervisor asked to stop"]
+    ours, theirs = multiprocessing.Pipe(duplex=True)
+    got = {"speed": [], "lost": [], "lifted": []}
+    asyncio.run(main("close"))
+    assert got["lost"] and "the supervisor's pipe closed" in got["lost"][0]

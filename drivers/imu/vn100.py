@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import logging
 import math
 import os
@@ -613,8 +612,12 @@ class ImuExtractor:
         self._ascii_kinds = frozenset(kinds)
         self.stats = ExtractStats()
 
-    def sample(self, item: Any, host_ns: int) -> ImuSample | None:
-        """An :class:`ImuSample` (IMU frame, ``t`` = arrival on the host clock), or None."""
+    def sample(
+        self, item: Any, host_ns: int, t: float | None = None, device_ns: int | None = None
+    ) -> ImuSample | None:
+        """An :class:`ImuSample` (IMU frame, ``t`` = arrival on the host clock unless given:
+        the driver maps the device time), or None. ``device_ns``: the packet's
+        ``TimeStartup`` when the caller has it already."""
         gyro = accel = mag = None
         if isinstance(item, BinaryPacket):
             found = item.first(self._binary_fields)
@@ -646,13 +649,15 @@ class ImuExtractor:
                 self.stats.unused += 1
             return None
         self.stats.samples += 1
+        if mag is not None and not math.isfinite(sum(mag.tolist())):
+            mag = None
         return ImuSample(
-            t=host_ns * 1e-9,
+            t=host_ns * 1e-9 if t is None else t,
             gyro=gyro,
             accel=accel,
-            device_time_ns=device_time_ns(item),
+            device_time_ns=device_time_ns(item) if device_ns is None else device_ns,
             host_time_ns=host_ns,
-            mag=mag if mag is not None and bool(np.all(np.isfinite(mag))) else None,
+            mag=mag,
         )
 
     def _rate(self, name: str, value: Any) -> np.ndarray | None:
@@ -859,18 +864,18 @@ class Vn100(ThreadedDevice):
     def _deliver(self, batch: list[tuple[Any, int]]) -> None:
         """Map a batch's device times (all of it updates the clock first, so packets that
         arrived together are spread by their device stamps) and deliver its samples."""
-        for item, host_ns in batch:
-            dev = device_time_ns(item)
+        devs = [device_time_ns(item) for item, _ in batch]
+        for (_, host_ns), dev in zip(batch, devs, strict=True):
             if dev is not None:
                 self.clock.update(dev, host_ns * 1e-9)
-        for item, host_ns in batch:
-            sample = self.extractor.sample(item, host_ns)
+        for (item, host_ns), dev in zip(batch, devs, strict=True):
+            t = None
+            if dev is not None and self.clock.synced:
+                # never backwards, even while syncing
+                t = max(self.clock.to_host(dev), self._last_t + 1e-6)
+            sample = self.extractor.sample(item, host_ns, t, dev)
             if sample is None or not sample.finite:
                 continue
-            if sample.device_time_ns is not None and self.clock.synced:
-                t = self.clock.to_host(sample.device_time_ns)
-                t = max(t, self._last_t + 1e-6)  # never backwards, even while syncing
-                sample = dataclasses.replace(sample, t=t)
             self._last_t = sample.t
             self.stats.samples += 1
             if self.on_sample is not None:

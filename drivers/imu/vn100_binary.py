@@ -20,6 +20,8 @@ angular rates rad/s, magnetic field T, pressure Pa, times ns, temperature °C.
 
 from __future__ import annotations
 
+import binascii
+import functools
 import math
 import struct
 from collections.abc import Iterable, Mapping
@@ -27,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 GROUP_NAMES = ("Common", "Time", "Imu", "Gnss", "Attitude", "Ins", "Gnss2")
 SYNC = 0xFA
@@ -41,25 +44,11 @@ _KPA = 1000.0  # Pa per kPa
 # ------------------------------------------------------------------------------------ CRC
 
 
-def _crc16_table() -> list[int]:
-    table = []
-    for i in range(256):
-        crc = i << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1021) if crc & 0x8000 else (crc << 1)
-        table.append(crc & 0xFFFF)
-    return table
-
-
-_CRC_TABLE = _crc16_table()
-
-
 def crc16(data: bytes | bytearray | memoryview, crc: int = 0) -> int:
-    """CRC-16, polynomial 0x1021, initial 0, not reflected ("XMODEM"): b"123456789" → 0x31C3."""
-    table = _CRC_TABLE
-    for b in data:
-        crc = ((crc << 8) & 0xFFFF) ^ table[((crc >> 8) ^ b) & 0xFF]
-    return crc
+    """CRC-16, polynomial 0x1021, initial 0, not reflected ("XMODEM"): b"123456789" → 0x31C3
+    (the standard library's CRC-CCITT, in C: a Python loop over each packet's bytes was the
+    largest part of parsing one)."""
+    return binascii.crc_hqx(data, crc)
 
 
 # ---------------------------------------------------------------------------- field table
@@ -269,10 +258,20 @@ def decode_field(spec: FieldSpec, chunk: bytes) -> Any:
         tow, week, count = struct.unpack_from("<dHB", chunk)
         return {"Tow": tow, "Week": week, "NumMeas": count, "bytes": chunk[_RAWMEAS_HEAD:]}
     vals = struct.unpack(spec.fmt, chunk)
-    if spec.scale is None:
+    scale = spec.scale
+    if scale is None:
         return vals[0] if len(vals) == 1 else vals
-    out = np.asarray(vals, dtype=np.float64) * np.asarray(spec.scale)
-    return float(out[0]) if out.size == 1 else out
+    if len(vals) == 1:
+        return float(vals[0]) * float(scale if isinstance(scale, float) else scale[0])
+    out = np.array(vals, dtype=np.float64)
+    if scale != 1.0:  # (most fields are in SI units already: no multiplication)
+        out *= _scale_array(scale)
+    return out
+
+
+@functools.lru_cache(maxsize=64)
+def _scale_array(scale: float | tuple[float, ...]) -> NDArray[np.float64]:
+    return np.asarray(scale, dtype=np.float64)
 
 
 class LayoutError(ValueError):

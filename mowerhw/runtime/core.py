@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from mowerhw.common.buffer import SensorBuffer
-from mowerhw.common.geometry import quat_to_rotmat, tuple3
-from mowerhw.common.samples import ImuSample, SpeedSample, Stream
+from mowerhw.common.geometry import quat_to_rotmat
+from mowerhw.common.samples import FloatArray, ImuSample, SpeedSample, Stream
 from mowerhw.config import Config
 from mowerhw.estimation import compass
 from mowerhw.frontend.tracker import FrameTracks
@@ -73,6 +73,8 @@ class RuntimeCore:
         self.cfg = config
         self.journal = journal
         self.r_bi = quat_to_rotmat(np.asarray(config.imu.q_bi, dtype=np.float64))
+        #: the IMU is mounted with the body's axes (the usual case): no turning per sample
+        self._imu_is_body = bool(np.array_equal(self.r_bi, np.eye(3)))
         self.buffer = SensorBuffer(capacity={TRACKS: 16})
         self.gate = PermitGate.from_config(config)
         self.decision: Decision = self.gate.current
@@ -117,25 +119,33 @@ class RuntimeCore:
         self.last_arrival["imu"] = now
         self.t_imu_newest = sample.t
         self.counts["imu"] += 1
-        gyro = self.r_bi @ sample.gyro
+        gyro = self._to_body(sample.gyro)
         if sample.accel is not None:  # for the supervisor's lift/tilt/collision checks
-            self.last_accel = tuple3(self.r_bi @ sample.accel)
+            ax, ay, az = self._to_body(sample.accel).tolist()
+            self.last_accel = (ax, ay, az)
+        # the buffer holds what the estimators read: ``t`` and the body-frame rate
         self.buffer.push(
             Stream.IMU,
-            ImuSample(sample.t, gyro, None, sample.device_time_ns, sample.host_time_ns),
+            sample
+            if self._imu_is_body
+            else ImuSample(sample.t, gyro, None, sample.device_time_ns, sample.host_time_ns),
         )
         if self.pipeline is not None:
             self.pipeline.vision.imu(sample.t, gyro)  # the front end's derotation history
             if sample.mag is not None and sample.t >= self._next_mag_t:  # the compass: 10 Hz
                 self._next_mag_t = sample.t + compass.KEEP_AFTER_S
-                accel = None if sample.accel is None else self.r_bi @ sample.accel
-                self.pipeline.magnetometer(sample.t, self.r_bi @ sample.mag, accel)
+                accel = None if sample.accel is None else self._to_body(sample.accel)
+                self.pipeline.magnetometer(sample.t, self._to_body(sample.mag), accel)
         self._hold_pose()
         self._consume(sample.t)
         arrival = sample.host_time_ns * 1e-9 if sample.host_time_ns is not None else now
         d = self._decide(now, arrival)
         self._log("imu_out", out=decision_key(d))
         return d
+
+    def _to_body(self, v: FloatArray) -> FloatArray:
+        """An IMU-frame vector in the body frame."""
+        return v if self._imu_is_body else self.r_bi @ v
 
     def speed(self, sample: SpeedSample) -> None:
         """A ground speed sample (``t``: its arrival on the host clock)."""

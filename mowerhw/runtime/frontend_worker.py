@@ -7,13 +7,18 @@ Python work could hold the loop up (measured: an 80 ms block, a lease that ran o
 subprocess: the estimation process is a daemonic child of the supervisor and may not have
 multiprocessing children); the loop's thread only sends the frame and waits for the tracks.
 
-Messages on the child's stdin/stdout: a 4-byte length and a pickle. The child is this
-process's own (killed with it: PDEATHSIG); its answers are trusted like any of our code.
+Messages on the child's stdin/stdout: a 4-byte length and a pickle. A frame's pixels do not
+go through the pipe (2.4 MB at 4 Hz was ~2 % of a core in pickling, copying and pipe writes on
+both sides): they are written into a memory file both processes map (:class:`FrameSlot`,
+``memfd``), and the message names the frame's shape. One frame is in flight at a time (the
+sender waits for its tracks), so one slot is enough; the child copies the pixels out before it
+answers (the front end keeps the previous image). The child is this process's own (killed
+with it: PDEATHSIG); its answers are trusted like any of our code.
 """
 
 from __future__ import annotations
 
-import fcntl
+import mmap
 import os
 import pickle
 import struct
@@ -32,7 +37,6 @@ from mowerhw.runtime.process import die_with_parent
 from mowerhw.vision.base import VisionBase
 
 _LEN = struct.Struct("<I")
-F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 
 
 def _write(out: IO[bytes], obj: Any) -> None:
@@ -52,17 +56,42 @@ def _read(inp: IO[bytes]) -> Any:
     return pickle.loads(data)
 
 
-def _widen(pipe: IO[bytes] | None) -> None:
-    """A frame (2.4 MB) in a few writes, not ~40 of the default 64 KiB (each a wake-up of
-    both ends); the system's limit (``fs.pipe-max-size``, 1 MiB by default) if lower."""
-    if pipe is None:
-        return
-    for size in (4 << 20, 1 << 20):
-        try:
-            fcntl.fcntl(pipe.fileno(), F_SETPIPE_SZ, size)
-            return
-        except OSError:
-            continue
+class FrameSlot:
+    """A memory file (``memfd``) that holds one frame's pixels, mapped by the sender (which
+    writes) and by the worker (which reads, given the file's descriptor number)."""
+
+    def __init__(self, fd: int | None = None) -> None:
+        self.fd = os.memfd_create("mowerhw-frame", 0) if fd is None else fd
+        self._map: mmap.mmap | None = None
+
+    def _mapped(self, nbytes: int, grow: bool) -> mmap.mmap:
+        if self._map is None or len(self._map) < nbytes:
+            if self._map is not None:
+                self._map.close()
+            if grow:
+                os.ftruncate(self.fd, nbytes)
+            self._map = mmap.mmap(self.fd, nbytes)
+        return self._map
+
+    def put(self, image: NDArray[np.uint8]) -> tuple[tuple[int, ...], str]:
+        """Copy ``image`` in; what :meth:`take` needs to read it back."""
+        image = np.ascontiguousarray(image)
+        view = np.frombuffer(self._mapped(image.nbytes, grow=True), np.uint8, image.nbytes)
+        view[:] = image.reshape(-1).view(np.uint8)
+        return image.shape, image.dtype.str
+
+    def take(self, shape: tuple[int, ...], dtype: str) -> NDArray[Any]:
+        """A copy of the frame :meth:`put` wrote (``shape``, ``dtype`` as it returned)."""
+        dt = np.dtype(dtype)
+        nbytes = int(np.prod(shape)) * dt.itemsize
+        raw = np.frombuffer(self._mapped(nbytes, grow=False), np.uint8, nbytes)
+        return raw.view(dt).reshape(shape).copy()
+
+    def close(self) -> None:
+        if self._map is not None:
+            self._map.close()
+            self._map = None
+        os.close(self.fd)
 
 
 class FrontendWorkerDied(RuntimeError):
@@ -79,17 +108,18 @@ class FrontendWorker:
         self._proc: subprocess.Popen[bytes] | None = None
         self._key: Any = None
         self._lock = threading.Lock()
+        self._slot: FrameSlot | None = None
 
     def _start(self) -> subprocess.Popen[bytes]:
         if self._proc is None:
+            self._slot = slot = FrameSlot()
             self._proc = subprocess.Popen(
-                [sys.executable, "-m", "mowerhw.runtime.frontend_worker"],
+                [sys.executable, "-m", "mowerhw.runtime.frontend_worker", str(slot.fd)],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 preexec_fn=die_with_parent,
+                pass_fds=(slot.fd,),
             )
-            for pipe in (self._proc.stdin, self._proc.stdout):
-                _widen(pipe)
         elif self._proc.poll() is not None:
             raise FrontendWorkerDied(
                 f"the front-end worker process ended (exit status {self._proc.returncode})"
@@ -109,12 +139,13 @@ class FrontendWorker:
         front end failed on it, :class:`FrontendWorkerDied` if the process is gone."""
         with self._lock:
             proc = self._start()
-            assert proc.stdin is not None and proc.stdout is not None
+            assert proc.stdin is not None and proc.stdout is not None and self._slot is not None
             try:
                 if key != self._key:
                     _write(proc.stdin, ("reset", *args))
                     self._key = key
-                _write(proc.stdin, ("frame", t, np.ascontiguousarray(image), r_prev_cur, search))
+                shape, dtype = self._slot.put(image)
+                _write(proc.stdin, ("frame", t, shape, dtype, r_prev_cur, search))
                 kind, body = _read(proc.stdout)
             except (OSError, EOFError, pickle.PickleError) as exc:
                 proc.kill()
@@ -129,6 +160,9 @@ class FrontendWorker:
         if self._proc is not None and self._proc.poll() is None:
             self._proc.kill()
             self._proc.wait(timeout=5.0)
+        if self._slot is not None:
+            self._slot.close()
+            self._slot = None
 
 
 def track_frame(
@@ -156,6 +190,7 @@ def main() -> None:  # pragma: no cover - the child; exercised through FrontendW
     from mowerhw.vision.mow import FrameSearch
 
     cv2.setNumThreads(1)
+    slot = FrameSlot(int(sys.argv[1]))
     with os.fdopen(0, "rb") as inp, os.fdopen(1, "wb") as out:
         frontend: FrontEnd | None = None
         searcher: FrameSearch | None = None
@@ -168,9 +203,10 @@ def main() -> None:  # pragma: no cover - the child; exercised through FrontendW
                 frontend = FrontEnd(*msg[1])
                 searcher = None if msg[2] is None else FrameSearch(*msg[2])
                 continue
-            _, t, image, r, search = msg
+            _, t, shape, dtype, r, search = msg
             try:
                 assert frontend is not None, "a frame before the front end was set up"
+                image = slot.take(shape, dtype)
                 tracks = frontend.process(t, image, r)
                 if search is not None and searcher is not None:
                     tracks = searcher(tracks, search)

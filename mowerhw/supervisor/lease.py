@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import Any
 
 from mowerhw.common.reasons import Reason, State
 from mowerhw.mow.gate import Decision
@@ -53,6 +54,27 @@ class Lease:
             now,
             accel,
         )
+
+    def wire(self) -> tuple[Any, ...]:
+        """The lease as plain values for the pipe (:meth:`from_wire` makes it again): a
+        tuple of numbers and strings pickles in a fraction of the time a dataclass with
+        enum members does, and a lease goes up 50 times a second."""
+        return (
+            self.permit,
+            str(self.state),
+            str(self.reason),
+            self.detail,
+            self.signed_distance_m,
+            self.x,
+            self.y,
+            self.heading,
+            self.decided_at,
+            self.accel,
+        )
+
+    @classmethod
+    def from_wire(cls, values: tuple[Any, ...]) -> Lease:
+        return cls(*values)
 
 
 #: what the supervisor decides before the first lease

@@ -5,12 +5,15 @@ made: a changed decision at once, an unchanged one renewed at most every ``RENEW
 loop never waits on the pipe: a lease goes only while the pipe has room (a pipe the
 supervisor does not empty is a supervisor that will halt on an expired lease anyway; the
 lease is tried again with the next decision). Ground-speed frames the supervisor reads from
-CAN come down; so do its status and the request to stop. If the pipe breaks (the supervisor
-died) the estimation process stops: it must never run without its supervisor.
+CAN come down; so do its status and the request to stop — read on the daemon's event loop
+when it has one (the loop wakes once for a message; a reader thread woke, then woke the loop),
+else on a thread of its own. If the pipe breaks (the supervisor died) the estimation process
+stops: it must never run without its supervisor.
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import select
@@ -73,7 +76,12 @@ class SupervisorLink:
     # ------------------------------------------------------------------ DecisionOutput
 
     def open(self) -> bool:
-        threading.Thread(target=self._read, name="supervisor-rx", daemon=True).start()
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            threading.Thread(target=self._read, name="supervisor-rx", daemon=True).start()
+        else:
+            loop.add_reader(self.conn.fileno(), self._readable, loop)
         self.send(("ready", None))
         return True
 
@@ -91,7 +99,7 @@ class SupervisorLink:
         due = key != self._sent_key or time.monotonic() - self._sent_at >= RENEW_S
         if due and not self._closed:
             lease = Lease.of(d, pose_xyh, now, accel or (math.nan, math.nan, math.nan))
-            if self._send_if_room(("lease", lease)):
+            if self._send_if_room(("lease", lease.wire())):
                 self._sent_key, self._sent_at = key, time.monotonic()
                 self.leases_sent += 1
         was, self._permit = self._permit, bool(d.permit)
@@ -143,21 +151,37 @@ class SupervisorLink:
         return not self._closed
 
     def _read(self) -> None:
-        while True:
-            try:
-                kind, body = self.conn.recv()
-            except (OSError, EOFError, ValueError) as exc:
-                self._lost(f"the supervisor's pipe closed ({type(exc).__name__})")
-                return
-            if kind == "can" and self._frames is not None:
-                self._frames.handle(*body)
-            elif kind == "status":
-                self.supervisor_status = body
-            elif kind == "lifted" and self._on_lifted is not None:
-                self._on_lifted(bool(body))
-            elif kind == "stop":
-                self._lost("the supervisor asked to stop")
-                return
+        while self._receive():
+            pass
+
+    def _readable(self, loop: asyncio.AbstractEventLoop) -> None:
+        """The pipe has data (on the event loop): every whole message waiting."""
+        try:
+            while self.conn.poll(0):
+                if not self._receive():
+                    loop.remove_reader(self.conn.fileno())
+                    return
+        except (OSError, EOFError, ValueError) as exc:
+            loop.remove_reader(self.conn.fileno())
+            self._lost(f"the supervisor's pipe closed ({type(exc).__name__})")
+
+    def _receive(self) -> bool:
+        """One message from the supervisor, handled; False once the pipe is done with."""
+        try:
+            kind, body = self.conn.recv()
+        except (OSError, EOFError, ValueError) as exc:
+            self._lost(f"the supervisor's pipe closed ({type(exc).__name__})")
+            return False
+        if kind == "can" and self._frames is not None:
+            self._frames.handle(*body)
+        elif kind == "status":
+            self.supervisor_status = body
+        elif kind == "lifted" and self._on_lifted is not None:
+            self._on_lifted(bool(body))
+        elif kind == "stop":
+            self._lost("the supervisor asked to stop")
+            return False
+        return True
 
     def _lost(self, why: str) -> None:
         if not self._closed and self._on_lost is not None:

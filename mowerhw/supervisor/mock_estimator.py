@@ -39,6 +39,6 @@ def scripted_estimator(
                 conn.recv()  # CAN frames and status from the supervisor
             if what == "permit":
                 now = time.monotonic()
-                conn.send(("lease", Lease(True, "INSIDE", "", "", 1.0, 0.0, 0.0, 0.0, now)))
+                conn.send(("lease", Lease(True, "INSIDE", "", "", 1.0, 0.0, 0.0, 0.0, now).wire()))
             time.sleep(0.01)
     raise SystemExit(0)

@@ -338,10 +338,11 @@ class Supervisor:
             while self.conn.poll():
                 kind, body = self.conn.recv()
                 if kind == "lease":
-                    self.gate.renew(body, now)
+                    lease = Lease.from_wire(body)
+                    self.gate.renew(lease, now)
                     self.counts["leases"] += 1
                     with self._safety_lock:
-                        self.safety.imu(body.decided_at, body.accel)
+                        self.safety.imu(lease.decided_at, lease.accel)
                 elif kind == "fault" and body.get("kind") == "can-down":
                     self.port.take_away(now, float(body.get("seconds", 3.0)))
                 elif kind == "ready":
