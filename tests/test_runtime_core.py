@@ -309,3 +309,34 @@ def test_the_magnetometer_reaches_the_localizer_at_10_hz(camera: Any) -> None:
     live = LiveView().snapshot(core, 1.49)
     assert live["localizer"]["compass_deg"] == [round(math.degrees(heading), 1), 3.0]
     assert core.pipeline.localizer.status()["compass"]["heading_deg"] == 17.2
+
+
+def test_an_imu_silence_is_told_apart_by_the_sensors_own_clock(
+    camera: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A silence past the IMU's staleness limit halts either way; when the samples come again
+    the sensor's own stamps say whether it was silent itself or sent on time and its samples
+    were held up on this computer — counted apart and logged for the integrator."""
+    core, _ = _core(camera)
+
+    def sample(t_host: float, t_dev: float) -> None:
+        core.imu(ImuSample(t_host, np.zeros(3), None, round(t_dev * 1e9), None), t_host)
+
+    for k in range(20):  # on time
+        sample(1.0 + 0.01 * k, 0.01 * k)
+    limit = default_config().imu.stale_after_s
+    assert not core.decide(1.19 + limit + 0.01).permit  # silent: a halt, whoever is late
+    # held up here: 0.15 s between arrivals, one period between the sensor's stamps
+    sample(1.34, 0.20)
+    sample(1.345, 0.21)  # the rest of the batch behind it: no gap
+    # the sensor itself silent: its stamps 0.15 s apart too
+    sample(1.50, 0.36)
+    sample(1.51, 0.37)
+    counts = core.counts
+    assert counts["imu_gaps_host"] == 1 and counts["imu_gaps_sensor"] == 1
+    assert counts["imu_gaps_unknown"] == 0
+    text = caplog.text
+    assert "by the sensor's own clock 0.010 s passed (it sent on time" in text
+    assert "by the sensor's own clock 0.150 s passed (the sensor itself was silent)" in text
+    core.imu(ImuSample(1.8, np.zeros(3)), 1.8)  # no device time: said, not guessed
+    assert counts["imu_gaps_unknown"] == 1

@@ -71,6 +71,7 @@ def main() -> None:
         "watchdog": r.get("watchdog"),
         "mock_imu": r.get("mock_imu"),
         "daemon_imu_silent_halts": _imu_silent_halts(bench.daemon_log),
+        "daemon_imu_gaps": _imu_gaps(bench.daemon_log),
         "load_processes": args.load,
         "position_rmse_m": r["position_rmse_m"],
     }
@@ -86,6 +87,22 @@ def _imu_silent_halts(log_path: Path) -> int:
     return sum(
         1 for line in text.splitlines() if "mowerhw.permit: HALT SENSOR_STALE: imu silent" in line
     )
+
+
+def _imu_gaps(log_path: Path) -> dict[str, int]:
+    """The daemon's IMU silences past its limit, by where the sensor's own clock puts them:
+    ``sensor`` (it was silent: the mock VN-100 sent late), ``host`` (it sent on time and the
+    samples were held up on the daemon's computer)."""
+    try:
+        lines = log_path.read_text(errors="replace").splitlines()
+    except OSError:
+        return {}
+    gaps = [line for line in lines if "imu: a sample again after" in line]
+    return {
+        "sensor": sum("the sensor itself was silent" in line for line in gaps),
+        "host": sum("held up on this computer" in line for line in gaps),
+        "unknown": sum("the sensor sends no time" in line for line in gaps),
+    }
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ good enough and the front end needs no estimator state.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
@@ -19,32 +20,52 @@ FloatArray = NDArray[np.float64]
 
 
 class RotationHistory:
-    """Integrated body attitude ``q_0b(t)`` at every gyro sample, for ``history_s``."""
+    """Integrated body attitude ``q_0b(t)`` at every gyro sample, for ``history_s``.
+
+    A sample is only kept when it comes (100 Hz); it is integrated when a rotation is asked
+    for (once a frame) or when many wait — the same products in the same order, done back to
+    back instead of one per wake-up."""
+
+    #: integrate when this many samples wait (bounds the memory without frames)
+    PENDING_MAX = 256
 
     def __init__(self, history_s: float = 3.0) -> None:
         self.history_s = history_s
         self._t: deque[float] = deque()
         self._q: deque[FloatArray] = deque()
+        self._pending: list[tuple[float, FloatArray]] = []
+        self._last_t: float | None = None
 
     def add(self, t: float, gyro_xyz: ArrayLike) -> None:
         """A gyro reading: the mean body rate over the interval ending at ``t``."""
         w = np.asarray(gyro_xyz, dtype=np.float64).reshape(3)
-        if not np.all(np.isfinite(w)) or not np.isfinite(t):
+        t = float(t)
+        if not math.isfinite(t + sum(w.tolist())):
             return
-        if not self._t:
-            self._t.append(float(t))
-            self._q.append(np.array([1.0, 0.0, 0.0, 0.0]))
+        if self._last_t is not None and t <= self._last_t:
             return
-        dt = float(t) - self._t[-1]
-        if dt <= 0:
-            return
-        self._t.append(float(t))
-        self._q.append(quat_multiply(self._q[-1], quat_exp(w * dt)))
-        while len(self._t) > 2 and self._t[1] < float(t) - self.history_s:
-            self._t.popleft()
-            self._q.popleft()
+        self._last_t = t
+        self._pending.append((t, w.copy()))
+        if len(self._pending) >= self.PENDING_MAX:
+            self._integrate()
+
+    def _integrate(self) -> None:
+        pending, self._pending = self._pending, []
+        for t, w in pending:
+            if not self._t:
+                self._t.append(t)
+                self._q.append(np.array([1.0, 0.0, 0.0, 0.0]))
+                continue
+            self._t.append(t)
+            self._q.append(quat_multiply(self._q[-1], quat_exp(w * (t - self._t[-2]))))
+        if pending:
+            newest = self._t[-1]
+            while len(self._t) > 2 and self._t[1] < newest - self.history_s:
+                self._t.popleft()
+                self._q.popleft()
 
     def _at(self, t: float) -> FloatArray | None:
+        self._integrate()
         if not self._t or t < self._t[0] - 1e-6 or t > self._t[-1] + 0.05:
             return None
         ts = np.fromiter(self._t, float, len(self._t))

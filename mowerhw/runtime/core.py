@@ -103,6 +103,7 @@ class RuntimeCore:
         self._revealed_at: float | None = None
         self.is_lifted = False  # the supervisor says the mower is lifted
         self._next_mag_t = -math.inf
+        self._prev_device_ns: int | None = None  # the sensor time of the previous IMU sample
 
     # ------------------------------------------------------------------------- journal
 
@@ -116,6 +117,7 @@ class RuntimeCore:
         """An IMU sample (IMU frame, as the device gave it) that arrived at ``now``: into the
         buffer, the estimator fed with what is ready, and the permit decided at once."""
         self._log("imu", sample=sample, now=now)
+        self._note_imu_gap(sample, now)
         self.last_arrival["imu"] = now
         self.t_imu_newest = sample.t
         self.counts["imu"] += 1
@@ -142,6 +144,36 @@ class RuntimeCore:
         d = self._decide(now, arrival)
         self._log("imu_out", out=decision_key(d))
         return d
+
+    def _note_imu_gap(self, sample: ImuSample, now: float) -> None:
+        """After a silence longer than the IMU's staleness limit, say where it was: the
+        sensor's own clock tells whether it was silent too (it sent late, or the cable or
+        power failed) or sent on time and the bytes were held up on this computer (serial
+        driver, kernel, a loaded machine) — counted apart (``imu_gaps_sensor``,
+        ``imu_gaps_host``) and logged, so an integrator knows which to look at."""
+        last, dev = self.last_arrival["imu"], sample.device_time_ns
+        prev_dev, self._prev_device_ns = self._prev_device_ns, dev
+        if last is None or now - last <= self.gate.stale_limits_s["imu"]:
+            return
+        gap = now - last
+        if dev is None or prev_dev is None or dev <= prev_dev:
+            self.counts["imu_gaps_unknown"] += 1
+            log.warning("imu: a sample again after %.3f s (the sensor sends no time)", gap)
+            return
+        sensor_gap = (dev - prev_dev) * 1e-9
+        held = gap - sensor_gap
+        if held > 0.5 * gap:
+            self.counts["imu_gaps_host"] += 1
+            where = "it sent on time: the samples were held up on this computer"
+        else:
+            self.counts["imu_gaps_sensor"] += 1
+            where = "the sensor itself was silent"
+        log.warning(
+            "imu: a sample again after %.3f s; by the sensor's own clock %.3f s passed (%s)",
+            gap,
+            sensor_gap,
+            where,
+        )
 
     def _to_body(self, v: FloatArray) -> FloatArray:
         """An IMU-frame vector in the body frame."""
