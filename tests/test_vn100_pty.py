@@ -196,3 +196,26 @@ def test_driver_keeps_the_users_own_output_configuration(link):
     assert 30 <= len(samples) <= 50 and drv.parser.stats.rejected == 0
     assert all(s.device_time_ns is None for s in samples)  # no time field: arrival time
     assert np.allclose(samples[-1].gyro[2], moving_source(0).gyro[2], atol=0.02)
+
+
+def test_the_mock_counts_packets_it_sent_late_after_stamping_them(link):
+    """A mock held up between measuring and writing (a loaded bench) stamps a packet on time
+    and writes it late: the daemon sees a silence the sensor's stamps do not show, so the
+    mock says so itself (``late_writes``) — the bench does not blame that on the daemon."""
+    calls = [0]
+
+    def slow_now_and_then(t: float) -> MockImuState:
+        calls[0] += 1
+        if calls[0] % 25 == 0:
+            time.sleep(0.08)  # after the stamp (t), before the write
+        return moving_source(t)
+
+    samples = []
+    with MockVn100(link, source=slow_now_and_then) as mock:
+        drv = Vn100(str(link), on_sample=samples.append, output="binary")
+        drv.open()
+        run_for(drv, 1.0)
+    late = mock.stats.late_writes
+    assert late and all(0.05 < delay < 0.2 for _, delay in late)
+    stamps = np.diff([s.device_time_ns for s in samples if s.device_time_ns is not None])
+    assert len(stamps) > 40 and np.median(stamps) == pytest.approx(1e7, rel=0.2)

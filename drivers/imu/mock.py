@@ -86,6 +86,10 @@ class MockStats:
     max_output_gap_s: float = 0.0
     #: (end time on the host's monotonic clock, length in s) of the last 1000 such gaps
     late_gaps: list[tuple[float, float]] = field(default_factory=list)
+    #: packets written to the port more than 50 ms after the time stamped in them (the
+    #: sensor process was held up between measuring and sending: a loaded bench, not the
+    #: daemon), as (host monotonic time of the write, delay in s), the last 1000
+    late_writes: list[tuple[float, float]] = field(default_factory=list)
 
 
 class MockVn100(ThreadedDevice):
@@ -385,6 +389,10 @@ class MockVn100(ThreadedDevice):
         self.stats.packets += 1
         self.stats.samples += 1
         self._write(packet)
+        written = time.monotonic()
+        if written - self._t0 - t > 0.05:
+            self.stats.late_writes.append((written, written - self._t0 - t))
+            del self.stats.late_writes[:-1000]
 
     def _ascii_packet(self, s: MockImuState) -> bytes | None:
         typ = int(self.registers[6][0])

@@ -571,6 +571,8 @@ class Bench:
             # while mowing; over 100 ms the mock alone makes the daemon halt "imu silent"
             "late_gaps_while_mowing": len(mowing),
             "late_gaps_over_100ms_while_mowing": sum(gap > 0.1 for gap in mowing),
+            # stamped on time, written late: the daemon sees a silence the stamps do not show
+            "late_writes_over_50ms_while_mowing": sum(t >= t_mow0 for t, _ in vs.late_writes),
         }
         sup = st.get("supervisor")
         if sup:  # the permit supervisor's own figures (the process that sends the frames)
