@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import tempfile
+import time
 from pathlib import Path
 
 from mowerhw.bench import Bench, FaultSpec
@@ -70,34 +71,47 @@ def main() -> None:
         "supervisor": r.get("supervisor"),
         "watchdog": r.get("watchdog"),
         "mock_imu": r.get("mock_imu"),
-        "daemon_imu_silent_halts": _imu_silent_halts(bench.daemon_log),
-        "daemon_imu_gaps": _imu_gaps(bench.daemon_log),
+        "daemon_imu_silent_halts": _imu_silent_halts(bench.daemon_log, bench.mow_end[1]),
+        "daemon_imu_gaps": _imu_gaps(bench.daemon_log, bench.mow_end[1]),
         "load_processes": args.load,
         "position_rmse_m": r["position_rmse_m"],
     }
     print(json.dumps(out, indent=1))
 
 
-def _imu_silent_halts(log_path: Path) -> int:
-    """Halts the estimation side gave because no IMU sample had arrived for its limit."""
-    try:
-        text = log_path.read_text(errors="replace")
-    except OSError:
-        return -1
-    return sum(
-        1 for line in text.splitlines() if "mowerhw.permit: HALT SENSOR_STALE: imu silent" in line
-    )
-
-
-def _imu_gaps(log_path: Path) -> dict[str, int]:
-    """The daemon's IMU silences past its limit, by where the sensor's own clock puts them:
-    ``sensor`` (it was silent: the mock VN-100 sent late), ``host`` (it sent on time and the
-    samples were held up on the daemon's computer)."""
+def _lines_until(log_path: Path, until_wall: float) -> list[str]:
+    """The daemon log's lines stamped before ``until_wall`` (time.time(); the log's
+    ``asctime`` is local time to the millisecond)."""
     try:
         lines = log_path.read_text(errors="replace").splitlines()
     except OSError:
-        return {}
-    gaps = [line for line in lines if "imu: a sample again after" in line]
+        return []
+    out = []
+    for line in lines:
+        try:
+            stamp = time.mktime(time.strptime(line[:19], "%Y-%m-%d %H:%M:%S"))
+            stamp += float(line[20:23]) / 1e3
+        except ValueError:
+            continue
+        if stamp <= until_wall:
+            out.append(line)
+    return out
+
+
+def _imu_silent_halts(log_path: Path, until_wall: float) -> int:
+    """Halts the estimation side gave while mowing because no IMU sample had arrived for its
+    limit."""
+    lines = _lines_until(log_path, until_wall)
+    return sum(1 for line in lines if "mowerhw.permit: HALT SENSOR_STALE: imu silent" in line)
+
+
+def _imu_gaps(log_path: Path, until_wall: float) -> dict[str, int]:
+    """The daemon's IMU silences past its limit while mowing, by where the sensor's own clock
+    puts them: ``sensor`` (it was silent: the mock VN-100 sent late), ``host`` (it sent on
+    time and the samples were held up on the way: the mock's own write, the kernel, the
+    daemon's computer — ``mock_imu.late_writes_over_50ms_while_mowing`` says how many of
+    them the mock wrote late)."""
+    gaps = [line for line in _lines_until(log_path, until_wall) if "imu: a sample again" in line]
     return {
         "sensor": sum("the sensor itself was silent" in line for line in gaps),
         "host": sum("held up on this computer" in line for line in gaps),
