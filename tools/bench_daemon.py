@@ -52,6 +52,7 @@ def main() -> None:
         load=args.load,
     )
     r = bench.run()
+    mowing_log = _lines_until(bench.daemon_log, bench.mow_end[1])
     stops = [f["stop_after_ms"] for f in r.get("faults", []) if f["stop_after_ms"] is not None]
     out = {
         "mow_s": r["mow_s"],
@@ -71,21 +72,21 @@ def main() -> None:
         "supervisor": r.get("supervisor"),
         "watchdog": r.get("watchdog"),
         "mock_imu": r.get("mock_imu"),
-        "daemon_imu_silent_halts": _imu_silent_halts(bench.daemon_log, bench.mow_end[1]),
-        "daemon_imu_gaps": _imu_gaps(bench.daemon_log, bench.mow_end[1]),
+        "daemon_imu_silent_halts": _imu_silent_halts(mowing_log),
+        "daemon_imu_gaps": _imu_gaps(mowing_log),
         "load_processes": args.load,
         "position_rmse_m": r["position_rmse_m"],
     }
     print(json.dumps(out, indent=1))
 
 
-def _lines_until(log_path: Path, until_wall: float) -> list[str]:
+def _lines_until(log_path: Path, until_wall: float) -> list[str] | None:
     """The daemon log's lines stamped before ``until_wall`` (time.time(); the log's
-    ``asctime`` is local time to the millisecond)."""
+    ``asctime`` is local time to the millisecond); None if the log cannot be read."""
     try:
         lines = log_path.read_text(errors="replace").splitlines()
     except OSError:
-        return []
+        return None
     out = []
     for line in lines:
         try:
@@ -98,20 +99,23 @@ def _lines_until(log_path: Path, until_wall: float) -> list[str]:
     return out
 
 
-def _imu_silent_halts(log_path: Path, until_wall: float) -> int:
+def _imu_silent_halts(lines: list[str] | None) -> int:
     """Halts the estimation side gave while mowing because no IMU sample had arrived for its
-    limit."""
-    lines = _lines_until(log_path, until_wall)
+    limit (-1: no log to read)."""
+    if lines is None:
+        return -1
     return sum(1 for line in lines if "mowerhw.permit: HALT SENSOR_STALE: imu silent" in line)
 
 
-def _imu_gaps(log_path: Path, until_wall: float) -> dict[str, int]:
+def _imu_gaps(lines: list[str] | None) -> dict[str, int]:
     """The daemon's IMU silences past its limit while mowing, by where the sensor's own clock
     puts them: ``sensor`` (it was silent: the mock VN-100 sent late), ``host`` (it sent on
     time and the samples were held up on the way: the mock's own write, the kernel, the
     daemon's computer — ``mock_imu.late_writes_over_50ms_while_mowing`` says how many of
-    them the mock wrote late)."""
-    gaps = [line for line in _lines_until(log_path, until_wall) if "imu: a sample again" in line]
+    them the mock wrote late); empty without a log."""
+    if lines is None:
+        return {}
+    gaps = [line for line in lines if "imu: a sample again" in line]
     return {
         "sensor": sum("the sensor itself was silent" in line for line in gaps),
         "host": sum("held up on this computer" in line for line in gaps),

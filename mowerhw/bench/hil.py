@@ -568,7 +568,11 @@ class Bench:
         if self.web:
             metrics["web"] = self._web_result(st)
         vs = self.vn.stats  # the mock sensor's own lateness (a loaded bench, not the daemon)
-        mowing = [gap for t, gap in vs.late_gaps if t_mow0 <= t <= self.mow_end[0]]
+
+        def while_mowing(t: float) -> bool:
+            return t_mow0 <= t <= self.mow_end[0]
+
+        mowing = [gap for t, gap in vs.late_gaps if while_mowing(t)]
         metrics["mock_imu"] = {
             "late_gaps_over_50ms": vs.late_gaps_over_50ms,
             "max_output_gap_ms": round(vs.max_output_gap_s * 1e3, 1),
@@ -576,9 +580,7 @@ class Bench:
             "late_gaps_while_mowing": len(mowing),
             "late_gaps_over_100ms_while_mowing": sum(gap > 0.1 for gap in mowing),
             # stamped on time, written late: the daemon sees a silence the stamps do not show
-            "late_writes_over_50ms_while_mowing": sum(
-                t_mow0 <= t <= self.mow_end[0] for t, _ in vs.late_writes
-            ),
+            "late_writes_over_50ms_while_mowing": sum(while_mowing(t) for t, _ in vs.late_writes),
         }
         sup = st.get("supervisor")
         if sup:  # the permit supervisor's own figures (the process that sends the frames)

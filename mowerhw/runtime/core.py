@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from mowerhw.common.buffer import SensorBuffer
-from mowerhw.common.geometry import quat_to_rotmat
+from mowerhw.common.geometry import quat_to_rotmat, tuple3
 from mowerhw.common.samples import FloatArray, ImuSample, SpeedSample, Stream
 from mowerhw.config import Config
 from mowerhw.estimation import compass
@@ -123,8 +123,7 @@ class RuntimeCore:
         self.counts["imu"] += 1
         gyro = self._to_body(sample.gyro)
         if sample.accel is not None:  # for the supervisor's lift/tilt/collision checks
-            ax, ay, az = self._to_body(sample.accel).tolist()
-            self.last_accel = (ax, ay, az)
+            self.last_accel = tuple3(self._to_body(sample.accel))
         # the buffer holds what the estimators read: ``t`` and the body-frame rate
         self.buffer.push(
             Stream.IMU,
@@ -153,7 +152,7 @@ class RuntimeCore:
         ``imu_gaps_host``) and logged, so an integrator knows which to look at."""
         last, dev = self.last_arrival["imu"], sample.device_time_ns
         prev_dev, self._prev_device_ns = self._prev_device_ns, dev
-        if last is None or now - last <= self.gate.stale_limits_s["imu"]:
+        if last is None or not self.gate.late("imu", now, last):  # the gate's one rule
             return
         gap = now - last
         if dev is None or prev_dev is None or dev <= prev_dev:
