@@ -146,3 +146,16 @@ def test_an_imu_sample_is_frozen_checked_and_knows_when_it_is_not_finite():
         assert not ImuSample(t=1.0, gyro=[0.0, v, 0.0]).finite
         assert not ImuSample(t=1.0, gyro=own, accel=[v, 0.0, 9.8]).finite
     assert not ImuSample(t=1.0, gyro=[np.inf, -np.inf, 0.0]).finite  # inf − inf is NaN
+
+
+def test_the_distance_driven_uses_only_the_speed_samples_up_to_its_end():
+    track = SpeedTrack()
+    for t, v in [(0.0, 0.0), (0.1, 0.5), (0.2, 0.5), (0.3, -0.5)]:
+        track.add(t, v)
+    # each reading is the speed of the interval before it; the newest is held after it
+    assert abs(track.distance(0.0, 0.2) - 0.1) < 1e-12
+    assert abs(track.distance(0.05, 0.15) - 0.05) < 1e-12
+    assert abs(track.distance(0.2, 0.3) - 0.05) < 1e-12  # reversing counts as distance
+    # up to 0.25 the sample at 0.3 is not known yet: 0.5 m/s held after 0.2
+    assert abs(track.distance(0.15, 0.25) - 0.05) < 1e-12
+    assert track.distance(0.0, 0.0) == 0.0 and SpeedTrack().distance(0.0, 1.0) == 0.0

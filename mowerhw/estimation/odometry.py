@@ -115,6 +115,26 @@ class SpeedTrack:
             return va
         return va + (vb - va) * (t_mid - ta) / (tb - ta)
 
+    def distance(self, t0: float, t1: float) -> float:
+        """Distance (m, unsigned) driven from ``t0`` to ``t1`` by the samples taken up to
+        ``t1`` — each the speed of the interval before it, the newest held after it — so the
+        answer does not depend on samples that came later; 0 without samples."""
+        s = self.samples
+        k = len(s)
+        while k > 0 and s[k - 1][0] > t1:
+            k -= 1
+        if k == 0:
+            return 0.0
+        total = abs(s[k - 1][1]) * max(0.0, t1 - max(t0, s[k - 1][0]))  # after the newest
+        end = s[k - 1][0]
+        for j in range(k - 1, 0, -1):
+            start = s[j - 1][0]
+            if end <= t0:
+                break
+            total += abs(s[j][1]) * max(0.0, min(end, t1) - max(start, t0))
+            end = start
+        return total
+
     def interpolate(self, t: FloatArray) -> FloatArray:
         """After the fact: linear interpolation at times ``t``."""
         if len(self.samples) < 2:
