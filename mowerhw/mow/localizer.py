@@ -796,7 +796,8 @@ class Localizer:
         frames on the way repeat the standing frames' errors (measured: NEES 3.9 against a
         bound of 3.5 in the 1.5 s after a relocalized mower drove off). A mower that keeps
         moving has k = 1: every frame counts in full."""
-        moved, turned = self._motion_since_last_frame(t)
+        t_from, self._t_last_frame = self._t_last_frame, t
+        moved, turned = self._motion_between(t_from, t)
         if moved < self.STILL_M and turned < self.STILL_RAD:
             self._still_frames += 1.0
         else:
@@ -804,12 +805,11 @@ class Localizer:
             self._still_frames = 1.0 + (self._still_frames - 1.0) * math.exp(-away)
         return self.cfg.bearing_sigma_rad * math.sqrt(self._still_frames)
 
-    def _motion_since_last_frame(self, t: float) -> tuple[float, float]:
-        """Distance driven (m) and angle turned (rad) between the last frame's time and
-        ``t``, from the ground-speed samples taken up to ``t`` and the IMU intervals kept —
-        the same for a frame on time and one applied late; unknown (infinite) when the IMU
-        history does not reach back that far."""
-        t_from, self._t_last_frame = self._t_last_frame, t
+    def _motion_between(self, t_from: float | None, t: float) -> tuple[float, float]:
+        """Distance driven (m) and angle turned (rad) from ``t_from`` (the last frame's time)
+        to ``t``, from the ground-speed samples taken up to ``t`` and the IMU intervals kept —
+        the same for a frame on time and one applied late; unknown (infinite) without a last
+        frame or when the IMU history does not reach back that far."""
         hist = self._history
         if t_from is None or not hist or hist[0].t0 > t_from or t <= t_from:
             return math.inf, math.inf
