@@ -593,7 +593,7 @@ class SupervisorConfig:
     lease_s: float = opt(
         0.08,
         "a permit from the estimation side is good for this long; it is renewed with every "
-        "decision (100 Hz), so a late, stalled or dead estimator halts the deck after it",
+        "decision (each IMU sample), so a late, stalled or dead estimator halts the deck after it",
         ge=0.05,
         le=0.1,
     )

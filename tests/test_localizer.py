@@ -311,3 +311,28 @@ def test_a_turn_on_the_spot_after_the_standstill_is_neither_bias_nor_lost(lawn_m
     turned = float(np.sum(rate) * 0.01)
     assert turned > 0.8  # 51°
     assert abs(wrap_angle(quat_to_yaw(loc.pose().quaternion) - yaw0 - turned)) < 5e-4
+
+
+def test_a_frame_between_two_imu_samples_is_predicted_where_the_update_starts(lawn_map):
+    """The landmarks a frame taken between two IMU samples (or just after the newest) should
+    show are predicted from the state at the frame's own time — the interval's rate carried
+    over the rest of it, as the update does — not from the sample before: at 1 rad/s a
+    50 Hz interval turns 1.1°, and the vision's association gate would refuse every
+    landmark of a turning mower (it did on the bench, at a 50 Hz IMU)."""
+
+    def turning(times: list[float]) -> Localizer:
+        loc = Localizer(lawn_map)
+        for t in times:  # rolling: no start-up standstill holding the pose
+            loc.speed(t, 0.2)
+            loc.imu(t, [0.0, 0.0, 1.0])
+        return loc
+
+    samples = [round(k * 0.02, 6) for k in range(51)]  # 50 Hz up to 1.0 s
+    loc = turning(samples)
+    for t in (0.99, 1.01):  # inside the last interval; ahead of the newest sample
+        exact = turning([*samples[:-1], t] if t < 1.0 else [*samples, t])
+        _, h, _ = loc.predict_bearings(t)
+        _, h_exact, _ = exact.predict_bearings()  # a sample at the frame's time
+        assert np.abs(h - h_exact).max() < 1e-9
+        _, h_before, _ = loc.predict_bearings(0.98)  # at a sample: that sample's state
+        assert np.abs(h_before - h_exact).max() > 5e-3  # 10 ms or more at 1 rad/s off

@@ -204,9 +204,10 @@ def _same(a, b):
 
 def _sent_packets():
     s = still_source(0.0)
-    ascii_pkt = MockVn100._ascii_packet(type("M", (), {"registers": {6: ["14"]}})(), s)
-    regs = {75: ["1", "8", "01", "0129"]}
-    bin_pkt = MockVn100._binary_packet(type("M", (), {"registers": regs})(), 1.5, s)
+    mock = MockVn100("unused-link")  # not started: no port, only its packets
+    ascii_pkt = mock._ascii_packet(s)
+    mock.registers[75] = ["1", "8", "01", "0129"]
+    bin_pkt = mock._binary_packet(1.5, s)
     return ascii_pkt, bin_pkt
 
 
@@ -419,6 +420,32 @@ def test_gyro_from_whichever_field_the_sensor_sends(fields, source, expect):
         assert s is None and ex.stats.unused == 1
     else:
         assert np.allclose(s.gyro, expect, rtol=1e-6) and ex.stats.samples == 1
+
+
+@pytest.mark.parametrize(
+    "fields",
+    [
+        {"Common.Deltas": (0.02, 1, 1, 1, 0.0, 0.01, -0.1962)},
+        {"Imu.DeltaTheta": (0.02, 1, 1, 1), "Imu.DeltaVel": (0.0, 0.01, -0.1962)},
+        {"Imu.DeltaTheta": (0.02, 1, 1, 1), "Common.Accel": (0.0, 0.5, -9.81)},
+    ],
+    ids=["Deltas", "DeltaTheta+DeltaVel", "DeltaTheta+Accel"],
+)
+def test_an_integrated_rate_comes_with_the_integrated_velocity_over_the_same_interval(fields):
+    """Δθ/Δt is the mean rate over an output interval; the acceleration that belongs with it
+    is Δv/Δt over the same interval (not the last instant's), when the packet has Δv."""
+    pkt = binary.encode_packet({k: binary.pack_values(k, v) for k, v in fields.items()})
+    (item,) = Vn100Parser().feed(pkt)
+    s = ImuExtractor("delta_theta").sample(item, 5_000_000_000)
+    assert np.allclose(s.gyro, np.radians([50.0] * 3), rtol=1e-6)
+    assert np.allclose(s.accel, (0.0, 0.5, -9.81), rtol=1e-5)
+
+
+def test_ascii_delta_message_gives_the_mean_specific_force():
+    body = b"VNDTV,+0.020000,+1.0000,+1.0000,+1.0000,+0.0000,+0.0100,-0.1962"
+    (msg,) = Vn100Parser().feed(b"$" + body + b"*%02X\r\n" % xor8(body))
+    s = ImuExtractor("delta_theta").sample(msg, 1_000_000_000)
+    assert np.allclose(s.gyro, np.radians([50.0] * 3)) and np.allclose(s.accel, (0, 0.5, -9.81))
 
 
 _RATE = (0.01, -0.02, 0.03)

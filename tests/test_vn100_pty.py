@@ -219,3 +219,35 @@ def test_the_mock_counts_packets_it_sent_late_after_stamping_them(link):
     assert late and all(0.05 < delay < 0.2 for _, delay in late)
     stamps = np.diff([s.device_time_ns for s in samples if s.device_time_ns is not None])
     assert len(stamps) > 40 and np.median(stamps) == pytest.approx(1e7, rel=0.2)
+
+
+def test_fifty_hz_integrated_outputs_cover_each_interval_exactly(link):
+    """imu.gyro_source delta_theta at 50 Hz (the bench's setting): register 75 asks for
+    Deltas (no instantaneous Accel), each packet's Δt is the time since the one before (what
+    the sensor's integrator covers), and Δθ/Δt, Δv/Δt are the source's mean rate and force."""
+    samples = []
+    with MockVn100(link, source=moving_source) as mock:
+        drv = Vn100(str(link), gyro_source="delta_theta", rate_hz=50, on_sample=samples.append)
+        drv.open()
+        assert mock.registers[75] == ["1", "16", "01", "0C09"]  # TimeStartup, YPR, Deltas, Mag
+        run_for(drv, 1.0)
+    assert 40 <= len(samples) <= 55 and drv.extractor.stats.unused == 0
+    for s in samples[-5:]:
+        assert np.allclose(s.gyro, moving_source(s.device_time_ns * 1e-9).gyro, atol=1e-6)
+        assert np.allclose(s.accel, (0.0, 0.0, -9.81), atol=1e-5)
+
+
+def test_the_mocks_integrated_fields_span_the_time_since_its_previous_output(link):
+    from drivers.imu.vn100 import Vn100Parser
+
+    mock = MockVn100(link, source=moving_source)
+    mock.registers[75] = ["1", "16", "01", "0800"]  # Common.Deltas at 50 Hz
+    parser = Vn100Parser()
+    deltas = []
+    for t in (1.0, 1.02, 1.05, 9.0):  # on time; 10 ms late; after a 8 s stall
+        (item,) = parser.feed(mock._binary_packet(t, moving_source(t)))
+        deltas.append(item.get("Common.Deltas"))
+    assert [round(d[0], 6) for d in deltas] == [0.02, 0.02, 0.03, 0.02]
+    s = moving_source(1.05)
+    assert np.allclose(np.asarray(deltas[2][1:4]) / 0.03, s.gyro, atol=1e-6)
+    assert np.allclose(np.asarray(deltas[2][4:7]) / 0.03, s.accel, atol=1e-6)

@@ -6,7 +6,7 @@
   revealing sample (or the staleness deadline) → the ISB stop frame sent, from the daemon;
 * the permit supervisor: lease → frame latency, loop stalls over 20 ms, leases that ran out
   (spurious ESTIMATOR_LATE halts when the machine is loaded: ``--load N`` CPU hogs);
-* CPU share of the daemon's processes at real-time rates (100 Hz IMU, 10 Hz speed, 4 Hz
+* CPU share of the daemon's processes at real-time rates (50 Hz Δθ/Δv IMU, 10 Hz speed, 4 Hz
   1540×1540 frames), from /proc;
 * memory: the daemon's RSS every 10 s (a soak: ``--duration 3600``).
 

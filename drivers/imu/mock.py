@@ -114,6 +114,9 @@ class MockVn100(ThreadedDevice):
         self.rng = random.Random(seed)
         self.stats = MockStats()
         self._last_emit: float | None = None
+        #: device time (s) of the last packet with a measurement: a Δθ/Δv field integrates
+        #: from there, as the sensor's own integrator does between two outputs
+        self._last_sample_t: float | None = None
         self._factory_baud = baudrate
         self.baud = baudrate
         self.async_on = True
@@ -408,8 +411,15 @@ class MockVn100(ThreadedDevice):
         groups = int(self.registers[75][2], 16)
         masks = [int(v, 16) for v in self.registers[75][3:]]
         active = [g for g in range(len(binary.GROUP_NAMES)) if groups >> g & 1]
+        period = 1.0 / max(self._output_rate(), 1e-9)
+        last, self._last_sample_t = self._last_sample_t, t
+        # the integrator restarts at each output; after a stall or at the first packet, one
+        # output period (the sensor integrates from its previous output, not from start-up)
+        dt = period if last is None or not 0.0 < t - last < 10 * period else t - last
         fields = {
-            f"{binary.GROUP_NAMES[g]}.{binary.FIELDS[(g, bit)].name}": _field_bytes(g, bit, t, s)
+            f"{binary.GROUP_NAMES[g]}.{binary.FIELDS[(g, bit)].name}": _field_bytes(
+                g, bit, t, s, dt
+            )
             for g, mask in zip(active, masks, strict=True)
             for bit in range(16)
             if mask >> bit & 1
@@ -417,8 +427,10 @@ class MockVn100(ThreadedDevice):
         return binary.encode_packet(fields)
 
 
-def _field_bytes(g: int, bit: int, t: float, s: MockImuState) -> bytes:
-    """What the mock measures, in field (group, bit); zeros for what it does not."""
+def _field_bytes(g: int, bit: int, t: float, s: MockImuState, dt: float) -> bytes:
+    """What the mock measures, in field (group, bit); zeros for what it does not. The
+    source's rates are means over the ``dt`` since the previous output, so Δθ = ω·Δt and
+    Δv = a·Δt are that interval's integrals (VN-100 manual: Delta Theta and Delta Velocity)."""
     name = f"{binary.GROUP_NAMES[g]}.{binary.FIELDS[(g, bit)].name}"
     rad_to_deg = 180.0 / math.pi
     values: dict[str, list[float]] = {
@@ -445,11 +457,12 @@ def _field_bytes(g: int, bit: int, t: float, s: MockImuState) -> bytes:
     if name in values:
         return binary.pack_values(name, values[name])
     spec = binary.FIELDS[(g, bit)]
-    if name in ("Imu.DeltaTheta", "Common.Deltas"):  # over one output period at 100 Hz
-        dt = 0.01
+    if name in ("Imu.DeltaTheta", "Common.Deltas"):  # since the previous output
         dtheta = [w * dt * rad_to_deg for w in s.gyro]
         extra = [a * dt for a in s.accel] if name == "Common.Deltas" else []
         return binary.pack_values(name, [dt, *dtheta, *extra])
+    if name == "Imu.DeltaVel":
+        return binary.pack_values(name, [a * dt for a in s.accel])
     if spec.variable == "satinfo":
         return bytes(2)  # no satellites
     if spec.variable == "rawmeas":

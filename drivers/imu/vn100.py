@@ -164,6 +164,13 @@ class DeltaMessage:
             return np.full(3, np.nan)
         return np.asarray(np.radians(self.dtheta_deg) / self.dt, dtype=np.float64)
 
+    @property
+    def accel(self) -> np.ndarray | None:
+        """The mean specific force over the interval, Δv/Δt (m/s²); None for an empty one."""
+        if not self.dt > 0:
+            return None
+        return np.asarray(self.dvel, dtype=np.float64) / self.dt
+
 
 @dataclass(frozen=True)
 class RegisterReply:
@@ -532,12 +539,13 @@ def _parse_ascii(body: str) -> Any:
 MAG_PRES = 1 << 10
 COMMON_FIELDS = (1 << 0) | (1 << 3) | (1 << 5) | (1 << 8) | MAG_PRES
 #: the common-group fields asked for per ``imu.gyro_source``: TimeStartup, YawPitchRoll, the
-#: rate (AngularRate + Accel; Imu = uncompensated accel + gyro; Deltas = Δt, Δθ, Δv), MagPres
+#: rate (AngularRate + Accel; Imu = uncompensated accel + gyro; Deltas = Δt, Δθ, Δv, whose
+#: Δv/Δt is the acceleration), MagPres
 COMMON_FIELDS_FOR = {
     "auto": COMMON_FIELDS,
     "angular_rate": COMMON_FIELDS,
     "uncomp_gyro": (1 << 0) | (1 << 3) | (1 << 9) | MAG_PRES,
-    "delta_theta": (1 << 0) | (1 << 3) | (1 << 8) | (1 << 11) | MAG_PRES,
+    "delta_theta": (1 << 0) | (1 << 3) | (1 << 11) | MAG_PRES,  # accel: Δv/Δt
 }
 
 
@@ -623,9 +631,11 @@ class ImuExtractor:
             found = item.first(self._binary_fields)
             if found is not None:
                 gyro = self._rate(*found)
-                acc = item.first(_ACCEL_FIELDS)
-                if acc is not None:
-                    accel = acc[1][:3]
+                accel = _mean_specific_force(item, found)
+                if accel is None:
+                    acc = item.first(_ACCEL_FIELDS)
+                    if acc is not None:
+                        accel = acc[1][:3]
                 field = item.first(_MAG_FIELDS)
                 if field is not None:
                     mag = np.asarray(field[1][:3], dtype=np.float64)
@@ -672,6 +682,23 @@ class ImuExtractor:
             rate: np.ndarray = v[1:4] / dt
             return rate
         return v
+
+
+def _mean_specific_force(item: BinaryPacket, found: tuple[str, Any]) -> np.ndarray | None:
+    """With an integrated angle, the matching integrated velocity over the same Δt: Δv/Δt
+    (``Common.Deltas`` carries both; ``Imu.DeltaTheta`` pairs with ``Imu.DeltaVel``), the
+    mean specific force the mean rate Δθ/Δt belongs with; None otherwise."""
+    name, value = found
+    if name == "Common.Deltas":
+        dt, dv = value[0], value[4:7]
+    elif name == "Imu.DeltaTheta" and "Imu.DeltaVel" in item.offsets:
+        dt, dv = value[0], item.get("Imu.DeltaVel")
+    else:
+        return None
+    if not dt > 0:
+        return None
+    force: np.ndarray = np.asarray(dv, dtype=np.float64) / dt
+    return force
 
 
 def _ascii_header(item: Any) -> str:

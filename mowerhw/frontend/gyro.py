@@ -22,7 +22,7 @@ FloatArray = NDArray[np.float64]
 class RotationHistory:
     """Integrated body attitude ``q_0b(t)`` at every gyro sample, for ``history_s``.
 
-    A sample is only kept when it comes (100 Hz); it is integrated when a rotation is asked
+    A sample is only kept when it comes (50–100 Hz); it is integrated when a rotation is asked
     for (once a frame) or when many wait — the same products in the same order, done back to
     back instead of one per wake-up."""
 

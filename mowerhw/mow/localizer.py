@@ -383,13 +383,37 @@ class Localizer:
         return Pose2D(float(state.x[0]), float(state.x[1]), float(quat_to_yaw(state.q)))
 
     def _state_at(self, t: float) -> EkfState:
-        """The filter's state at ``t`` (from the history for a past time, else now)."""
-        if self.t_imu is not None and t < self.t_imu:
+        """The filter's state at ``t``, as the frame update there will start from: the
+        history's state at the IMU sample before ``t`` propagated over the rest of its
+        interval, or the newest state extrapolated with the last rate for a frame slightly
+        ahead of the IMU (:meth:`bearings`). Not the state at the sample before: a frame
+        falls anywhere inside an IMU interval, and a mower turning at 1 rad/s turns 1.1° in
+        the 20 ms between two 50 Hz samples — far more than a bearing's σ."""
+        if self.t_imu is None:
+            return self.ekf.snapshot_view()
+        if t < self.t_imu:
             hist = self._history
             k = next((i for i in range(len(hist) - 1, -1, -1) if hist[i].t1 <= t), None)
-            if k is not None:
+            if k is None:
+                return self.ekf.snapshot_view()
+            nxt = hist[k + 1] if k + 1 < len(hist) else None
+            if nxt is None or nxt.held or t <= hist[k].t1:
                 return hist[k].state
+            return self._propagated(hist[k].state, t - hist[k].t1, nxt.gyro, nxt.speed)
+        if t > self.t_imu and t - self.t_imu <= self.stale_s["imu"] and self._w_last is not None:
+            speed, _ = self._speed_at(0.5 * (self.t_imu + t))
+            return self._propagated(self.ekf.snapshot(), t - self.t_imu, self._w_last, speed)
         return self.ekf.snapshot_view()
+
+    def _propagated(self, state: EkfState, dt: float, gyro: FloatArray, speed: float) -> EkfState:
+        """``state`` carried ``dt`` further at ``gyro`` and ``speed`` (the filter is left
+        as it was)."""
+        now = self.ekf.snapshot()
+        self.ekf.restore(state)
+        self.ekf.propagate(self._motion(gyro, speed, dt))
+        out = self.ekf.snapshot()
+        self.ekf.restore(now)
+        return out
 
     def inject_fault(self) -> None:
         """Fault injection (``runtime.fault_injection`` only): the filter's state becomes
@@ -568,10 +592,13 @@ class Localizer:
             self._history.popleft()
 
     def _propagate(self, t0: float, t1: float, gyro: FloatArray, speed: float) -> None:
-        w = self.ekf.corrected_rate(gyro)
         self._w_last = gyro.copy()
-        v = camera_velocity(speed, w, self.cfg.speed_contact_m)
-        self.ekf.propagate(BodyMotion.of(w, v, t1 - t0))
+        self.ekf.propagate(self._motion(gyro, speed, t1 - t0))
+
+    def _motion(self, gyro: FloatArray, speed: float, dt: float) -> BodyMotion:
+        """The body motion over ``dt`` at a gyro reading and a ground speed."""
+        w = self.ekf.corrected_rate(gyro)
+        return BodyMotion.of(w, camera_velocity(speed, w, self.cfg.speed_contact_m), dt)
 
     #: an IMU interval longer than this (s) is a gap (the IMU was unplugged): it is
     #: propagated in sub-steps with the ground speed measured meanwhile, and widened
@@ -598,14 +625,11 @@ class Localizer:
         self._step_one(t0, t1, gyro)
 
     def _step_one(self, t0: float, t1: float, gyro: FloatArray, gap: bool = False) -> None:
-        mid = 0.5 * (t0 + t1)
-        speed = self._speeds.at(mid)
-        speed_stale = self.t_speed is None or mid - self.t_speed > self.stale_s["speed"]
+        speed, speed_stale = self._speed_at(0.5 * (t0 + t1))
         pos_var = yaw_var = 0.0
         if speed_stale:
             # no ground speed: holding the last value would drive on while the mower may
             # have stopped; propagate at zero with the speed unknown up to max_speed_mps
-            speed = 0.0
             self.counters.speed_stale_steps += 1
             pos_var = (self.cfg.max_speed_mps * (t1 - t0)) ** 2
         if gap:
@@ -626,6 +650,12 @@ class Localizer:
         self._widen((pos_var, yaw_var))
         self._remember(t0, t1, gyro, speed, widen=(pos_var, yaw_var), speed_known=not speed_stale)
         self._check_fault()
+
+    def _speed_at(self, t: float) -> tuple[float, bool]:
+        """The ground speed to propagate with at ``t``, and whether it is stale (then 0)."""
+        if self.t_speed is None or t - self.t_speed > self.stale_s["speed"]:
+            return 0.0, True
+        return self._speeds.at(t), False
 
     def _respeed(self, since: float) -> None:
         """A ground-speed sample has come: the IMU intervals after the one before it (at

@@ -58,7 +58,7 @@ from mowerhw.runtime.sdnotify import Notifier
 log = logging.getLogger("mowerhw.daemon")
 
 TICK_MIN_S = 0.0005
-TICK_MAX_S = 0.04  # IMU samples decide at 100 Hz; this renews the 80 ms lease without them
+TICK_MAX_S = 0.04  # IMU samples decide (50–100 Hz); this renews the 80 ms lease without them
 
 
 class Daemon:
