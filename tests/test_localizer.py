@@ -336,3 +336,29 @@ def test_a_frame_between_two_imu_samples_is_predicted_where_the_update_starts(la
         assert np.abs(h - h_exact).max() < 1e-9
         _, h_before, _ = loc.predict_bearings(0.98)  # at a sample: that sample's state
         assert np.abs(h_before - h_exact).max() > 5e-3  # 10 ms or more at 1 rad/s off
+
+
+def test_a_late_imu_packet_is_not_a_gap_only_a_silence_past_the_limit_is(lawn_map):
+    """An IMU interval shorter than the IMU's staleness limit (0.1 s: the deck ran on through
+    it) is propagated, not treated as an unplugged IMU; one past the limit widens the pose
+    and asks for a run of good frames again."""
+    world = make_world("paper", 6)
+    plant = MowerPlant(world, 1)
+    loc = Localizer(lawn_map)
+    drive(loc, plant, [(0, 0, 2.0), (0, 0.8, 1.2), (0.45, 0, 3.0)])
+    assert loc.localized
+
+    def skip_imu(seconds: float) -> None:
+        for _ in range(round(seconds / plant.dt)):
+            out = plant.step(0.45, 0.0)
+            if out.speed is not None:
+                loc.speed(*out.speed)
+        out = plant.step(0.45, 0.0)
+        loc.imu(*out.imu)
+
+    skip_imu(0.07)  # the next sample 80 ms after the last
+    assert loc.counters.imu_gaps == 0 and loc.localized
+    drive(loc, plant, [(0.45, 0, 0.5)])
+    skip_imu(0.3)
+    assert loc.counters.imu_gaps == 1 and not loc.localized
+    assert "since an IMU gap" in loc.containment().detail
