@@ -392,22 +392,31 @@ class Localizer:
         if self.t_imu is None:
             return self.ekf.snapshot_view()
         if t < self.t_imu:
-            hist = self._history
-            k = next((i for i in range(len(hist) - 1, -1, -1) if hist[i].t1 <= t), None)
-            if k is None:
-                return self.ekf.snapshot_view()
-            nxt = hist[k + 1] if k + 1 < len(hist) else None
-            if nxt is None or nxt.held or t <= hist[k].t1:
-                return hist[k].state
-            return self._propagated(hist[k].state, t - hist[k].t1, nxt.gyro, nxt.speed)
+            k = self._step_before(t)
+            return self.ekf.snapshot_view() if k is None else self._state_in_history(k, t)
         if t > self.t_imu and t - self.t_imu <= self.stale_s["imu"] and self._w_last is not None:
             speed, _ = self._speed_at(0.5 * (self.t_imu + t))
-            return self._propagated(self.ekf.snapshot(), t - self.t_imu, self._w_last, speed)
+            return self._propagated(self.ekf.snapshot_view(), t - self.t_imu, self._w_last, speed)
         return self.ekf.snapshot_view()
 
+    def _step_before(self, t: float) -> int | None:
+        """The newest history step that ends at or before ``t`` (None: ``t`` is older than
+        the history)."""
+        hist = self._history
+        return next((i for i in range(len(hist) - 1, -1, -1) if hist[i].t1 <= t), None)
+
+    def _state_in_history(self, k: int, t: float) -> EkfState:
+        """The state at ``t`` from history step ``k`` (the newest ending by ``t``): its state,
+        carried over the rest of the next interval up to ``t`` unless that one was held."""
+        hist = self._history
+        nxt = hist[k + 1] if k + 1 < len(hist) else None
+        if nxt is None or nxt.held or t <= hist[k].t1:
+            return hist[k].state
+        return self._propagated(hist[k].state, t - hist[k].t1, nxt.gyro, nxt.speed)
+
     def _propagated(self, state: EkfState, dt: float, gyro: FloatArray, speed: float) -> EkfState:
-        """``state`` carried ``dt`` further at ``gyro`` and ``speed`` (the filter is left
-        as it was)."""
+        """``state`` (a copy or a view: it is copied, not changed) carried ``dt`` further at
+        ``gyro`` and ``speed``; the filter is left as it was."""
         now = self.ekf.snapshot()
         self.ekf.restore(state)
         self.ekf.propagate(self._motion(gyro, speed, dt))
@@ -708,16 +717,13 @@ class Localizer:
     ) -> None:
         """Apply a frame at its own time and re-propagate the IMU samples since (exact)."""
         hist = self._history
-        k = next((i for i in range(len(hist) - 1, -1, -1) if hist[i].t1 <= t), None)
+        k = self._step_before(t)
         if k is None:
             self.counters.late_frames_dropped += 1
             return
         self.counters.late_frames += 1
-        self.ekf.restore(hist[k].state)
+        self.ekf.restore(self._state_in_history(k, t))  # with the next interval up to t
         after = list(hist)[k + 1 :]
-        if after and t > hist[k].t1 and not after[0].held:  # the next interval up to t
-            nxt = after[0]
-            self._propagate(hist[k].t1, t, nxt.gyro, nxt.speed)
         resets = self._resets
         self._frame_update(t, rows, u, refused, after[0].gyro if after else None)
         if self._resets != resets:  # the update re-initialised the filter at t: replay since
