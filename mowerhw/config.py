@@ -283,6 +283,13 @@ class FrontendConfig:
     )
     klt_window_px: int = opt(21, "Lucas–Kanade window (px)", ge=5, le=101)
     klt_levels: int = opt(3, "Lucas–Kanade pyramid levels above full size", ge=0, le=6)
+    klt_base_level: int = opt(
+        1,
+        "pyramid level Lucas–Kanade tracks on (1: half size, a quarter of the work; the "
+        "sub-pixel refinement then finds each corner at full size); at most klt_levels",
+        ge=0,
+        le=2,
+    )
     fb_max_px: float = opt(0.7, "largest forward–backward tracking error kept (px)", gt=0.0)
     subpixel: bool = opt(True, "refine tracked corners to sub-pixel (stops KLT drift)")
     max_refine_px: float = opt(1.5, "drop a track whose refinement moves it further (px)", gt=0.0)
@@ -1036,6 +1043,19 @@ def _cross_checks(cfg: Config) -> list[str]:
         problems.append(
             f"imu.baudrate: {cfg.imu.baudrate} is too slow for {cfg.imu.rate_hz} Hz ASCII output "
             "(docs/design.md §7); use 230400 or more, or imu.output: binary"
+        )
+    fe = cfg.frontend
+    if fe.klt_base_level > fe.klt_levels:
+        problems.append(
+            f"frontend.klt_base_level: {fe.klt_base_level} is above frontend.klt_levels "
+            f"({fe.klt_levels}); Lucas–Kanade tracks from a level of its own pyramid, 0 to "
+            f"{fe.klt_levels}"
+        )
+    if fe.klt_base_level > 0 and not fe.subpixel:
+        problems.append(
+            f"frontend.klt_base_level: {fe.klt_base_level} needs frontend.subpixel: true "
+            "(tracks from a smaller image are found again at full size by the refinement); "
+            "set klt_base_level: 0 to track at full size without it"
         )
     cal = cfg.camera.calibration
     if cal.exists():

@@ -68,6 +68,14 @@ BAD_VALUES = [
         "460800, 921600",
     ),
     ({"imu": {"driver": "vn200"}}, "imu.driver: 'vn200' is not one of vn100, mock"),
+    (
+        {"frontend": {"klt_base_level": 2, "klt_levels": 1}},
+        "frontend.klt_base_level: 2 is above frontend.klt_levels (1)",
+    ),
+    (
+        {"frontend": {"subpixel": False}},
+        "frontend.klt_base_level: 1 needs frontend.subpixel: true",
+    ),
     ({"imu": {"rate_hz": 99}}, "imu.rate_hz: 99 is not one of 1, 2, 4, 5, 8, 10, 16, 20, 25"),
     ({"imu": {"rate_hz": "fast"}}, "imu.rate_hz: 'fast' is not a whole number"),
     ({"imu": {"rate_hz": 100.5}}, "imu.rate_hz: 100.5 is not a whole number"),

@@ -6,7 +6,9 @@ Per frame (:meth:`FrontEnd.process`):
    feature's start guess rotated by the gyro (``R21``) so a turn does not lose it, and the
    previous image first turned by the same amount about the mirror centre (Lucas–Kanade
    follows shifts, not rotated patches); then tracked back, and kept only if it returns
-   within ``fb_max_px`` (forward–backward check).
+   within ``fb_max_px`` (forward–backward check). It runs on the half-size image
+   (``klt_base_level``: a quarter of the pixels, the same patch and coarsest level); step 2
+   puts each corner back on the full-size image.
 2. **Refine**: corners are snapped to sub-pixel (``cv2.cornerSubPix``); KLT alone drifts a
    little every frame, and over a 60 s teach loop the drift adds up. A feature the refinement
    moves more than ``max_refine_px`` is not a corner and is dropped.
@@ -161,7 +163,8 @@ class FrontEnd:
         self.describer = OrbDescriber((float(center[0]), float(center[1])))
         self.detect_mask = self._detection_mask()
         c = self.cfg
-        self._win = (c.klt_window_px, c.klt_window_px)
+        win = max(5, (c.klt_window_px >> c.klt_base_level) | 1)  # the same patch, smaller
+        self._win = (win, win)
         self._criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
         self._subpix = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
         self._refine_win = (3, 3)  # a 7×7 window: small enough to see one corner only
@@ -219,8 +222,13 @@ class FrontEnd:
         c = self.cfg
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        # (OpenCV 5's Python binding takes images, not prebuilt pyramids, in calcOpticalFlowPyrLK)
+        # Lucas–Kanade runs on pyramid level ``klt_base_level`` (OpenCV 5's Python binding
+        # takes images, not prebuilt pyramids, so each call builds both images' pyramids: on
+        # a half-size image a quarter of the work); the refinement then finds each corner at
+        # full size
         pyr = image
+        for _ in range(c.klt_base_level):
+            pyr = cv2.pyrDown(pyr)
         r21 = np.eye(3) if r_prev_cur is None else np.asarray(r_prev_cur).T
         if self._prev_pyr is not None and self._ids.size:
             self._track(pyr, r21)
@@ -276,16 +284,21 @@ class FrontEnd:
         return float(np.degrees(np.arctan2(cross, dot)))
 
     def _track(self, pyr: NDArray[np.uint8], r21: FloatArray) -> None:
+        """Lucas–Kanade from the previous image (``pyr``: the current one at the tracking
+        level ``klt_base_level``; pixels there are full-size ones over ``2**level``)."""
         c = self.cfg
         prev = self._prev_pyr
+        assert prev is not None
+        scale = 0.5**c.klt_base_level
         p0 = self._pts.reshape(-1, 2).copy()
         guess = self._predict(r21) if c.gyro_prediction else p0.copy()
         # Lucas–Kanade follows translations; a turn rotates every patch too (12° per frame
         # at 0.8 rad/s and 4 Hz). Undo the turn on the previous image first, so what is
         # left to track is the parallax of the mower's own travel.
         angle = self._image_rotation(p0, guess)
+        p0, guess = p0 * scale, guess * scale
         if abs(angle) > self.DEROTATE_ABOVE_DEG:
-            m = cv2.getRotationMatrix2D(tuple(self._center.tolist()), -angle, 1.0)
+            m = cv2.getRotationMatrix2D(tuple((self._center * scale).tolist()), -angle, 1.0)
             prev = cv2.warpAffine(prev, m, (prev.shape[1], prev.shape[0]), flags=cv2.INTER_LINEAR)
             p0 = (p0 @ m[:, :2].T + m[:, 2]).astype(np.float32)
         p0 = p0.reshape(-1, 1, 2)
@@ -296,7 +309,7 @@ class FrontEnd:
             p0,
             guess.copy(),
             winSize=self._win,
-            maxLevel=c.klt_levels,
+            maxLevel=c.klt_levels - c.klt_base_level,
             criteria=self._criteria,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
@@ -306,13 +319,13 @@ class FrontEnd:
             p1,
             p0.copy(),
             winSize=self._win,
-            maxLevel=c.klt_levels,
+            maxLevel=c.klt_levels - c.klt_base_level,
             criteria=self._criteria,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
         st, st_b = st.ravel().astype(bool), st_b.ravel().astype(bool)
-        fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
-        p1 = p1.reshape(-1, 2)
+        fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1) / scale  # full-size px
+        p1 = p1.reshape(-1, 2) / scale
         inside = np.zeros(len(p1), bool)
         fin = np.all(np.isfinite(p1), axis=1)
         ui = np.round(p1[fin]).astype(int)
