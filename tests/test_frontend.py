@@ -1,5 +1,6 @@
 """The vision front end: tracking through turns, outlier rejection, descriptors, association."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -121,6 +122,54 @@ def test_descriptors_do_not_change_with_heading(scene):
     h = hamming(d0, d1)
     assert np.all(np.diag(h) <= 30)
     assert np.median(h[~np.eye(len(h), dtype=bool)]) > 60
+
+
+def _orb_on_the_whole_image(image, pixels, center):
+    """OpenCV's ORB on the whole image at ``pixels`` with the radial angle (the reference
+    :class:`OrbDescriber` must equal bit for bit)."""
+    orb = cv2.ORB_create(edgeThreshold=31, patchSize=31)
+    kps = [
+        cv2.KeyPoint(
+            float(u),
+            float(v),
+            31.0,
+            np.degrees(np.arctan2(v - center[1], u - center[0])) % 360.0,
+            1.0,
+            0,
+            k,
+        )
+        for k, (u, v) in enumerate(pixels.tolist())
+    ]
+    kept, desc = orb.compute(image, kps)
+    out = np.zeros((len(pixels), 32), np.uint8)
+    ok = np.zeros(len(pixels), bool)
+    idx = np.array([kp.class_id for kp in kept], dtype=np.int64)
+    out[idx], ok[idx] = desc, True
+    return out, ok
+
+
+def test_descriptors_from_tiles_are_the_whole_images(scene):
+    """The describer cuts each keypoint's neighbourhood out and describes the tiles side by
+    side: the same bits as ORB over the whole image, the same keypoints refused at the
+    border — on a rendered frame and on noise, at random pixels, next to the border and at
+    half pixels (where rounding decides)."""
+    world, r, c = scene
+    rng = np.random.default_rng(4)
+    rendered = r.render(c[0], c[1], 0.3)
+    h, w = rendered.shape[:2]
+    near = np.r_[rng.uniform(25, 37, 150), rng.uniform(w - 37, w - 25, 150)]
+    pix = np.r_[
+        np.c_[rng.uniform(-3, w + 3, 400), rng.uniform(-3, h + 3, 400)],
+        np.c_[near, rng.uniform(40, h - 40, 300)],
+        np.c_[rng.uniform(40, w - 40, 300), near],
+    ]
+    pix = np.r_[pix, np.floor(pix[:200]) + 0.5].astype(np.float32)
+    center = (world.camera.cu + 3.3, world.camera.cv - 1.7)
+    for image in (rendered, rng.integers(0, 256, (h, w), dtype=np.uint8)):
+        want, want_ok = _orb_on_the_whole_image(image, pix, center)
+        got, got_ok = OrbDescriber(center).describe(image, pix)
+        assert np.array_equal(got_ok, want_ok) and 0 < want_ok.sum() < len(pix)
+        assert np.array_equal(got, want)
 
 
 def test_hamming_helpers_match_brute_force():
