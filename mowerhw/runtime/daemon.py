@@ -9,8 +9,11 @@ Everything that decides lives in the core; this module moves data between it and
 * camera frames wait in a one-slot queue (the oldest is dropped); the front end tracks one
   frame at a time in its own process (``frontend_worker``) and the tracks go into the core;
 * estimator chains are built off the loop when the core asks for one;
-* a ticker (next staleness deadline or CAN frame due, at least every 40 ms) decides, sends
-  frames, watches the map file, finishes a taught loop, pings systemd's watchdog.
+* a decision timer, re-armed by every decision, decides when nothing else has: at the next
+  staleness deadline, when a CAN frame is due, or 40 ms after the last decision (an IMU that
+  keeps time leaves it nothing to do, and the loop does not wake for it);
+* a ticker (every 0.1 s) feeds the status page, the recording, watches the map file,
+  finishes a taught loop, pings systemd's watchdog.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import logging
 import os
 import signal
 import time
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -57,8 +60,10 @@ from mowerhw.runtime.sdnotify import Notifier
 
 log = logging.getLogger("mowerhw.daemon")
 
-TICK_MIN_S = 0.0005
-TICK_MAX_S = 0.04  # IMU samples decide (50–100 Hz); this renews the 80 ms lease without them
+#: without IMU samples, a decision at least this often (it renews the supervisor's 80 ms lease)
+DECIDE_MAX_S = 0.04
+#: the ticker's period: the status page's samples, the recording, the map file, systemd
+TICK_S = 0.1
 
 
 class Daemon:
@@ -101,6 +106,9 @@ class Daemon:
         self._pose_future: Future[None] | None = None
         self._builds: dict[int, asyncio.Future[Any]] = {}
         self._names: dict[asyncio.Future[Any], str] = {}  # running tasks (kept referenced)
+        self._decision_timer: asyncio.TimerHandle | None = None
+        self._decision_due = 0.0
+        self._timer_fired: Callable[[Any], None] | None = None  # set while running
         self.exit_status = 0
         self._next_map_check = self._next_record = 0.0
         self._started = time.monotonic()
@@ -138,6 +146,9 @@ class Daemon:
         arrived = crash_only(self._on_frame, "camera frame", self._handler_failed)
         self.camera = open_camera(self.cfg, asyncio_sink(loop, self._frames, arrived))
         await self.set_mode(self.start_mode)
+        self._timer_fired = crash_only(
+            self._decision_timer_fired, "decision timer", self._handler_failed
+        )
         tasks = [self._spawn(self._ticker(), "ticker"), self._spawn(self._frame_task(), "frontend")]
         self.notifier.ready(self.core.status_line())
         log.info("running: mode %s, control socket %s", self.core.mode, control.path)
@@ -159,6 +170,10 @@ class Daemon:
             self.core.shutdown()
         self.notifier.stopping()
         self._decide(time.monotonic())
+        self._timer_fired = None  # no more timed decisions
+        if self._decision_timer is not None:
+            self._decision_timer.cancel()
+            self._decision_timer = None
         if self.can is not None:
             self.can.shutdown(time.monotonic())
         for t in tasks:
@@ -285,6 +300,31 @@ class Daemon:
         idle = self._pose_future is None or self._pose_future.done()  # else skip this one
         if pose is not None and lawn_map is not None and idle:
             self._pose_future = self._pose_pool.submit(self.pose_file.save, pose, lawn_map.checksum)
+        self._arm_decision_timer(now)
+
+    def _arm_decision_timer(self, now: float) -> None:
+        """The next decision nothing else will make: at the next staleness deadline (a
+        silent sensor halts within a millisecond or two of its limit), when a CAN frame is
+        due, or ``DECIDE_MAX_S`` after this one (the lease renewed while the IMU is late)."""
+        loop = self.loop
+        if loop is None or self._timer_fired is None:  # not running, or shut down
+            return
+        due = min(now + DECIDE_MAX_S, self.core.next_deadline(now) + 1e-4)
+        if self.can is not None:
+            due = min(due, self.can.next_due())
+        if self._decision_timer is not None:
+            self._decision_timer.cancel()
+        self._decision_due = due
+        self._decision_timer = loop.call_at(due, self._timer_fired, None)  # loop time: monotonic
+
+    def _decision_timer_fired(self, _: Any = None) -> None:
+        self._decision_timer = None
+        now = time.monotonic()
+        self.loop_lag.woke(self._decision_due, now)
+        assert self.can is not None
+        self.can.retry(now)
+        self._decide(now)  # re-arms the timer
+        self.can.tick(now)
 
     # ---------------------------------------------------------------------------- modes
 
@@ -357,10 +397,10 @@ class Daemon:
     # ---------------------------------------------------------------------------- ticker
 
     async def _ticker(self) -> None:
+        self._arm_decision_timer(time.monotonic())
         while True:
-            wait = self._next_tick_wait(time.monotonic())
-            due = time.monotonic() + wait
-            await asyncio.sleep(wait)
+            due = time.monotonic() + TICK_S
+            await asyncio.sleep(TICK_S)
             now = time.monotonic()
             self.loop_lag.woke(due, now)
             if self.estimator_delay_s and now >= self._next_delay:
@@ -368,10 +408,6 @@ class Daemon:
                 # computer too slow for it): its decisions come late, the leases run out
                 self._next_delay = now + 0.2
                 time.sleep(self.estimator_delay_s)
-            assert self.can is not None
-            self.can.retry(now)
-            self._decide(now)
-            self.can.tick(now)
             self.live_view.sample(self.core, now)
             if self.recorder is not None and now >= self._next_record:
                 self._next_record = now + 0.1
@@ -383,12 +419,6 @@ class Daemon:
                 log.info("teach: loop detected (stopped back at the start); finishing")
                 self._spawn(self.finish_teach(), "teach finish")
             self.notifier.tick(now, self.core.status_line())
-
-    def _next_tick_wait(self, now: float) -> float:
-        due = min(now + TICK_MAX_S, self.core.next_deadline(now) + 1e-4)
-        if self.can is not None:
-            due = min(due, self.can.next_due())
-        return max(TICK_MIN_S, due - now)
 
     # --------------------------------------------------------------------------- control
 

@@ -4,7 +4,9 @@ It owns the CAN bus and is the only writer of the permit frames; it starts the e
 process (:func:`mowerhw.supervisor.child.estimator_main`) and talks to it over one pipe:
 the ground-speed frames it receives go down (the child decodes them; every frame while it
 records), every decision comes up as a lease. One plain loop, no numpy, no asyncio: it wakes when a
-lease arrives, when the newest lease runs out, when a frame is due (at least every 20 ms).
+lease arrives, when the newest lease runs out, when a frame is due, when the ground speed it
+watches would go stale, when a switch frame of the mower's controller changes a safety latch
+(the CAN receive thread says so through a pipe), and at least every 0.1 s.
 
 Crash-only: the estimation process dying (or not starting) halts the deck, announces the
 fault (heartbeat 254), names it in the log and ends the service with exit status 1, for
@@ -42,7 +44,7 @@ from mowerhw.web.process import WebProcess
 
 log = logging.getLogger("mowerhw.supervisor")
 
-TICK_MAX_S = 0.02
+TICK_MAX_S = 0.1  # the watchdog, the status down to the child, the web process
 STATUS_PERIOD_S = 0.5  # the supervisor's status, down to the child (for `mowerhw ctl status`)
 
 
@@ -136,6 +138,10 @@ class Supervisor:
         self._speed_arrival: dict[str, float | None] = {"speed": None}
         self._send_lock = threading.Lock()
         self._rx: threading.Thread | None = None
+        # the CAN receive thread wakes the loop when a switch frame changes a safety latch
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
         self._next_status = 0.0
         self._lifted_told = False  # what the estimation side was last told about a lift
         self._next_watchdog = 0.0
@@ -194,7 +200,12 @@ class Supervisor:
                 sw = decode_switches(data)
                 if sw is not None:
                     with self._safety_lock:
+                        before = self.safety.halt(now) is None
                         self.safety.switches(now, sw.lifted, sw.bumped, sw.stop)
+                        changed = (self.safety.halt(now) is None) != before
+                    if changed:  # the loop decides at once, not at its next deadline
+                        with contextlib.suppress(BlockingIOError, OSError):
+                            os.write(self._wake_w, b"!")
                 continue
             s = self._speed.handle(msg.arbitration_id, data, now)
             if s is not None and s.valid:
@@ -294,8 +305,13 @@ class Supervisor:
             expires = self.gate.lease_expires()
             if expires > now:
                 due = min(due, expires + 1e-4)
-            ready = wait([self.conn, self.child.sentinel], max(0.0005, due - now))
+            if self.lease_mow():
+                due = min(due, self.speed_gate.next_stale_deadline(now, self._speed_arrival) + 1e-4)
+            ready = wait([self.conn, self.child.sentinel, self._wake_r], max(0.0005, due - now))
             now = time.monotonic()
+            if self._wake_r in ready:
+                with contextlib.suppress(BlockingIOError, OSError):
+                    os.read(self._wake_r, 4096)
             if not ready:  # woke on its own deadline: how late (a busy or starved process)
                 lag_ms = (now - due) * 1e3
                 self.max_loop_lag_ms = max(self.max_loop_lag_ms, lag_ms)
@@ -424,6 +440,12 @@ class Supervisor:
         if self.port.bus is not None:
             with contextlib.suppress(Exception):
                 self.port.bus.shutdown()
+        if self._rx is not None:
+            self._rx.join(timeout=0.5)  # it sees stop_requested within its receive timeout
+        if self._rx is None or not self._rx.is_alive():  # else it may still write: left open
+            for fd in (self._wake_r, self._wake_w):
+                with contextlib.suppress(OSError):
+                    os.close(fd)
         log.info("supervisor stopped")
 
 
