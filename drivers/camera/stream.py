@@ -44,7 +44,7 @@ class FrameStreamError(ValueError):
     """A frame message that does not follow the format."""
 
 
-def decode_header(raw: bytes) -> tuple[int, float, int, int, int]:
+def decode_header(raw: bytes | bytearray) -> tuple[int, float, int, int, int]:
     magic, seq, t, w, h, ch, _ = HEADER.unpack(raw)
     if magic != MAGIC:
         raise FrameStreamError(f"bad frame magic {magic!r} (expected {MAGIC!r})")
