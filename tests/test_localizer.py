@@ -362,3 +362,29 @@ def test_a_late_imu_packet_is_not_a_gap_only_a_silence_past_the_limit_is(lawn_ma
     skip_imu(0.3)
     assert loc.counters.imu_gaps == 1 and not loc.localized
     assert "since an IMU gap" in loc.containment().detail
+
+
+def test_after_an_imu_gap_the_relocalizer_checks_the_pose_near_where_it_was(lawn_map):
+    """With a relocalizer (pixel level), an IMU gap gives the pose up to a search near the
+    filter's pose, as a resumed pose is checked: the widened pose's first associations may
+    pair wrong corners (on the bench: 13 cm off at σ 1.5 cm after ten frames, permitted)."""
+    world = make_world("paper", 6)
+    plant = MowerPlant(world, 1)
+    loc = Localizer(lawn_map)
+    drive(loc, plant, [(0, 0, 2.0), (0, 0.8, 1.2), (0.45, 0, 3.0)])
+    assert loc.localized and not loc.searching
+    loc.relocalizes = True  # as MowVision.use_relocalizer leaves it once the start is checked
+    for _ in range(round(0.3 / plant.dt)):
+        out = plant.step(0.0, 0.0)
+        if out.speed is not None:
+            loc.speed(*out.speed)
+    out = plant.step(0.0, 0.0)
+    loc.imu(*out.imu)
+    assert loc.counters.imu_gaps == 1 and loc.searching and not loc.localized
+    near = loc.search_near()
+    assert (
+        near is not None
+        and math.hypot(near[0] - loc.pose().position[0], near[1] - loc.pose().position[1]) < 1e-9
+    )
+    detail = loc.containment().detail
+    assert "near the prior since an IMU gap" in detail, detail
