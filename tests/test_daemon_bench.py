@@ -28,6 +28,8 @@ def test_mows_with_faults_and_recovers(yard_map, tmp_path) -> None:
     print({k: res[k] for k in ("position_rmse_m", "missed_halts", "halt_latency_ms")})
     assert res["missed_halts"] == 0
     assert res["position_rmse_m"] is not None and res["position_rmse_m"] < 0.10
+    # after each fault (an IMU gap, an estimator restart) the deck runs on a right pose only
+    assert res["permitted_samples_off_over_0.15m"] == 0, res["position_max_while_permitted_m"]
     by_kind = {f["kind"]: f for f in res["faults"]}
     expected = {
         "imu-unplug": "SENSOR_STALE",
@@ -92,3 +94,4 @@ def test_started_anywhere_with_no_pose_file_it_localizes_and_mows(yard_map, tmp_
     assert res["relocalization"]["relocalizations"] >= 1
     assert res["permit_fraction"] > 0.3, res["halts_by_reason"]
     assert res["position_rmse_m"] < 0.05
+    assert res["permitted_samples_off_over_0.15m"] == 0, res["position_max_while_permitted_m"]

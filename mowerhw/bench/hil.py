@@ -52,6 +52,7 @@ import yaml
 from drivers.can.isobus import open_bus
 from drivers.can.switches import Switches
 from mowerhw.bench.notify import NotifyListener
+from mowerhw.evaluation.recovery import WRONG_M
 from mowerhw.evaluation.scoring import score_halts
 from mowerhw.runtime.control_protocol import request
 
@@ -698,14 +699,16 @@ class Bench:
             in_fault |= (t >= a) & (t < b)
         halts = score_halts(t, deck, s_true, first_permit, 1.0 / 200.0, in_fault)
         # the daemon's estimate against the truth at its own time stamps
-        errs = []
-        for tp, xp, yp, _, _ in self.pose_samples:
+        errs, permitted = [], []
+        for tp, xp, yp, permit, _ in self.pose_samples:
             k = int(np.searchsorted(t, tp))
             if 0 < k < t.size and t[k] - t[k - 1] < 0.05:
                 f = (tp - t[k - 1]) / (t[k] - t[k - 1])
                 xt = x[k - 1] + f * (x[k] - x[k - 1])
                 yt = y[k - 1] + f * (y[k] - y[k - 1])
                 errs.append(math.hypot(xp - xt, yp - yt))
+                permitted.append(bool(permit))
+        off = np.array(errs)[np.array(permitted, dtype=bool)] if errs else np.zeros(0)
         lat = np.array([d["latency_ms"] for d in latencies]) if latencies else np.zeros(0)
         gaps = _permit_gaps(t, deck, first_permit)
         cpu_percent = 100.0 * self.cpu_s_total / max(mow_s, 1e-9)
@@ -713,6 +716,9 @@ class Bench:
             "position_rmse_m": round(float(np.sqrt(np.mean(np.square(errs)))), 4) if errs else None,
             "position_max_m": round(float(np.max(errs)), 4) if errs else None,
             "pose_samples": len(errs),
+            # issue 18: the deck ran while the pose was this wrong (polled at 5 Hz)
+            "position_max_while_permitted_m": round(float(off.max()), 4) if off.size else None,
+            "permitted_samples_off_over_0.15m": int(np.sum(off > WRONG_M)),
             "missed_halts": halts["missed_halts"],
             "false_halt_fraction": halts["false_halt_fraction"],
             "halt_latency_ms": {

@@ -437,11 +437,11 @@ class Supervisor:
                 log.error("the estimation process did not stop: killing it")
                 self.child.kill()
                 self.child.join(timeout=1.0)
+        if self._rx is not None:  # before the bus closes under it (no "receive failed")
+            self._rx.join(timeout=0.5)  # it sees stop_requested within its receive timeout
         if self.port.bus is not None:
             with contextlib.suppress(Exception):
                 self.port.bus.shutdown()
-        if self._rx is not None:
-            self._rx.join(timeout=0.5)  # it sees stop_requested within its receive timeout
         if self._rx is None or not self._rx.is_alive():  # else it may still write: left open
             for fd in (self._wake_r, self._wake_w):
                 with contextlib.suppress(OSError):
