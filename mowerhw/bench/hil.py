@@ -726,6 +726,12 @@ class Bench:
                 "p99": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
                 "max": round(float(lat.max()), 3) if lat.size else None,
                 "n": int(lat.size),
+                # the worst of each halt reason (a start at the dock on the edge is OUTSIDE
+                # before the clock sync has settled; a silent sensor halts at its deadline)
+                "max_by_reason": {
+                    reason: max(d["latency_ms"] for d in latencies if d["reason"] == reason)
+                    for reason in sorted({d["reason"] for d in latencies})
+                },
             },
             "permit_gaps": gaps,
             "cpu_percent": round(cpu_percent, 1),
