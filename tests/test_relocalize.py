@@ -237,3 +237,61 @@ def test_a_filter_started_from_an_answer_does_not_count_its_landmarks_twice() ->
     lo, hi = chi2.ppf([0.005, 0.995], 3 * 20) / 20
     assert lo <= np.mean(nees[True]) <= hi, (np.mean(nees[True]), lo, hi)
     assert np.mean(nees[False]) > 1.25 * np.mean(nees[True])  # what the test tells apart
+
+
+def test_the_vote_counts_what_its_definition_says() -> None:
+    """Blocked, sliced and cache-sized as it is, the vote is: per position and heading bin,
+    the observations with a landmark within the elevation tolerance whose azimuth minus the
+    observation's falls in the bin — each observation once per (position, bin)."""
+    rng = np.random.default_rng(11)
+    pts = _ring(rng, 30)
+
+    class SmallBlocks(GlobalRelocalizer):
+        VOTE_BLOCK = 7  # many blocks, the last one partial
+
+    reloc = GlobalRelocalizer(_map(pts), grid_m=0.5)
+    reloc_small_blocks = SmallBlocks(_map(pts), grid_m=0.5)
+    bearings = np.vstack([_view(pts[:20], np.array([0.5, 1.0, 0.0]), 1.0, rng, 0.003)])
+    bearings = np.vstack([bearings, rng.normal(0, 1, (8, 3))])
+    bearings /= np.linalg.norm(bearings, axis=1, keepdims=True)
+    azimuth = np.arctan2(bearings[:, 1], bearings[:, 0])
+    elevation = np.arctan2(bearings[:, 2], np.hypot(bearings[:, 0], bearings[:, 1]))
+    expected = np.zeros((reloc.grid.shape[0], reloc.n_bins), dtype=np.int64)
+    for k in range(azimuth.size):
+        ok = reloc._in_range & (np.abs(reloc._elevation - elevation[k]) < reloc.elevation_tol_rad)
+        p_idx, n_idx = np.nonzero(ok)
+        yaw = (reloc._azimuth[p_idx, n_idx] - azimuth[k]) % (2 * math.pi)
+        bins = np.floor(yaw / reloc.yaw_bin).astype(np.int64) % reloc.n_bins
+        cells = np.unique(p_idx * reloc.n_bins + bins)
+        expected.ravel()[cells] += 1
+    for r in (reloc, reloc_small_blocks):
+        got = r._votes(azimuth, elevation)
+        assert expected.sum() > 1000
+        # a pair exactly on a bin edge may round either way: a handful at most
+        assert np.abs(got - expected).sum() <= 2
+
+
+def test_the_polish_grid_scores_every_pose_as_against_every_landmark() -> None:
+    """The polish scores a pose's bearings only against the landmarks that can come near
+    them from somewhere on its grid: the same scores as against every landmark."""
+    rng = np.random.default_rng(12)
+    pts = _ring(rng, 40)
+    pts[:5, :2] = rng.uniform(-1.5, 1.5, (5, 2))  # some close by: large bearing changes
+    reloc = GlobalRelocalizer(_map(pts))
+    p, yaw = np.array([0.3, -0.4, reloc.height]), 0.7
+    bearings = np.vstack([_view(pts, p, yaw, rng, 0.003), rng.normal(0, 1, (10, 3))])
+    bearings /= np.linalg.norm(bearings, axis=1, keepdims=True)
+    state = np.array([0.5, -0.3, yaw + 0.03])
+    step = np.arange(-reloc.POLISH_M, reloc.POLISH_M + 1e-9, reloc.POLISH_STEP_M)
+    turn = np.arange(-reloc.POLISH_RAD, reloc.POLISH_RAD + 1e-9, reloc.POLISH_STEP_RAD)
+    got = reloc._grid_scores(bearings, state, step, turn)
+    gx, gy, gyaw = np.meshgrid(state[0] + step, state[1] + step, state[2] + turn, indexing="ij")
+    expected = np.array(
+        [
+            reloc.soft_score(bearings, np.array(q), reloc.GRID_SIGMA_RAD)
+            for q in zip(gx.ravel(), gy.ravel(), gyaw.ravel(), strict=True)
+        ]
+    )
+    assert got.shape == expected.shape
+    assert np.abs(got - expected).max() < 1e-6
+    assert expected.max() > 30.0  # the true pose is on the grid: most bearings count

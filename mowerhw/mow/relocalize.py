@@ -49,6 +49,7 @@ the odometry) is the caller's: :class:`mowerhw.mow.recovery.RelocalizationSearch
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 
@@ -75,6 +76,9 @@ COMPASS_MAX_TOLERANCE_RAD = math.radians(60.0)
 
 class GlobalRelocalizer:
     """The pose from one frame's bearings and the map's landmarks (module doc)."""
+
+    #: positions per block of the vote (its table: 256 × 90 bins × 2 bytes, in cache)
+    VOTE_BLOCK = 256
 
     def __init__(
         self,
@@ -121,33 +125,55 @@ class GlobalRelocalizer:
         horizontal = np.hypot(d[..., 0], d[..., 1])
         self._elevation = np.arctan2(self.points[None, :, 2] - self.height, horizontal)
         self._in_range = horizontal <= max_range_m
-        # every (position, landmark) pair in range, sorted by elevation: an observation's
-        # compatible pairs are one slice (the vote costs what it counts, not P × N)
-        pi, ni = np.nonzero(self._in_range)
-        order = np.argsort(self._elevation[pi, ni], kind="stable")
-        self._pair_elevation = self._elevation[pi, ni][order]
-        self._pair_position = pi[order]
-        self._pair_azimuth = self._azimuth[pi, ni][order]
+        # every (position, landmark) pair in range, in blocks of positions, each sorted by
+        # elevation: an observation's compatible pairs in a block are one slice (the vote
+        # costs what it counts, not P × N), and a block's part of the vote table stays in
+        # the processor's cache while its slices are counted
+        pi, ni = np.nonzero(self._in_range)  # in position order, so in block order
+        elevation = self._elevation[pi, ni]
+        n_blocks = -(-self.grid.shape[0] // self.VOTE_BLOCK)
+        starts = np.searchsorted(pi, np.arange(n_blocks + 1) * self.VOTE_BLOCK)
+        order = np.concatenate(
+            [np.zeros(0, np.intp)]
+            + [a + np.argsort(elevation[a:b]) for a, b in itertools.pairwise(starts.tolist())]
+        )
+        self._pair_elevation = elevation[order]
+        # a pair's azimuth in heading bins, in [0, bins), and its first vote in its block
+        self._pair_azimuth_bins = (self._azimuth[pi, ni][order] % (2 * math.pi)) / yaw_bin_rad
+        self._pair_vote_base = (pi[order] % self.VOTE_BLOCK).astype(np.intp) * self.n_bins
+        self._block_start = starts
 
     # ---------------------------------------------------------------------------- search
 
     def _votes(self, azimuth: FloatArray, elevation: FloatArray) -> NDArray[np.int64]:
         """(P, bins) count of elevation-compatible (observation, landmark) pairs per heading."""
-        p_n = self._azimuth.shape[0]
-        votes = np.zeros(p_n * self.n_bins, dtype=np.int64)
+        p_n, n_bins = self.grid.shape[0], self.n_bins
+        # a count never exceeds the observations: the narrowest type that holds them keeps
+        # the table in cache (the scattered increments below are most of the cost)
+        dtype = np.int16 if azimuth.size < np.iinfo(np.int16).max else np.int64
+        votes = np.zeros(p_n * n_bins, dtype=dtype)
         tol = self.elevation_tol_rad
-        lo = np.searchsorted(self._pair_elevation, elevation - tol, side="right")
-        hi = np.searchsorted(self._pair_elevation, elevation + tol, side="left")
-        for k in range(azimuth.size):  # one observation at a time: its compatible pairs
-            a, b = int(lo[k]), int(hi[k])
-            if a >= b:
-                continue
-            yaw = (self._pair_azimuth[a:b] - azimuth[k]) % (2 * math.pi)
-            bins = (yaw / self.yaw_bin).astype(np.int64) % self.n_bins
-            # one vote per observation per (position, bin): a fancy-indexed += adds once
-            # per distinct index, however often it repeats (unlike np.add.at)
-            votes[self._pair_position[a:b] * self.n_bins + bins] += 1
-        return votes.reshape(p_n, self.n_bins)
+        # the heading, in bins, of (pair azimuth − observed azimuth) + a turn: in (0, 2 bins)
+        shift = (azimuth % (2 * math.pi)) / self.yaw_bin - n_bins
+        size = self._pair_elevation.size
+        turn, index = np.empty(size), np.empty(size, dtype=np.intp)  # reused buffers
+        starts = self._block_start.tolist()
+        for blk, (s0, s1) in enumerate(itertools.pairwise(starts)):
+            block = votes[blk * self.VOTE_BLOCK * n_bins : (blk + 1) * self.VOTE_BLOCK * n_bins]
+            ele = self._pair_elevation[s0:s1]
+            lo = (s0 + np.searchsorted(ele, elevation - tol, side="right")).tolist()
+            hi = (s0 + np.searchsorted(ele, elevation + tol, side="left")).tolist()
+            for k, (a, b) in enumerate(zip(lo, hi, strict=True)):  # an observation's pairs
+                if a >= b:
+                    continue
+                idx = index[: b - a]
+                idx[...] = np.subtract(self._pair_azimuth_bins[a:b], shift[k], out=turn[: b - a])
+                np.subtract(idx, n_bins, out=idx, where=idx >= n_bins)
+                idx += self._pair_vote_base[a:b]
+                # one vote per observation per (position, bin): a fancy-indexed += adds
+                # once per distinct index, however often it repeats (unlike np.add.at)
+                block[idx] += 1
+        return votes.reshape(p_n, n_bins).astype(np.int64)
 
     @staticmethod
     def compass_tolerance(heading: tuple[float, float] | None) -> float | None:
@@ -267,6 +293,55 @@ class GlobalRelocalizer:
         sig = self.SOFT_SIGMA_RAD if sigma is None else sigma
         return float(np.exp(-theta2 / (2 * sig**2)).sum())
 
+    def _grid_scores(
+        self, obs: FloatArray, state: FloatArray, step: FloatArray, turn: FloatArray
+    ) -> FloatArray:
+        """The soft score (σ :data:`GRID_SIGMA_RAD`) of every pose of the polish grid —
+        ``state`` shifted by every (``step``, ``step``) and turned by every ``turn``, in
+        ``np.meshgrid(x, y, yaw, indexing="ij")`` order — counting for each bearing only the
+        landmarks that could come near it from some pose of the grid: seen from the grid's
+        centre within asin(shift/range) + the largest turn + 6 σ of it (a camera shifted by
+        ``shift`` sees a point at ``range`` at most that much elsewhere; a landmark farther
+        off adds less than e⁻¹⁸ to any pose's score). A pose's cosine to a landmark splits
+        into where the camera is (a unit vector per position) and how it is turned (the
+        bearing in the world per heading): positions × headings × the pairs that can
+        match, as small matrix products, never poses × bearings × landmarks."""
+        reach = self.max_range_m + float(np.abs(step).max())
+        pts = self.points[np.hypot(*(self.points[:, :2] - state[:2]).T) <= reach]
+        r_wb, p_wb = self._pose(state)
+        rel = pts - p_wb
+        dist = np.linalg.norm(rel, axis=1)
+        shift = math.sqrt(2.0) * float(np.abs(step).max())
+        moved = np.arcsin(np.minimum(1.0, shift / np.maximum(dist, 1e-9)))
+        bound = moved + float(np.abs(turn).max()) + 6.0 * self.GRID_SIGMA_RAD
+        centre = np.clip(obs @ (rel @ r_wb / dist[:, None]).T, -1.0, 1.0)  # (M, N)
+        m_idx, n_idx = np.nonzero(np.arccos(centre) <= bound[None, :])  # sorted by bearing
+        n_pos, n_yaw = step.size**2, turn.size
+        if m_idx.size == 0:
+            return np.zeros(n_pos * n_yaw)
+        used, n_local = np.unique(n_idx, return_inverse=True)
+        gx, gy = np.meshgrid(state[0] + step, state[1] + step, indexing="ij")
+        cam = np.c_[gx.ravel(), gy.ravel(), np.full(n_pos, self.height)]
+        to_lm = pts[used][:, None, :] - cam[None, :, :]  # (U, positions, 3) world
+        to_lm /= np.linalg.norm(to_lm, axis=-1, keepdims=True)
+        yaw = state[2] + turn
+        c, s = np.cos(yaw), np.sin(yaw)
+        o = obs[m_idx]  # (Q, 3) body; in the world at each heading: (Q, 3, headings)
+        world = np.stack(
+            [
+                c * o[:, :1] - s * o[:, 1:2],
+                s * o[:, :1] + c * o[:, 1:2],
+                np.repeat(o[:, 2:], n_yaw, axis=1),
+            ],
+            axis=1,
+        )
+        cos = to_lm[n_local] @ world  # (Q, positions, headings)
+        starts = np.flatnonzero(np.r_[True, m_idx[1:] != m_idx[:-1]])
+        best = np.maximum.reduceat(cos, starts, axis=0)  # each bearing's nearest landmark
+        theta2 = 2.0 * (1.0 - np.clip(best, -1.0, 1.0))  # ≈ θ² for small angles
+        score: FloatArray = np.exp(-theta2 / (2 * self.GRID_SIGMA_RAD**2)).sum(axis=0)
+        return score.ravel()
+
     def _polish(self, obs: FloatArray, state: FloatArray) -> tuple[FloatArray, float]:
         """Refinement from one start can stop in a local optimum a few decimetres off (two
         frames then agree on the same wrong pose), where the true pose explains the bearings
@@ -278,21 +353,7 @@ class GlobalRelocalizer:
         dyaw = np.arange(-self.POLISH_RAD, self.POLISH_RAD + 1e-9, self.POLISH_STEP_RAD)
         gx, gy, gyaw = np.meshgrid(state[0] + d, state[1] + d, state[2] + dyaw, indexing="ij")
         poses = np.column_stack([gx.ravel(), gy.ravel(), gyaw.ravel()])  # (K, 3)
-        # the landmarks the camera could see from there (a large map: most are too far)
-        reach = self.max_range_m + self.POLISH_M
-        pts = self.points[np.hypot(*(self.points[:, :2] - state[:2]).T) <= reach]
-        rel = (
-            pts[None, :, :] - np.c_[poses[:, :2], np.full(len(poses), self.height)][:, None, :]
-        )  # (K, N, 3) world
-        c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-        body = np.stack(
-            [c * rel[..., 0] + s * rel[..., 1], -s * rel[..., 0] + c * rel[..., 1], rel[..., 2]],
-            axis=-1,
-        )
-        body /= np.linalg.norm(body, axis=-1, keepdims=True)
-        cos = np.einsum("knj,mj->kmn", body, obs).max(axis=2)  # (K, M): best landmark per obs
-        theta2 = 2.0 * (1.0 - np.clip(cos, -1.0, 1.0))  # ≈ θ² for small angles
-        score = np.exp(-theta2 / (2 * self.GRID_SIGMA_RAD**2)).sum(axis=1)
+        score = self._grid_scores(obs, state, d, dyaw)
         order = np.argsort(score)[::-1]
         starts: list[FloatArray] = []
         for k in order.tolist():
@@ -406,9 +467,9 @@ class GlobalRelocalizer:
         heading: tuple[float, float] | None = None,
     ) -> Relocalization:
         """The pose from one frame's body-frame unit bearings (module doc); ``near``: a
-        prior (x, y, heading) to check instead of searching the whole map — the refinement
-        starts there (no grid vote, no rival place), the rest is the same; ``heading``: the
-        compass's (ψ, σ), for a search of the whole map."""
+        prior (x, y, heading) to check — the refinement starts there, the answer is the best
+        optimum near it, and the whole map's vote still runs for rival places (module doc);
+        ``heading``: the compass's (ψ, σ), for a search of the whole map."""
         t0 = time.perf_counter()
         obs = np.asarray(bearings, dtype=np.float64).reshape(-1, 3)
         obs = obs / np.linalg.norm(obs, axis=1, keepdims=True)
