@@ -388,3 +388,19 @@ def test_after_an_imu_gap_the_relocalizer_checks_the_pose_near_where_it_was(lawn
     )
     detail = loc.containment().detail
     assert "near the prior since an IMU gap" in detail, detail
+
+
+def test_frames_from_one_spot_are_worth_a_bounded_number_of_frames():
+    """The σ rule of frames from a standing mower (``spot_sigma_factor``): the first frame
+    counts in full; with a share f of each frame's variance common to the spot, k frames
+    add up to k / ((1 − f) + k f) frames' information — never more than 1/f, however long
+    the mower stands — and with nothing shared every frame counts in full."""
+    from mowerhw.mow.localizer import spot_sigma_factor
+
+    for f in (0.25, 0.5, 0.75):
+        assert spot_sigma_factor(1.0, f) == pytest.approx(1.0)
+        info = np.cumsum([spot_sigma_factor(float(k), f) ** -2 for k in range(1, 2001)])
+        ks = np.arange(1, 2001)
+        assert info == pytest.approx(ks / ((1 - f) + ks * f), rel=1e-9)
+        assert info[-1] < 1.0 / f
+    assert spot_sigma_factor(7.0, 0.0) == pytest.approx(1.0)
