@@ -155,9 +155,9 @@ class GlobalRelocalizer:
         tol = self.elevation_tol_rad
         # the heading, in bins, of (pair azimuth − observed azimuth) + a turn: in (0, 2 bins)
         shift = (azimuth % (2 * math.pi)) / self.yaw_bin - n_bins
-        size = self._pair_elevation.size
-        turn, index = np.empty(size), np.empty(size, dtype=np.intp)  # reused buffers
         starts = self._block_start.tolist()
+        size = max((b - a for a, b in itertools.pairwise(starts)), default=0)  # a block's pairs
+        turn, index = np.empty(size), np.empty(size, dtype=np.intp)  # reused buffers
         for blk, (s0, s1) in enumerate(itertools.pairwise(starts)):
             block = votes[blk * self.VOTE_BLOCK * n_bins : (blk + 1) * self.VOTE_BLOCK * n_bins]
             ele = self._pair_elevation[s0:s1]
@@ -306,15 +306,13 @@ class GlobalRelocalizer:
         into where the camera is (a unit vector per position) and how it is turned (the
         bearing in the world per heading): positions × headings × the pairs that can
         match, as small matrix products, never poses × bearings × landmarks."""
-        reach = self.max_range_m + float(np.abs(step).max())
-        pts = self.points[np.hypot(*(self.points[:, :2] - state[:2]).T) <= reach]
+        half = float(np.abs(step).max())
+        pts = self.points[np.hypot(*(self.points[:, :2] - state[:2]).T) <= self.max_range_m + half]
         r_wb, p_wb = self._pose(state)
-        rel = pts - p_wb
-        dist = np.linalg.norm(rel, axis=1)
-        shift = math.sqrt(2.0) * float(np.abs(step).max())
-        moved = np.arcsin(np.minimum(1.0, shift / np.maximum(dist, 1e-9)))
+        dist = np.linalg.norm(pts - p_wb, axis=1)
+        moved = np.arcsin(np.minimum(1.0, math.sqrt(2.0) * half / np.maximum(dist, 1e-9)))
         bound = moved + float(np.abs(turn).max()) + 6.0 * self.GRID_SIGMA_RAD
-        centre = np.clip(obs @ (rel @ r_wb / dist[:, None]).T, -1.0, 1.0)  # (M, N)
+        centre = np.clip(obs @ self._predict(r_wb, p_wb, points=pts).T, -1.0, 1.0)  # (M, N)
         m_idx, n_idx = np.nonzero(np.arccos(centre) <= bound[None, :])  # sorted by bearing
         n_pos, n_yaw = step.size**2, turn.size
         if m_idx.size == 0:
