@@ -174,8 +174,10 @@ class WorldPoseEKF:
         sigma_rot: FloatArray,
         bias: FloatArray | None = None,
         bias_var: float | None = None,
+        planar_cov: FloatArray | None = None,
     ) -> None:
-        """Start over at pose (x, q) with the given σ (rotation σ per world axis)."""
+        """Start over at pose (x, q) with the given σ (rotation σ per world axis), or, for
+        (x, y, heading), ``planar_cov`` (3, 3) — an answer fitted in the plane."""
         self.x = np.asarray(x, dtype=np.float64).copy()
         self.q = quat_normalize(q)
         if bias is not None:
@@ -186,6 +188,9 @@ class WorldPoseEKF:
         old_bias = self.P[BG, BG].copy()
         p[BG, BG] = np.eye(3) * bias_var if bias_var is not None else old_bias
         p[SC, SC] = self.P[SC, SC]  # what is known of the gyro's scale survives a restart
+        if planar_cov is not None:
+            planar = np.array([0, 1, YAW])
+            p[np.ix_(planar, planar)] = planar_cov
         self.P = p
         self.pxl[:] = 0.0
 

@@ -87,7 +87,7 @@ from mowerhw.mow.recovery import (
     Pose2D,
     Probation,
     RelocalizationSearch,
-    accepted_sigma,
+    accepted_covariance,
 )
 
 FloatArray = NDArray[np.float64]
@@ -230,8 +230,10 @@ class Localizer:
         pose: tuple[ArrayLike, ArrayLike] | None = None,
         sigma_position_m: float | None = None,
         sigma_heading_rad: float | None = None,
+        planar_cov: FloatArray | None = None,
     ) -> None:
-        """Restart the filter at ``pose`` (position, q_wb), or at its current pose."""
+        """Restart the filter at ``pose`` (position, q_wb), or at its current pose;
+        ``planar_cov``: the (x, y, heading) covariance, when known in full."""
         c = self.cfg
         if pose is None:
             pos, quat = self.ekf.x.copy(), self.ekf.q.copy()
@@ -241,7 +243,14 @@ class Localizer:
         s_pos = sigma_position_m if sigma_position_m is not None else c.init_sigma_position_m
         s_yaw = sigma_heading_rad if sigma_heading_rad is not None else c.init_sigma_heading_rad
         bias_var = None if self.counters.imu_samples else 0.005**2
-        self.ekf.reset(pos, quat, s_pos, np.array([0.01, 0.01, s_yaw]), bias_var=bias_var)
+        self.ekf.reset(
+            pos,
+            quat,
+            s_pos,
+            np.array([0.01, 0.01, s_yaw]),
+            bias_var=bias_var,
+            planar_cov=planar_cov,
+        )
         self._good_frames = 0
         self._lockout_since = None
         self._inflated = False
@@ -361,8 +370,12 @@ class Localizer:
         self.search = None
         self.t_fix = t  # the answer is a landmark fix
         self.counters.relocalizations += 1
+        planar = accepted_covariance(answer.covariance)
         self.reinitialise(
-            (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)), *accepted_sigma(answer.covariance)
+            (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)),
+            math.sqrt(max(planar[0, 0], planar[1, 1])),  # the height's
+            math.sqrt(planar[2, 2]),
+            planar_cov=planar,
         )
         if answer.landmark_cross is not None:
             rows = self._rows_of([i for _, i in answer.inliers])

@@ -48,16 +48,26 @@ ACCEPT_MIN_SIGMA_M = 0.003
 ACCEPT_MIN_SIGMA_RAD = math.radians(0.03)
 
 
-def accepted_sigma(covariance: FloatArray | None) -> tuple[float, float]:
-    """The position and heading σ a filter restarts with at an accepted answer (above)."""
+def accepted_covariance(covariance: FloatArray | None) -> FloatArray:
+    """The (x, y, heading) covariance a filter restarts with at an accepted answer: the
+    answer's own, each σ within the bounds above and the correlations kept (a frame whose
+    landmarks lie mostly to one side pins the pose down less along them; an isotropic σ at
+    the largest axis made the restart surer of nothing and less sure of the rest)."""
     if covariance is None or not np.all(np.isfinite(covariance)):
-        return ACCEPT_SIGMA_M, ACCEPT_SIGMA_RAD
-    pos = math.sqrt(max(0.0, float(np.linalg.eigvalsh(covariance[:2, :2])[-1])))
-    yaw = math.sqrt(max(0.0, float(covariance[2, 2])))
-    return (
-        min(ACCEPT_SIGMA_M, max(ACCEPT_MIN_SIGMA_M, pos)),
-        min(ACCEPT_SIGMA_RAD, max(ACCEPT_MIN_SIGMA_RAD, yaw)),
-    )
+        return np.diag([ACCEPT_SIGMA_M**2, ACCEPT_SIGMA_M**2, ACCEPT_SIGMA_RAD**2])
+    c = 0.5 * (covariance + covariance.T)
+    sigma = np.sqrt(np.maximum(np.diag(c), 0.0))
+    low = np.array([ACCEPT_MIN_SIGMA_M, ACCEPT_MIN_SIGMA_M, ACCEPT_MIN_SIGMA_RAD])
+    high = np.array([ACCEPT_SIGMA_M, ACCEPT_SIGMA_M, ACCEPT_SIGMA_RAD])
+    bounded = np.clip(sigma, low, high)
+    corr = np.eye(3)
+    ok = sigma > 0.0
+    both = np.outer(ok, ok)
+    corr[both] = (c / np.outer(np.where(ok, sigma, 1.0), np.where(ok, sigma, 1.0)))[both]
+    corr = np.clip(corr, -0.999, 0.999)
+    np.fill_diagonal(corr, 1.0)
+    out: FloatArray = corr * np.outer(bounded, bounded)
+    return out
 
 
 #: χ²₂ median ≈ 1.386; a consistent frame's median NIS stays below three times that
