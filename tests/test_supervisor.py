@@ -205,3 +205,34 @@ def test_the_link_reads_the_supervisor_on_the_event_loop() -> None:
     got = {"speed": [], "lost": [], "lifted": []}
     asyncio.run(main("close"))
     assert got["lost"] and "the supervisor's pipe closed" in got["lost"][0]
+
+
+def test_the_supervisors_own_speed_halt_is_timed_from_the_speeds_limit(tmp_path: Path) -> None:
+    """A mowing lease, then the ground speed silent past its limit: the supervisor stops the
+    deck itself and times that stop from the moment the limit ran out (the halt latency of
+    the process that sends the frames, whatever the estimation side is doing); a stop the
+    lease already made is not its own."""
+    raw = config_to_dict(default_config())
+    raw["can"].update(interface="virtual", channel=f"own-{uuid.uuid4().hex[:8]}")
+    cfg = config_from_dict(raw, tmp_path, "test config")
+    sup = Supervisor(cfg)
+    limit = cfg.speed.stale_after_s
+    try:
+        now = time.monotonic()
+        sup._speed_arrival["speed"] = now
+        sup.gate.renew(_lease(), now)
+        sup._decide(now)
+        assert sup.gate.current.permit and not sup.own_halt_ms
+        late = now + limit + 0.004
+        sup.gate.renew(_lease(), late)
+        while time.monotonic() < late:
+            time.sleep(0.001)
+        sup._decide(late)
+        assert not sup.gate.current.permit and "seen by the supervisor" in sup.gate.current.detail
+        assert len(sup.own_halt_ms) == 1 and 4.0 <= sup.own_halt_ms[0] < 1000.0
+        assert sup.status(late)["own_halt_ms"]["n"] == 1
+        sup._decide(late + 0.01)  # still halted: no second stop, no second figure
+        assert len(sup.own_halt_ms) == 1
+    finally:
+        if sup.port.bus is not None:
+            sup.port.bus.shutdown()

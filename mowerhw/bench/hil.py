@@ -589,6 +589,7 @@ class Bench:
                 k: sup.get(k)
                 for k in (
                     "lease_to_frame_ms",
+                    "own_halt_ms",
                     "max_loop_lag_ms",
                     "loop_stalls_over_20ms",
                     "lease_expired",

@@ -131,6 +131,9 @@ class Supervisor:
             "loop_stalls_over_20ms": 0,
         }
         self.lease_to_frame_ms: list[float] = []
+        #: its own halts (the ground speed silent past its limit): limit → stop frame sent
+        self.own_halt_ms: list[float] = []
+        self._own_revealed: float | None = None
         self.max_loop_lag_ms = 0.0
         self._speed = SpeedReader(
             config.speed.source, config.speed.sensor_address, config.speed.ccvs1_direction
@@ -216,10 +219,11 @@ class Supervisor:
                 self._to_child(("can", (now, msg.arbitration_id, data, True)))
                 self.counts["frames_forwarded"] += 1
 
-    def _send_frames(self, d: Lease, now: float) -> None:
+    def _send_frames(self, d: Lease, now: float) -> bool:
+        """The frames of decision ``d``; True when this sent the stop of a running deck."""
         if not self.port.ensure(now):
             self.sender = None
-            return
+            return False
         bus = self.port.bus
         assert bus is not None
         if self.sender is None or self.sender.bus is not bus:
@@ -242,6 +246,7 @@ class Supervisor:
             self.counts["send_errors"] += sender.stats.send_errors - errors
             if sender.stats.send_errors - errors >= 3:
                 self.port.failed(now, "sending failed")
+        return stopped
 
     # --------------------------------------------------------------------------- loop
 
@@ -252,9 +257,13 @@ class Supervisor:
             unsafe = self.safety.halt(now)
         if unsafe is not None:
             return unsafe
+        self._own_revealed = None
         if self.lease_mow():
             stale = self.speed_gate.stale(now, self._speed_arrival)
             if stale is not None:
+                self._own_revealed = self.speed_gate.revealed_at(
+                    now, stale, self._speed_arrival, None
+                )
                 return Reason.SENSOR_STALE, f"{stale[1]} (seen by the supervisor)"
         return None
 
@@ -371,7 +380,10 @@ class Supervisor:
     def _decide(self, now: float) -> None:
         own = self._own_halt(now)
         d = self.gate.decide(now, own)
-        self._send_frames(d, now)
+        if self._send_frames(d, now) and self._own_revealed is not None:
+            # the deck ran until the supervisor's own check stopped it: how long after the limit
+            self.own_halt_ms.append(round((time.monotonic() - self._own_revealed) * 1e3, 3))
+            del self.own_halt_ms[:-2000]
         lifted = own is not None and own[0] == Reason.LIFTED
         if lifted != self._lifted_told:  # the localizer gives its pose up while lifted
             self._lifted_told = lifted
@@ -411,6 +423,7 @@ class Supervisor:
             "can_reopens": max(0, self.port.reopens - 1),
             "can_errors": self.port.errors,
             "lease_to_frame_ms": _percentiles(self.lease_to_frame_ms),
+            "own_halt_ms": _percentiles(self.own_halt_ms),
             "max_loop_lag_ms": round(self.max_loop_lag_ms, 2),
             "tilt_deg": round(self.safety.tilt_deg, 1),
             "lease_expired": self.gate.expired,
