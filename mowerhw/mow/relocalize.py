@@ -249,17 +249,24 @@ class GlobalRelocalizer:
         rows = np.array([keep[c] for c in cols.tolist()], dtype=np.int64)
         return rows, cols
 
+    def _residuals(
+        self, obs: FloatArray, rows: NDArray[np.int64], points: FloatArray, state: FloatArray
+    ) -> FloatArray:
+        """(n, 3): each pair's angular residual, observed bearing ``obs[rows]`` × the one
+        predicted at ``state`` of its landmark at ``points`` (world frame)."""
+        out: FloatArray = np.cross(obs[rows], self._predict(*self._pose(state), points=points))
+        return out
+
     def _fit(
         self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], x0: FloatArray
     ) -> FloatArray:
         """(x, y, yaw) fitted to the pairs, robustly, the mower upright at the dock's camera
         height: three unknowns, not six — a free tilt and height let a wrong place explain
         many bearings by chance."""
+        pts = self.points[cols]
 
         def residual(x: FloatArray) -> FloatArray:
-            pred = self._predict(*self._pose(x), cols)
-            out: FloatArray = np.cross(obs[rows], pred).ravel()
-            return out
+            return self._residuals(obs, rows, pts, x).ravel()
 
         sol = least_squares(residual, x0, loss="huber", f_scale=0.01, max_nfev=50)
         fitted: FloatArray = sol.x
@@ -389,13 +396,6 @@ class GlobalRelocalizer:
     HUBER_K = 1.345
     FINAL_ROUNDS = 4
 
-    def _residuals(
-        self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], state: FloatArray
-    ) -> FloatArray:
-        """(n, 3): each pair's angular residual, observed × predicted bearing."""
-        out: FloatArray = np.cross(obs[rows], self._predict(*self._pose(state), cols))
-        return out
-
     def _robust_sigma(self, norms: FloatArray) -> float:
         """The bearings' σ per axis from residual norms, robustly: a residual has two free
         directions, its norm's median is σ·√(2 ln 2) (Rayleigh) — a few pairs a degree
@@ -412,24 +412,24 @@ class GlobalRelocalizer:
         weigh as much as a true corner (measured, pixel level: answers 2–4 cm and 0.1° off at
         σ 7–10 mm, the true pose fitting the inliers better than the answer did). And the
         weights, for :meth:`covariance`."""
-        state = x0
-        weights = np.ones(rows.size)
-        for _ in range(self.FINAL_ROUNDS):
-            norms = np.linalg.norm(self._residuals(obs, rows, cols, state), axis=1)
+        pts = self.points[cols]
+
+        def huber_weights(state: FloatArray) -> FloatArray:
+            norms = np.linalg.norm(self._residuals(obs, rows, pts, state), axis=1)
             scale = self.HUBER_K * self._robust_sigma(norms)
-            weights = np.minimum(1.0, scale / np.maximum(norms, 1e-12))
-            root_w = np.sqrt(weights)[:, None]
+            out: FloatArray = np.minimum(1.0, scale / np.maximum(norms, 1e-12))
+            return out
+
+        state = x0
+        for _ in range(self.FINAL_ROUNDS):
+            root_w = np.sqrt(huber_weights(state))[:, None]
 
             def weighted(x: FloatArray, root_w: FloatArray = root_w) -> FloatArray:
-                out: FloatArray = (root_w * self._residuals(obs, rows, cols, x)).ravel()
+                out: FloatArray = (root_w * self._residuals(obs, rows, pts, x)).ravel()
                 return out
 
             state = least_squares(weighted, state, max_nfev=50).x
-        norms = np.linalg.norm(self._residuals(obs, rows, cols, state), axis=1)
-        weights = np.minimum(
-            1.0, self.HUBER_K * self._robust_sigma(norms) / np.maximum(norms, 1e-12)
-        )
-        return state, weights
+        return state, huber_weights(state)
 
     def covariance(
         self,
@@ -454,8 +454,7 @@ class GlobalRelocalizer:
         w = np.ones(rows.size) if weights is None else weights
 
         def residual(x: FloatArray, points: FloatArray = pts) -> FloatArray:
-            out: FloatArray = np.cross(obs[rows], self._predict(*self._pose(x), points=points))
-            return out
+            return self._residuals(obs, rows, points, x)
 
         r0 = residual(state)
         steps = (1e-4, 1e-4, 1e-5)

@@ -133,7 +133,6 @@ class Supervisor:
         self.lease_to_frame_ms: list[float] = []
         #: its own halts (the ground speed silent past its limit): limit → stop frame sent
         self.own_halt_ms: list[float] = []
-        self._own_revealed: float | None = None
         self.max_loop_lag_ms = 0.0
         self._speed = SpeedReader(
             config.speed.source, config.speed.sensor_address, config.speed.ccvs1_direction
@@ -257,13 +256,9 @@ class Supervisor:
             unsafe = self.safety.halt(now)
         if unsafe is not None:
             return unsafe
-        self._own_revealed = None
         if self.lease_mow():
             stale = self.speed_gate.stale(now, self._speed_arrival)
             if stale is not None:
-                self._own_revealed = self.speed_gate.revealed_at(
-                    now, stale, self._speed_arrival, None
-                )
                 return Reason.SENSOR_STALE, f"{stale[1]} (seen by the supervisor)"
         return None
 
@@ -380,9 +375,10 @@ class Supervisor:
     def _decide(self, now: float) -> None:
         own = self._own_halt(now)
         d = self.gate.decide(now, own)
-        if self._send_frames(d, now) and self._own_revealed is not None:
+        if self._send_frames(d, now) and own is not None and own[0] == Reason.SENSOR_STALE:
             # the deck ran until the supervisor's own check stopped it: how long after the limit
-            self.own_halt_ms.append(round((time.monotonic() - self._own_revealed) * 1e3, 3))
+            limit = self.speed_gate.revealed_at(now, ("speed", ""), self._speed_arrival, None)
+            self.own_halt_ms.append(round((time.monotonic() - limit) * 1e3, 3))
             del self.own_halt_ms[:-2000]
         lifted = own is not None and own[0] == Reason.LIFTED
         if lifted != self._lifted_told:  # the localizer gives its pose up while lifted
