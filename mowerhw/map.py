@@ -459,6 +459,11 @@ class LawnMap:
                 "reason": closure.reason,
                 "translation_m": closure.translation_m,
                 "rotation_rad": closure.rotation_rad,
+                **(
+                    {"bearing_sigma_long_run_rad": closure.bearing_sigma_long_run_rad}
+                    if math.isfinite(getattr(closure, "bearing_sigma_long_run_rad", math.nan))
+                    else {}
+                ),
             },
         }
         zones = getattr(result, "zones", [])

@@ -1,10 +1,17 @@
 """Loop-closure smoother: SO(3) helpers, preintegration, and the least-squares solve."""
 
+import math
+
 import numpy as np
 import pytest
 
 from mowerhw.common.geometry import rotmat_exp, rotmat_log
-from mowerhw.teach.smoother import preintegrate_segments, right_jacobian, right_jacobian_inv
+from mowerhw.teach.smoother import (
+    bearing_variance_factor,
+    preintegrate_segments,
+    right_jacobian,
+    right_jacobian_inv,
+)
 
 
 def test_right_jacobian_and_inverse():
@@ -91,3 +98,51 @@ def test_the_landmark_schur_solve_matches_a_direct_solve(
     for i in range(landmarks):
         s = lay.lm0 + 3 * i
         assert np.allclose(cov[i], inv[s : s + 3, s : s + 3], rtol=1e-6, atol=1e-12)
+
+
+def _tracks(n_landmarks: int, length: int, rho: float, sigma: float, seed: int = 0):
+    """Whitened 2-D bearing residuals along tracks: AR(1) with lag-one correlation ``rho``
+    and standard deviation ``sigma`` per axis; (residuals, frame, landmark)."""
+    rng = np.random.default_rng(seed)
+    res, frames, lms = [], [], []
+    for j in range(n_landmarks):
+        first = int(rng.integers(0, 50))
+        e = rng.normal(size=2) * sigma
+        for k in range(length):
+            e = rho * e + math.sqrt(1 - rho**2) * sigma * rng.normal(size=2)
+            res.append(e)
+            frames.append(first + k)
+            lms.append(j)
+    return np.array(res), np.array(frames, dtype=np.int64), np.array(lms, dtype=np.int64)
+
+
+def test_the_bearings_long_run_variance_is_their_variance_when_they_are_independent():
+    res, frame, lm = _tracks(200, 40, 0.0, 0.3)
+    assert bearing_variance_factor(res, frame, lm) == pytest.approx(0.09, rel=0.1)
+
+
+def test_errors_correlated_along_a_track_count_for_more_than_their_variance():
+    """A drifting KLT point: lag-one correlation 0.6. The Bartlett sum up to the bandwidth
+    (3 for 40-bearing tracks) is γ0 (1 + 2 (¾ ρ + ½ ρ² + ¼ ρ³)) = 2.41 γ0."""
+    res, frame, lm = _tracks(200, 40, 0.6, 0.3)
+    expected = 0.09 * (1 + 2 * (0.75 * 0.6 + 0.5 * 0.36 + 0.25 * 0.216))
+    assert bearing_variance_factor(res, frame, lm) == pytest.approx(expected, rel=0.12)
+
+
+def test_bearings_of_different_landmarks_are_never_paired():
+    """Each landmark's residuals a constant sign flip of the one before, tracks back to
+    back in frame numbers: pairs across landmarks would pull the sum down."""
+    rng = np.random.default_rng(1)
+    n, length = 100, 5
+    base = rng.normal(size=(length, 2))
+    res = np.concatenate([base * (-1) ** j for j in range(n)])
+    frame = np.tile(np.arange(length), n)
+    lm = np.repeat(np.arange(n), length)
+    alone = bearing_variance_factor(res, frame, lm)
+    # the same tracks, each landmark's frames shifted so none shares a neighbour's numbers
+    assert alone == pytest.approx(bearing_variance_factor(res, frame + 7 * lm, lm))
+
+
+def test_too_few_bearings_leave_the_configured_sigma():
+    res, frame, lm = _tracks(2, 20, 0.0, 0.1)
+    assert bearing_variance_factor(res, frame, lm) == 1.0

@@ -45,6 +45,16 @@ def test_paper_scenario_accuracy(outcome):
     assert m["boundary_rmse_m"] < m["boundary_rmse_no_closure_m"]
 
 
+def test_the_map_is_as_sure_as_the_bearings_are_not_as_the_config_says(outcome):
+    """The landmark covariances are taken at the bearings' long-run σ, measured on the
+    loop closure's residuals along each track. The simulated bearings here are white noise
+    at about the configured σ, so the measured one is near it (rendered drives measure
+    0.06–0.07° against the configured 0.46°: tests/test_smoother.py and the README)."""
+    closure = outcome.result.closure
+    configured = TeachConfig().bearing_sigma_rad
+    assert 0.8 * configured <= closure.bearing_sigma_long_run_rad <= 1.2 * configured
+
+
 def test_result_shape_follows_the_api(outcome):
     res = outcome.result
     assert res.boundary.ndim == 2 and res.boundary.shape[1] == 2
@@ -65,7 +75,11 @@ def test_result_saves_a_loadable_map(outcome, tmp_path):
     m = lawnmap.load(path)
     assert len(m.landmarks) == 15
     assert m.camera["camera_model"] == "omni"
-    assert json.loads(path.read_text())["teach"]["loop_closure"]["applied"] is True
+    closure = json.loads(path.read_text())["teach"]["loop_closure"]
+    assert closure["applied"] is True
+    assert closure["bearing_sigma_long_run_rad"] == pytest.approx(
+        outcome.result.closure.bearing_sigma_long_run_rad
+    )
 
 
 def test_gyro_bias_is_calibrated_from_the_standstill():

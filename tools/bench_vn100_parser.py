@@ -5,7 +5,7 @@ Feeds each stream to :class:`drivers.imu.vn100.Vn100Parser` in chunks the size a
 returns (64 B and 4 KiB), best of ``--repeat`` runs, and prints one JSON object: MB/s,
 packets/s, µs per packet, and the headroom over the fastest serial link (921600 baud ≈
 92 kB/s) — how many times faster than the wire the parser is. The binary stream is what the
-driver configures (TimeStartup + YawPitchRoll + AngularRate + Accel, 50 bytes per packet),
+driver configures (TimeStartup + YawPitchRoll + AngularRate + Accel + MagPres, 70 bytes a packet),
 with 1 % of the packets damaged so the resynchronisation path is part of the measurement.
 
 Run: ``.venv/bin/python tools/bench_vn100_parser.py`` (``--repeat 5``).
@@ -16,30 +16,32 @@ from __future__ import annotations
 import argparse
 import json
 import random
-import struct
 import time
 from dataclasses import asdict
 from pathlib import Path
 
-from drivers.imu.vn100 import COMMON_FIELDS, Vn100Parser, crc16
+from drivers.imu.vn100 import COMMON_FIELDS, Vn100Parser
+from drivers.imu.vn100_binary import FIELDS, encode_packet, pack_values
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "vn100"
 WIRE_BYTES_PER_S = 921600 / 10  # 8N1: 10 bits per byte
 
 
 def binary_stream(n_packets: int, damaged: float = 0.01, seed: int = 0) -> bytes:
-    """``n_packets`` 100 Hz common-group packets as the driver configures them."""
+    """``n_packets`` 100 Hz common-group packets with the fields the driver asks for
+    (``COMMON_FIELDS``), encoded by the sensor side's :func:`encode_packet`."""
     rng = random.Random(seed)
-    head = bytes([0x01]) + struct.pack("<H", COMMON_FIELDS)
+    names = [f"Common.{FIELDS[(0, bit)].name}" for bit in range(16) if COMMON_FIELDS >> bit & 1]
     out = bytearray()
     for k in range(n_packets):
-        t_ns = 1_000_000_000 + k * 10_000_000
-        payload = struct.pack("<Q", t_ns)
-        payload += struct.pack("<3f", 10.0 + 0.01 * k, 0.5, -1.5)  # YawPitchRoll
-        payload += struct.pack("<3f", 0.01, -0.02, 0.3)  # AngularRate
-        payload += struct.pack("<3f", 0.1, 0.0, -9.81)  # Accel
-        body = head + payload
-        pkt = bytearray(b"\xfa" + body + struct.pack(">H", crc16(body)))
+        values = {
+            "Common.TimeStartup": [1_000_000_000 + k * 10_000_000],
+            "Common.YawPitchRoll": [10.0 + 0.01 * k, 0.5, -1.5],
+            "Common.AngularRate": [0.01, -0.02, 0.3],
+            "Common.Accel": [0.1, 0.0, -9.81],
+            "Common.MagPres": [0.2, 0.0, 0.4, 25.0, 101.3],
+        }
+        pkt = bytearray(encode_packet({n: pack_values(n, values[n]) for n in names}))
         if rng.random() < damaged:
             pkt[rng.randrange(1, len(pkt))] ^= 1 << rng.randrange(8)
         out += pkt
@@ -92,6 +94,9 @@ def main() -> None:
             "results": [run(data, chunk, args.repeat) for chunk in (64, 4096)],
         }
     print(json.dumps(out, indent=2))
+    binary_ok = out["binary_100hz_common_group"]["results"][0]["counts"]  # type: ignore[index]
+    if binary_ok.get("binary_ok", 0) < 0.95 * 20000:
+        raise SystemExit(f"the binary stream did not parse as the driver's packets: {binary_ok}")
 
 
 if __name__ == "__main__":

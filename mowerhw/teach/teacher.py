@@ -141,6 +141,9 @@ class LoopClosure:
     rotation_rad: float = 0.0
     landmarks_used: int = 0
     residual_rms_rad: float = float("nan")
+    #: the bearings' σ the landmark covariances are taken at: their long-run σ along a track
+    #: (:func:`mowerhw.teach.smoother.bearing_variance_factor`), not the configured one
+    bearing_sigma_long_run_rad: float = float("nan")
 
 
 @dataclass
@@ -744,6 +747,8 @@ class Teacher:
         for j, lid in enumerate(lm_ids):
             landmarks[lid]["xyz"] = out.landmarks[j].copy()
             landmarks[lid]["cov"] = out.landmark_cov[j].copy()
+            if out.landmark_cov_configured is not None:
+                landmarks[lid]["cov_geometry"] = out.landmark_cov_configured[j].copy()
         rms = _landmark_rms(problem, out.r_wb, out.t_wb, out.landmarks)
         for j, lid in enumerate(lm_ids):
             landmarks[lid]["rms"] = float(rms[j])
@@ -761,6 +766,7 @@ class Teacher:
             rotation_rad=float(np.linalg.norm(phi[-1])),
             landmarks_used=reobserved,
             residual_rms_rad=out.bearing_rms_rad,
+            bearing_sigma_long_run_rad=self.sigma * math.sqrt(out.bearing_variance_factor),
         )
 
     def _bias_segments(self, frames: list[tuple[Any, ...]]) -> dict[str, Any]:
@@ -877,9 +883,16 @@ class Teacher:
         raw = traj9[:, :8].copy()
         closure = self._close_loop(traj9, landmarks)
         # The map keeps only landmarks located well enough to localize against (a feature
-        # tracked briefly, or seen with too little parallax, has a poorly known depth).
+        # tracked briefly, or seen with too little parallax, has a poorly known depth): judged
+        # by the drive's geometry, with the bearings at their configured σ, not by how
+        # precise the camera turned out to be (the loop closure's long-run σ; a map denser
+        # in poorly placed landmarks is harder to relocalize in).
         limit = self.cfg.max_landmark_sigma_m
-        loose = [i for i, r in landmarks.items() if not _well_located(r["cov"], limit)]
+        loose = [
+            i
+            for i, r in landmarks.items()
+            if not _well_located(r.get("cov_geometry", r["cov"]), limit)
+        ]
         for i in loose:
             del landmarks[i]
         # ... and only fixed points: bearings that fit one position
