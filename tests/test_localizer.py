@@ -244,6 +244,26 @@ def test_a_frame_stamp_error_is_one_turn_all_its_bearings_share():
     assert yaw_var(0.0) < 0.1 * (0.5 * stamp) ** 2
 
 
+def test_a_mower_whose_wheels_stand_still_does_not_slide():
+    """The speed and slip noise densities are a moving mower's: while the ground speed reads
+    exactly 0 the position's covariance does not grow (it grew 3 mm a √s, and a mower
+    standing after a relocalization became several times less sure than it was right)."""
+    from mowerhw.estimation.odometry import BodyMotion
+    from mowerhw.mow.ekf import LocalizerNoise, WorldPoseEKF
+
+    def position_var(speed: float) -> float:
+        ekf = WorldPoseEKF(LocalizerNoise(), np.zeros((0, 3, 3)))
+        ekf.reset(np.zeros(3), np.array([1.0, 0, 0, 0]), 0.005, np.array([0.01, 0.01, 0.01]))
+        w = np.array([1e-4, -2e-4, 3e-4])  # a standing gyro's noise
+        for _ in range(300):  # 3 s at 100 Hz
+            motion = BodyMotion.of(w, np.array([speed, 0.0, 0.0]), 0.01)
+            ekf.propagate(motion, wheels_still=speed == 0.0)
+        return float(np.trace(ekf.P[:2, :2]) / 2)
+
+    assert position_var(0.0) == pytest.approx(0.005**2, rel=0.01)
+    assert position_var(0.3) > 0.005**2 + 0.5 * 3 * LocalizerNoise().speed ** 2
+
+
 def test_a_mower_that_rolls_off_is_where_it_rolled_once_the_speed_says_so(lawn_map):
     """Ground speed comes at 10 Hz, the IMU at 100 Hz: between two speed samples the filter
     drives at a speed extrapolated from older ones — at a start, at 0 for a whole sample

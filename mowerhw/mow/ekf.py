@@ -253,7 +253,9 @@ class WorldPoseEKF:
 
     # -- eq. (21): propagation ------------------------------------------------------------------
 
-    def propagate(self, m: BodyMotion) -> None:
+    def propagate(self, m: BodyMotion, wheels_still: bool = False) -> None:
+        """Carry the state over one IMU interval (eq. 21); ``wheels_still``: the ground
+        speed read exactly 0 over it (0.001 m/s a bit on the wire, DESIGN.md §7)."""
         r = quat_to_rotmat(self.q)
         disp_w = r @ m.disp
         self.x = self.x + disp_w
@@ -265,7 +267,11 @@ class WorldPoseEKF:
         phi[TH, K_] = -r_new[:, 2] * (m.w[2] * dt)  # the yaw rate's scale error
         phi[X, TH] = -skew(disp_w)
         q = self._q_per_s * dt  # attitude, bias and scale random walks (diagonal)
-        q[X, X] = (r * self._qv) @ r.T * dt
+        if not wheels_still:
+            # the speed and slip densities are the noise of a mower that moves; a standing
+            # one does not slide (a lifted or carried one is the lift's and the localizer's
+            # to see; a stale speed widens the pose in the localizer)
+            q[X, X] = (r * self._qv) @ r.T * dt
         self.P = phi @ self.P @ phi.T + q
         if self.pxl.shape[1]:
             self.pxl = phi @ self.pxl

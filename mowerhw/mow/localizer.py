@@ -443,7 +443,7 @@ class Localizer:
         ``gyro`` and ``speed``; the filter is left as it was."""
         now = self.ekf.snapshot()
         self.ekf.restore(state)
-        self.ekf.propagate(self._motion(gyro, speed, dt))
+        self.ekf.propagate(self._motion(gyro, speed, dt), wheels_still=speed == 0.0)
         out = self.ekf.snapshot()
         self.ekf.restore(now)
         return out
@@ -626,7 +626,7 @@ class Localizer:
 
     def _propagate(self, t0: float, t1: float, gyro: FloatArray, speed: float) -> None:
         self._w_last = gyro.copy()
-        self.ekf.propagate(self._motion(gyro, speed, t1 - t0))
+        self.ekf.propagate(self._motion(gyro, speed, t1 - t0), wheels_still=speed == 0.0)
 
     def _motion(self, gyro: FloatArray, speed: float, dt: float) -> BodyMotion:
         """The body motion over ``dt`` at a gyro reading and a ground speed."""
