@@ -255,7 +255,7 @@ class WorldPoseEKF:
 
     def propagate(self, m: BodyMotion, wheels_still: bool = False) -> None:
         """Carry the state over one IMU interval (eq. 21); ``wheels_still``: the ground
-        speed read exactly 0 over it (0.001 m/s a bit on the wire, DESIGN.md §7)."""
+        speed read exactly 0 over it (0.001 m/s a bit on the wire, docs/design.md §7)."""
         r = quat_to_rotmat(self.q)
         disp_w = r @ m.disp
         self.x = self.x + disp_w
