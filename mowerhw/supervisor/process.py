@@ -24,6 +24,8 @@ import os
 import signal
 import threading
 import time
+from collections import deque
+from collections.abc import Collection
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
@@ -46,6 +48,7 @@ log = logging.getLogger("mowerhw.supervisor")
 
 TICK_MAX_S = 0.1  # the watchdog, the status down to the child, the web process
 STATUS_PERIOD_S = 0.5  # the supervisor's status, down to the child (for `mowerhw ctl status`)
+LATENCIES_KEPT = 2000  # the newest latencies its status gives percentiles of
 
 
 def set_priority(nice: int, who: str) -> None:
@@ -130,9 +133,10 @@ class Supervisor:
             "send_errors": 0,
             "loop_stalls_over_20ms": 0,
         }
-        self.lease_to_frame_ms: list[float] = []
+        #: decision → frames sent, the newest ``LATENCIES_KEPT``
+        self.lease_to_frame_ms: deque[float] = deque(maxlen=LATENCIES_KEPT)
         #: its own halts (the ground speed silent past its limit): limit → stop frame sent
-        self.own_halt_ms: list[float] = []
+        self.own_halt_ms: deque[float] = deque(maxlen=LATENCIES_KEPT)
         self.max_loop_lag_ms = 0.0
         self._speed = SpeedReader(
             config.speed.source, config.speed.sensor_address, config.speed.ccvs1_direction
@@ -239,7 +243,6 @@ class Supervisor:
         stopped = sender.set(d.permit, now, status) and not d.permit
         if stopped and d.decided_at > 0:
             self.lease_to_frame_ms.append(round((time.monotonic() - d.decided_at) * 1e3, 3))
-            del self.lease_to_frame_ms[:-2000]
         sender.tick(now)
         if sender.stats.send_errors > errors:
             self.counts["send_errors"] += sender.stats.send_errors - errors
@@ -379,7 +382,6 @@ class Supervisor:
             # the deck ran until the supervisor's own check stopped it: how long after the limit
             limit = self.speed_gate.revealed_at(now, ("speed", ""), self._speed_arrival, None)
             self.own_halt_ms.append(round((time.monotonic() - limit) * 1e3, 3))
-            del self.own_halt_ms[:-2000]
         lifted = own is not None and own[0] == Reason.LIFTED
         if lifted != self._lifted_told:  # the localizer gives its pose up while lifted
             self._lifted_told = lifted
@@ -468,7 +470,7 @@ def run_supervised(
     return Supervisor(config, mode, record, duration_s=duration_s).run()
 
 
-def _percentiles(values: list[float]) -> dict[str, float | int | None]:
+def _percentiles(values: Collection[float]) -> dict[str, float | int | None]:
     if not values:
         return {"p50": None, "p99": None, "max": None, "n": 0}
     v = sorted(values)
