@@ -373,8 +373,7 @@ class Localizer:
         planar = accepted_covariance(answer.covariance)
         self.reinitialise(
             (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)),
-            math.sqrt(max(planar[0, 0], planar[1, 1])),  # the height's
-            math.sqrt(planar[2, 2]),
+            math.sqrt(max(planar[0, 0], planar[1, 1])),  # the height's; x, y, heading: planar
             planar_cov=planar,
         )
         if answer.landmark_cross is not None:
@@ -443,7 +442,7 @@ class Localizer:
         ``gyro`` and ``speed``; the filter is left as it was."""
         now = self.ekf.snapshot()
         self.ekf.restore(state)
-        self.ekf.propagate(self._motion(gyro, speed, dt), wheels_still=speed == 0.0)
+        self._advance(gyro, speed, dt)
         out = self.ekf.snapshot()
         self.ekf.restore(now)
         return out
@@ -626,12 +625,14 @@ class Localizer:
 
     def _propagate(self, t0: float, t1: float, gyro: FloatArray, speed: float) -> None:
         self._w_last = gyro.copy()
-        self.ekf.propagate(self._motion(gyro, speed, t1 - t0), wheels_still=speed == 0.0)
+        self._advance(gyro, speed, t1 - t0)
 
-    def _motion(self, gyro: FloatArray, speed: float, dt: float) -> BodyMotion:
-        """The body motion over ``dt`` at a gyro reading and a ground speed."""
+    def _advance(self, gyro: FloatArray, speed: float, dt: float) -> None:
+        """The filter carried ``dt`` at a gyro reading and a ground speed: the body motion
+        they make, the wheels standing when the speed reads exactly 0."""
         w = self.ekf.corrected_rate(gyro)
-        return BodyMotion.of(w, camera_velocity(speed, w, self.cfg.speed_contact_m), dt)
+        motion = BodyMotion.of(w, camera_velocity(speed, w, self.cfg.speed_contact_m), dt)
+        self.ekf.propagate(motion, wheels_still=speed == 0.0)
 
     #: an IMU interval longer than the IMU's staleness limit (``imu.stale_after_s``: the
     #: runtime halted for it) is a gap — the IMU was unplugged or silent, the motion in it
