@@ -461,7 +461,7 @@ class LawnMap:
                 "rotation_rad": closure.rotation_rad,
                 **(
                     {"bearing_sigma_long_run_rad": closure.bearing_sigma_long_run_rad}
-                    if math.isfinite(getattr(closure, "bearing_sigma_long_run_rad", math.nan))
+                    if math.isfinite(closure.bearing_sigma_long_run_rad)
                     else {}
                 ),
             },

@@ -25,6 +25,7 @@ from drivers.imu.vn100_binary import FIELDS, encode_packet, pack_values
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "vn100"
 WIRE_BYTES_PER_S = 921600 / 10  # 8N1: 10 bits per byte
+BINARY_PACKETS = 20000
 
 
 def binary_stream(n_packets: int, damaged: float = 0.01, seed: int = 0) -> bytes:
@@ -85,7 +86,7 @@ def main() -> None:
     streams = {
         "capture_a_ascii": (DATA / "vn100-rugged-capture-a.txt").read_bytes(),
         "capture_b_ascii": (DATA / "vn100-rugged-capture-b.txt").read_bytes(),
-        "binary_100hz_common_group": binary_stream(20000),
+        "binary_100hz_common_group": binary_stream(BINARY_PACKETS),
     }
     out: dict[str, object] = {}
     for name, data in streams.items():
@@ -95,7 +96,7 @@ def main() -> None:
         }
     print(json.dumps(out, indent=2))
     binary_ok = out["binary_100hz_common_group"]["results"][0]["counts"]  # type: ignore[index]
-    if binary_ok.get("binary_ok", 0) < 0.95 * 20000:
+    if binary_ok.get("binary_ok", 0) < 0.95 * BINARY_PACKETS:
         raise SystemExit(f"the binary stream did not parse as the driver's packets: {binary_ok}")
 
 
