@@ -110,6 +110,16 @@ def test_vnerr_is_a_failed_command_with_its_meaning(link):
         drv.close()
 
 
+def data_after_outage_s(samples: list) -> float:
+    """Seconds of samples after the longest gap (> 1 s) in their host times; 0 before one."""
+    if len(samples) < 2:
+        return 0.0
+    t = np.array([s.host_time_ns for s in samples]) * 1e-9
+    gaps = np.diff(t)
+    k = int(np.argmax(gaps))
+    return float(t[-1] - t[k + 1]) if gaps[k] > 1.0 else 0.0
+
+
 @pytest.mark.parametrize("power_cycle", [False, True], ids=["usb-link", "power-cycle"])
 def test_reconnects_when_the_port_vanishes_and_returns(link, power_cycle):
     samples = []
@@ -121,7 +131,11 @@ def test_reconnects_when_the_port_vanishes_and_returns(link, power_cycle):
     ) as mock:
         drv = Vn100(str(link), on_sample=samples.append, reconnect_max_backoff_s=0.5)
         drv.start()
-        time.sleep(6.0)
+        # the outage starts 2 s into the mock's stream and lasts 1.5 s; wait for 1.5 s of data
+        # after it (a loaded machine configures the sensor more slowly: up to 15 s in all)
+        deadline = time.monotonic() + 15.0
+        while time.monotonic() < deadline and not data_after_outage_s(samples) > 1.5:
+            time.sleep(0.1)
         drv.stop()
         assert mock.stats.vanished == 1
     assert drv.stats.reconnects >= 1
@@ -129,11 +143,12 @@ def test_reconnects_when_the_port_vanishes_and_returns(link, power_cycle):
     t = np.array([s.host_time_ns for s in samples]) * 1e-9
     gaps = np.diff(t)
     assert gaps.max() > 1.0  # the outage
-    assert t[-1] - t[0] > 5.0 and (t[-1] - t[np.argmax(gaps) + 1]) > 1.5  # data after it
+    assert t[np.argmax(gaps)] - t[0] > 1.0  # data before the outage
+    assert data_after_outage_s(samples) > 1.5  # and after it
     print(
         f"port vanished for 1.5 s ({'sensor power-cycled' if power_cycle else 'USB link only'}): "
         f"gap in samples {gaps.max():.2f} s, reconnects {drv.stats.reconnects}, "
-        f"configurations {drv.stats.reconfigurations}, samples {len(samples)} in 6 s"
+        f"configurations {drv.stats.reconfigurations}, samples {len(samples)} in {t[-1] - t[0]:.1f} s"
     )
 
 
@@ -152,7 +167,9 @@ def test_read_on_an_event_loop_and_reconnected_by_the_thread(link):
     async def main():
         drv = Vn100(str(link), on_sample=on_sample, reconnect_max_backoff_s=0.5)
         drv.start(asyncio.get_running_loop())
-        await asyncio.sleep(6.0)
+        deadline = time.monotonic() + 15.0  # as above: a loaded machine reconfigures slowly
+        while time.monotonic() < deadline and not data_after_outage_s(samples) > 1.5:
+            await asyncio.sleep(0.1)
         drv.stop()
         return drv
 
@@ -164,8 +181,10 @@ def test_read_on_an_event_loop_and_reconnected_by_the_thread(link):
     assert drv.stats.reconnects >= 1 and drv.stats.reconfigurations >= 2
     t = np.array([s.host_time_ns for s in samples]) * 1e-9
     gaps = np.diff(t)
-    assert gaps.max() > 1.0 and (t[-1] - t[np.argmax(gaps) + 1]) > 1.5  # data after the outage
-    assert 300 < len(samples) < 700
+    assert gaps.max() > 1.0 and data_after_outage_s(samples) > 1.5  # data after the outage
+    assert t[np.argmax(gaps)] - t[0] > 1.0  # and before it
+    # 100 Hz for the time the stream ran, less the outage
+    assert 0.8 < len(samples) / (100 * (t[-1] - t[0] - gaps.max())) < 1.2
 
 
 def test_driver_asks_for_the_configured_gyro_field(link):
