@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from _waiting import wait_for
 
 from drivers.camera.base import asyncio_sink, synthetic_frame
 from drivers.camera.mock import MockCamera
@@ -102,17 +103,14 @@ def test_v4l2_driver_reconnects_when_the_device_returns():
     frames = []
     cam.start(frames.append)
     try:
-        time.sleep(0.3)
+        assert wait_for(lambda: len(frames) > 5 and cam.stats.connected)
         n_before = len(frames)
-        assert n_before > 5 and cam.stats.connected
         dev.present = False  # unplugged
-        time.sleep(0.4)
-        assert cam.stats.reconnects >= 1 and not cam.stats.connected
-        assert cam.stats.open_failures >= 1
+        assert wait_for(lambda: cam.stats.reconnects >= 1 and not cam.stats.connected)
+        assert wait_for(lambda: cam.stats.open_failures >= 1)
         n_gone = len(frames)
         dev.present = True  # plugged back in
-        time.sleep(1.0)
-        assert len(frames) > n_gone + 5 and cam.stats.connected
+        assert wait_for(lambda: len(frames) > n_gone + 5 and cam.stats.connected, timeout=5.0)
     finally:
         cam.stop()
     assert dev.opens >= 3

@@ -10,6 +10,7 @@ from pathlib import Path
 import can
 import pytest
 from _tools import load_tool
+from _waiting import wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -314,15 +315,6 @@ class AppLoop:
         self.killed.set()
         self.thread.join()
         return time.monotonic()
-
-
-def wait_for(cond, timeout: float = 2.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.005)
-    return cond()
 
 
 @pytest.fixture

@@ -5,6 +5,7 @@ import time
 
 import numpy as np
 import pytest
+from _waiting import wait_for
 
 from drivers.imu.mock import Faults, MockImuState, MockVn100
 from drivers.imu.vn100 import Vn100, Vn100CommandError
@@ -133,9 +134,7 @@ def test_reconnects_when_the_port_vanishes_and_returns(link, power_cycle):
         drv.start()
         # the outage starts 2 s into the mock's stream and lasts 1.5 s; wait for 1.5 s of data
         # after it (a loaded machine configures the sensor more slowly: up to 15 s in all)
-        deadline = time.monotonic() + 15.0
-        while time.monotonic() < deadline and not data_after_outage_s(samples) > 1.5:
-            time.sleep(0.1)
+        wait_for(lambda: data_after_outage_s(samples) > 1.5, timeout=15.0, poll_s=0.1)
         drv.stop()
         assert mock.stats.vanished == 1
     assert drv.stats.reconnects >= 1
@@ -148,7 +147,8 @@ def test_reconnects_when_the_port_vanishes_and_returns(link, power_cycle):
     print(
         f"port vanished for 1.5 s ({'sensor power-cycled' if power_cycle else 'USB link only'}): "
         f"gap in samples {gaps.max():.2f} s, reconnects {drv.stats.reconnects}, "
-        f"configurations {drv.stats.reconfigurations}, samples {len(samples)} in {t[-1] - t[0]:.1f} s"
+        f"configurations {drv.stats.reconfigurations}, "
+        f"samples {len(samples)} in {t[-1] - t[0]:.1f} s"
     )
 
 
