@@ -47,10 +47,8 @@ from mowerhw.runtime.pipelines import (
 log = logging.getLogger("mowerhw.daemon")
 
 MODES = ("idle", "teach", "mow")
-#: localized poses are offered for saving (restarts resume from them) at most this often (s):
-#: a restart takes longer than this, and every resume is checked against the camera before
-#: the deck may run (issue 18), so a fresher pose buys nothing; each save is a file write
-POSE_SAVE_PERIOD_S = 1.0
+#: localized poses are offered for saving (restarts resume from them) at most this often (s)
+POSE_SAVE_PERIOD_S = 0.1
 FAULT_KINDS = ("nan", "exception")
 
 
