@@ -206,6 +206,30 @@ def test_the_map_check_finds_honest_landmark_covariances_honest_and_wide_ones_wi
     assert check(4.0) < lo / 8
 
 
+def test_the_per_relocalization_nees_shows_a_heavy_tail_the_bin_means_hide() -> None:
+    """:func:`per_relocalization_nees`: 400 relocalizations whose errors are drawn from
+    their covariance (each a held error: one χ²₃ draw over its 10 s) have about 2.5 % on
+    either side of the χ²₃ interval; a mixture with the same mean of 3 — 90 % at a third of
+    their σ² and 10 % at 21× — has most below and a tenth above, and that tenth carries
+    most of the NEES."""
+    from mowerhw.evaluation.recovery import per_relocalization_nees
+
+    rng = np.random.default_rng(18)
+
+    def runs(scales: np.ndarray) -> list[np.ndarray]:
+        return [np.full(1000, s * rng.chisquare(3)) for s in scales]
+
+    honest = per_relocalization_nees(runs(np.ones(400)))
+    assert honest["relocalizations"] == 400
+    assert 2 <= honest["below_interval"] <= 20 and 2 <= honest["above_interval"] <= 20
+    assert 2.0 <= honest["mean_nees"]["median"] <= 2.8  # χ²₃ median 2.37
+    tail = per_relocalization_nees(runs(np.where(np.arange(400) < 360, 1 / 3, 21.0)))
+    assert tail["below_interval"] > 4 * honest["below_interval"]
+    assert tail["above_interval"] > 25
+    assert tail["share_of_nees_from_top_10pct"] > 0.6 > honest["share_of_nees_from_top_10pct"]
+    assert per_relocalization_nees([]) == {"relocalizations": 0}
+
+
 def test_bearing_errors_are_told_apart_into_what_stays_and_what_changes() -> None:
     """:func:`bearing_error_figures` (issue 18's measurement of the pixel-level bearings):
     on made-up errors — a per-landmark bias of 0.1°, then AR(1) noise of 0.05° whose
