@@ -32,7 +32,9 @@ def tune_process() -> None:
     and a warning for every garbage collection long enough to stall the event loop."""
     import cv2
 
-    sys.setswitchinterval(0.001)  # the front-end thread must not hold the GIL for 5 ms
+    # a front end on a thread (runtime.frontend_process false) must not hold the GIL for
+    # 5 ms; with it in its own process this costs nothing measurable (stop 41, side by side)
+    sys.setswitchinterval(0.001)
     cv2.setNumThreads(1)  # one frame at a time on one worker; OpenCV's pool would spin
     gc.collect()
     gc.freeze()  # the start-up objects (modules, config) are never scanned by a full collection
