@@ -5,7 +5,9 @@ controller decides them, from the *estimate*). Its contact point moves on the gr
 :mod:`mowerhw.sim.terrain` (exact arcs in the horizontal plane, at the IMU rate); attitude and
 camera position follow from the ground (:func:`mowerhw.sim.motion.pose_on_ground`). The sensors
 are those of :mod:`mowerhw.sim.sensors` (the scenario's gyro grade at 100 Hz, its ground-speed
-sensor at 10 Hz, bearings at 4 Hz through the omni camera). Camera frames are *late*: a frame
+sensor at 10 Hz, bearings at 4 Hz through the omni camera). A ground-speed reading is the speed
+of the IMU interval just moved, stamped at that interval's middle (where it is true: the
+estimators take a reading to be the speed at its stamp). Camera frames are *late*: a frame
 taken at ``t`` is delivered after the scenario's latency (or ``frame_latency_s``), stamped with
 ``t`` (plus the stamp jitter); frames and single bearings are lost as the scenario says.
 """
@@ -228,7 +230,8 @@ class MowerPlant:
         out = PlantOutput((self.t, gyro))
         if self.k % self._speed_every == 0:
             meas = self.speedometer.measure(self.t, v_cmd, self._speed_every * dt)
-            out.speed = (self.t, meas)
+            # the speed of the interval just moved: true at its middle
+            out.speed = (round(self.t - 0.5 * dt, 9), meas)
         if self.k % self._mag_every == 0:
             out.mag = (self.t, self.magnetometer.measure(self.rot))
         if self.k % self._frame_every == 0:
