@@ -254,3 +254,44 @@ def test_bearing_errors_are_told_apart_into_what_stays_and_what_changes() -> Non
     turned = yaw_rotation(math.radians(0.2)) @ (point / np.linalg.norm(point))
     az, el = bearing_error(np.zeros(2), 0.0, turned, point)
     assert az == pytest.approx(math.radians(0.2), abs=1e-9) and abs(el) < 1e-9
+
+
+def test_starts_over_several_maps_pool_their_scores_and_nees(monkeypatch) -> None:
+    """``start_runs_over_maps``: each map's starts scored on their own (``per_map``) and
+    together, every relocalization's NEES in one pool — one map's wrong answer shows in the
+    pooled per-relocalization tail."""
+    from mowerhw.evaluation import recovery as R
+
+    def run(seed: int, error_m: float, nees: float) -> dict[str, object]:
+        return {
+            "accepted_s": 0.4,
+            "error_m": error_m,
+            "yaw_error_deg": 0.01,
+            "permits_wrong": 50 if error_m > R.WRONG_M else 0,
+            "missed_halts": 0,
+            "nees": nees,
+        }
+
+    def fake_starts(lawn_map, scenario, seed, starts, config, seconds, progress, compass):
+        log = R._NeesLog(None)
+        runs = [
+            run(seed, 0.2 if seed == 2 and i == 0 else 0.005, 500.0 if seed == 2 else 3.0)
+            for i in range(starts)
+        ]
+        log.series = [np.full(1000, r["nees"]) for r in runs]
+        log.aligned = [np.full(1000, r["nees"]) for r in runs]
+        return runs, log
+
+    monkeypatch.setattr(R, "_starts", fake_starts)
+    out = R.start_runs_over_maps([(1, None), (2, None), (3, None)], "paper", 4)
+    assert out["maps"] == 3 and out["starts"] == 12
+    assert [m["seed"] for m in out["per_map"]] == [1, 2, 3]
+    assert [m["accepted_wrong_over_0.15m"] for m in out["per_map"]] == [0, 1, 0]
+    assert (
+        out["accepted_wrong_over_0.15m"] == 1 and out["permit_samples_while_wrong_over_0.15m"] == 50
+    )
+    assert out["success_rate"] == round(11 / 12, 3)
+    assert {r["seed"] for r in out["runs"]} == {1, 2, 3}
+    for key in ("nees", "nees_in_map_frame"):
+        per = out[key]["per_relocalization"]
+        assert per["relocalizations"] == 12 and per["above_interval"] == 4

@@ -5,7 +5,9 @@ Teaches the pixel-level map of ``--scenario``/``--seed`` (or loads ``--map``, a 
 teach saved: ``--save-map`` writes it), then ``--starts`` random starts with no prior and
 ``--kidnaps`` kidnaps mid-mow (:mod:`mowerhw.evaluation.recovery`). ``--no-lift``: the
 kidnaps do not show on the accelerometer or the lift switch (only the camera can tell).
-``--per-run``: keep every run's figures in the JSON.
+``--per-run``: keep every run's figures in the JSON. ``--map-seeds 3-22``: teach each of
+those yards and make ``--starts`` starts on each (one map draws its errors once for all its
+starts; many maps let the Monte-Carlo draw them too), scores and NEES pooled.
 
     .venv/bin/python tools/recovery_pixel.py --scenario paper --seed 1 --starts 100 --kidnaps 20
 """
@@ -18,9 +20,14 @@ import sys
 import time
 from typing import Any
 
-from mowerhw.evaluation.campaign import scenario_config
+from mowerhw.evaluation.campaign import scenario_config, seeds_of
 from mowerhw.evaluation.pixel import pixel_map, yard_arguments
-from mowerhw.evaluation.recovery import kidnap_runs, map_landmark_nees, start_runs
+from mowerhw.evaluation.recovery import (
+    kidnap_runs,
+    map_landmark_nees,
+    start_runs,
+    start_runs_over_maps,
+)
 
 
 def _progress(kind: str) -> Any:
@@ -39,8 +46,17 @@ def main() -> None:
     ap.add_argument("--save-map", help="write the taught map here")
     ap.add_argument("--per-run", action="store_true")
     ap.add_argument("--no-compass", action="store_true", help="the search without the magnetometer")
+    ap.add_argument(
+        "--map-seeds",
+        metavar="SEEDS",
+        help="e.g. 3-22: teach each of these yards and make --starts starts on each (the "
+        "Monte-Carlo draws the map too; starts only)",
+    )
     args = ap.parse_args()
     cfg = scenario_config(args.scenario)  # the yard mower's own IMU grade
+    if args.map_seeds:
+        _over_maps(args, cfg)
+        return
     t0 = time.perf_counter()
     lawn_map = pixel_map(args.scenario, args.seed, cfg, args.map, args.save_map)
     out: dict[str, Any] = {"scenario": args.scenario, "seed": args.seed}
@@ -76,6 +92,28 @@ def main() -> None:
         out["kidnaps"]["wall_s"] = round(time.perf_counter() - t1, 1)
         if not args.per_run:
             out["kidnaps"].pop("per_run")
+    print(json.dumps(out))
+
+
+def _over_maps(args: argparse.Namespace, cfg: Any) -> None:
+    """``--map-seeds``: one pixel-level teach per yard seed, ``--starts`` starts on each."""
+    try:
+        seeds = seeds_of(args.map_seeds)
+    except ValueError:
+        sys.exit(f"--map-seeds {args.map_seeds!r}: expected e.g. 3-22 or 3,5,9")
+    t0 = time.perf_counter()
+    maps = ((seed, pixel_map(args.scenario, seed, cfg)) for seed in seeds)  # taught in turn
+    out = start_runs_over_maps(
+        maps,
+        args.scenario,
+        args.starts,
+        cfg,
+        progress=_progress("map"),
+        compass=not args.no_compass,
+    )
+    out["wall_s"] = round(time.perf_counter() - t0, 1)
+    if not args.per_run:
+        out.pop("runs")
     print(json.dumps(out))
 
 

@@ -22,7 +22,7 @@ that frame, so an error the whole map shares moves the boundary with the pose).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -166,11 +166,18 @@ def _nees(out: MowOutcome, align: Alignment | None = None) -> list[FloatArray]:
 class _NeesLog:
     """The NEES series of every run, against the truth and in the map's frame."""
 
-    def __init__(self, lawn_map: LawnMap) -> None:
-        self.align = map_alignment(lawn_map)
+    def __init__(self, lawn_map: LawnMap | None) -> None:
+        """``lawn_map`` None: a pool of other logs (:meth:`extend`), each aligned its way."""
+        self.align = None if lawn_map is None else map_alignment(lawn_map)
+        self.pooled = lawn_map is None
         self.series: list[FloatArray] = []
         self.aligned: list[FloatArray] = []
         self.dt = 0.01
+
+    def extend(self, other: _NeesLog) -> None:
+        self.series += other.series
+        self.aligned += other.aligned
+        self.dt = other.dt
 
     def add(self, out: MowOutcome) -> None:
         self.dt = float(out.t[1] - out.t[0])
@@ -182,7 +189,9 @@ class _NeesLog:
         return {
             "nees": nees_summary(self.series, self.dt),
             "nees_in_map_frame": (
-                nees_summary(self.aligned, self.dt) if self.align is not None else None
+                nees_summary(self.aligned, self.dt)
+                if self.align is not None or (self.pooled and self.aligned)
+                else None
             ),
         }
 
@@ -254,6 +263,60 @@ def start_runs(
 ) -> dict[str, Any]:
     """``starts`` random starts with no prior (module doc); ``compass``: the magnetometer
     helps the search (when the map has the taught field)."""
+    runs, nees = _starts(lawn_map, scenario, seed, starts, config, seconds, progress, compass)
+    return {
+        "scenario": scenario,
+        "seed": seed,
+        **_start_scores(runs, starts),
+        "compass": compass and lawn_map.compass is not None,
+        "map_landmarks": len(lawn_map.landmarks),
+        **nees.summary(),
+        "runs": runs,
+    }
+
+
+def start_runs_over_maps(
+    maps: Iterable[tuple[int, LawnMap]],
+    scenario: str,
+    starts_per_map: int,
+    config: Config | None = None,
+    progress: Callable[[int, dict[str, Any]], None] | None = None,
+    compass: bool = True,
+) -> dict[str, Any]:
+    """:func:`start_runs` spread over several independently taught maps (``maps``: the
+    yard's seed and its map): the Monte-Carlo then draws the map's errors too, where one map
+    draws them once for all its starts. Scores and NEES pooled; ``per_map`` each map's."""
+    runs: list[dict[str, Any]] = []
+    pooled = _NeesLog(None)
+    per_map = []
+    for seed, lawn_map in maps:
+        mine, nees = _starts(lawn_map, scenario, seed, starts_per_map, config, 12.0, None, compass)
+        pooled.extend(nees)
+        per_map.append({"seed": seed, **_start_scores(mine, starts_per_map)})
+        runs += [{"seed": seed, **r} for r in mine]
+        if progress is not None:
+            progress(len(per_map) - 1, per_map[-1])
+    return {
+        "scenario": scenario,
+        "maps": len(per_map),
+        **_start_scores(runs, len(runs)),
+        **pooled.summary(),
+        "per_map": per_map,
+        "runs": runs,
+    }
+
+
+def _starts(
+    lawn_map: LawnMap,
+    scenario: str,
+    seed: int,
+    starts: int,
+    config: Config | None,
+    seconds: float,
+    progress: Callable[[int, dict[str, Any]], None] | None,
+    compass: bool,
+) -> tuple[list[dict[str, Any]], _NeesLog]:
+    """The runs of :func:`start_runs`, and their NEES."""
     lawn = _inside(scenario, seed, 0.3)
     rng = np.random.default_rng([seed, 18, 1])
     nees = _NeesLog(lawn_map)
@@ -292,6 +355,12 @@ def start_runs(
         nees.add(out)
         if progress is not None:
             progress(i, run)
+    return runs, nees
+
+
+def _start_scores(runs: list[dict[str, Any]], starts: int) -> dict[str, Any]:
+    """Success (within :data:`SUCCESS_M` and :data:`SUCCESS_RAD` in 5 s), times and the
+    safety counts of start runs."""
     ok = [
         r
         for r in runs
@@ -302,11 +371,7 @@ def start_runs(
     ]
     times = [r["accepted_s"] for r in runs if r["accepted_s"] is not None]
     return {
-        "scenario": scenario,
-        "seed": seed,
         "starts": starts,
-        "compass": compass and lawn_map.compass is not None,
-        "map_landmarks": len(lawn_map.landmarks),
         "success_rate": round(len(ok) / max(1, starts), 3),
         "accepted": len(times),
         "accepted_wrong_over_0.15m": sum(
@@ -315,8 +380,6 @@ def start_runs(
         "time_to_relocalize_s": {"median": _pct(times, 50), "p95": _pct(times, 95)},
         "permit_samples_while_wrong_over_0.15m": sum(r["permits_wrong"] for r in runs),
         "missed_halts": sum(r["missed_halts"] for r in runs),
-        **nees.summary(),
-        "runs": runs,
     }
 
 
