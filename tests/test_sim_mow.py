@@ -87,13 +87,13 @@ def test_the_plants_speed_reading_is_true_at_its_stamp():
     track = SpeedTrack()
     track.add(*plant.first_output().speed)
     start = plant.xy.copy()
-    steps = [(float(plant.t), 0.0)]
+    times = [float(plant.t)]
     for k in range(round(1.5 / plant.dt)):
         out = plant.step(0.0 if k < 22 else 0.45, 0.0)  # starts between two speed readings
-        steps.append((float(plant.t), 0.0))
+        times.append(float(plant.t))
         if out.speed is not None:
             track.add(*out.speed)
-    t = np.array([s[0] for s in steps])
+    t = np.array(times)
     mids = 0.5 * (t[1:] + t[:-1])
     driven = float(np.sum(track.interpolate(mids) * np.diff(t)))
     rolled = float(np.linalg.norm(plant.xy - start))

@@ -47,6 +47,8 @@ MOW_BEFORE_S = 15.0  # mowing from the dock before the kidnap
 AFTER_S = 20.0  # simulated after the mower is put down
 #: put down at least this far from where it was picked up, where the lawn allows (m)
 MIN_DISPLACEMENT_M = 4.0
+#: simulated after each start with no prior (s)
+START_S = 12.0
 
 
 def _pct(a: list[float], q: float) -> float | None:
@@ -169,7 +171,6 @@ class _NeesLog:
     def __init__(self, lawn_map: LawnMap | None) -> None:
         """``lawn_map`` None: a pool of other logs (:meth:`extend`), each aligned its way."""
         self.align = None if lawn_map is None else map_alignment(lawn_map)
-        self.pooled = lawn_map is None
         self.series: list[FloatArray] = []
         self.aligned: list[FloatArray] = []
         self.dt = 0.01
@@ -189,8 +190,9 @@ class _NeesLog:
         return {
             "nees": nees_summary(self.series, self.dt),
             "nees_in_map_frame": (
+                # a map without the truth to align adds none: a pool has them if any map did
                 nees_summary(self.aligned, self.dt)
-                if self.align is not None or (self.pooled and self.aligned)
+                if self.align is not None or self.aligned
                 else None
             ),
         }
@@ -257,7 +259,7 @@ def start_runs(
     seed: int,
     starts: int,
     config: Config | None = None,
-    seconds: float = 12.0,
+    seconds: float = START_S,
     progress: Callable[[int, dict[str, Any]], None] | None = None,
     compass: bool = True,
 ) -> dict[str, Any]:
@@ -290,7 +292,9 @@ def start_runs_over_maps(
     pooled = _NeesLog(None)
     per_map = []
     for seed, lawn_map in maps:
-        mine, nees = _starts(lawn_map, scenario, seed, starts_per_map, config, 12.0, None, compass)
+        mine, nees = _starts(
+            lawn_map, scenario, seed, starts_per_map, config, START_S, None, compass
+        )
         pooled.extend(nees)
         per_map.append({"seed": seed, **_start_scores(mine, starts_per_map)})
         runs += [{"seed": seed, **r} for r in mine]
