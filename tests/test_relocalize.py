@@ -342,3 +342,41 @@ def test_the_polish_grid_scores_every_pose_as_against_every_landmark() -> None:
     assert got.shape == expected.shape
     assert np.abs(got - expected).max() < 1e-6
     assert expected.max() > 30.0  # the true pose is on the grid: most bearings count
+
+
+def _boards(rng: np.random.Generator, n: int = 14) -> np.ndarray:
+    """``n`` boards around a ring, facing its centre, each a 3×3 lattice of corners 0.4 m
+    apart (a 2×2-pane board: its centre, edge middles and corners)."""
+    out = []
+    for a in np.sort(rng.uniform(0, 2 * np.pi, n)):
+        r, h = rng.uniform(7.0, 11.0), rng.uniform(0.0, 1.0)
+        centre = np.array([r * math.cos(a), r * math.sin(a), h])
+        along = np.array([-math.sin(a), math.cos(a), 0.0])
+        for i in (-1, 0, 1):
+            for j in (-1, 0, 1):
+                out.append(centre + 0.4 * i * along + [0.0, 0.0, 0.4 * j])
+    return np.array(out)
+
+
+def test_a_turn_by_one_step_of_a_boards_corner_lattice_is_not_taken() -> None:
+    """Boards whose corners are a lattice, 60 % of them in the map, 40 % seen (some of
+    those not in the map): turned by one lattice step (2–3° at 7–11 m) and shifted a few
+    centimetres, a pose pairs most bearings with their corners' neighbours and explains as
+    many of them, a few tenths of a degree off each. Measured before the sharp polish: one
+    of these ten answered 3 cm and 2.4° off (pixel level, paper lawn: 10 cm and 2.4° off,
+    permitted). Every answer is right or there is none."""
+    answered = 0
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        pts = _boards(rng)
+        mapped = rng.random(len(pts)) < 0.6
+        p = np.array([rng.uniform(-2, 2), rng.uniform(-2, 2), 0.0])
+        yaw = rng.uniform(-math.pi, math.pi)
+        seen = rng.random(len(pts)) < 0.4
+        res = GlobalRelocalizer(_map(pts[mapped])).locate(_view(pts[seen], p, yaw, rng, 0.0004))
+        if not res.ok:
+            continue
+        answered += 1
+        assert np.linalg.norm(res.p_wb[:2] - p[:2]) < 0.05, seed
+        assert abs(math.remainder(res.yaw - yaw, 2 * math.pi)) < math.radians(0.5), seed
+    assert answered >= 8

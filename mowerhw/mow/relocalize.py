@@ -20,14 +20,18 @@ the *geometry*: where, around the mower and how high, the landmarks appear. So:
    :attr:`inlier_angle_rad`.
 3. **Polish** — a refinement can stop in a local optimum a few decimetres off, where the true
    pose explains the bearings far better at sub-degree precision: every pose of a 5 cm / 1°
-   grid around the best is scored at once (soft score, σ 1°), the best ten are refined and
-   the one with the best sharp soft score (σ 0.4°) is kept (:meth:`GlobalRelocalizer._polish`).
+   grid around the best is scored at once (soft score, σ 1°), its best ten poses and best
+   five other local maxima are refined by annealing the score's kernel from 1° to 0.1°, and
+   the one with the best sharp soft score (σ 0.1°) is kept (:meth:`GlobalRelocalizer._polish`):
+   a board's corners are a lattice, and a pose that pairs the bearings with their corners'
+   neighbours explains as many of them, only less sharply.
 4. **Unique or nothing** — an answer only with at least :attr:`min_inliers` inliers spread
    around the mower, if no place more than 1 m or 15° away has :attr:`ambiguity_ratio` of its
    inliers unless it has :attr:`ambiguity_margin` fewer (a look-alike place: in a symmetric
    garden the twin place explains every look-alike landmark, and only the others tell the
-   two apart), and no refined optimum more than 0.15 m away scores 90 % as well (not pinned
-   down). Otherwise no answer, with the reason.
+   two apart), and no refined optimum more than 0.15 m away or turned more than 1° scores
+   90 % as well (not pinned down: a board's corners are a lattice, and a turn by one step of
+   it pairs each bearing with its landmark's neighbour). Otherwise no answer, with the reason.
 5. **The answer's fit** — (x, y, heading) fitted once more to the inliers, each weighed by
    Huber at the residuals' robust σ (a feature beside a landmark's corner, up to the 1°
    inlier angle off, no longer weighs as much as a true one), with its covariance from the
@@ -60,6 +64,7 @@ import time
 import numpy as np
 import shapely
 from numpy.typing import NDArray
+from scipy.ndimage import maximum_filter
 from scipy.optimize import least_squares
 
 from mowerhw.common.geometry import wrap_angle, yaw_rotation
@@ -285,16 +290,71 @@ class GlobalRelocalizer:
         rows, cols = self._associate(obs, r_wb, p_wb, self.inlier_angle_rad)
         return r_wb, p_wb, rows, cols
 
+    def _anneal(self, obs: FloatArray, state: FloatArray) -> FloatArray:
+        """(x, y, yaw) from ``state`` to a nearby maximum of the soft score: each bearing
+        paired with its nearest landmark within 3 σ and weighed by the score's kernel
+        exp(−θ²/2σ²) (a redescending loss: a feature beside a landmark's corner, or a pair
+        with the corner's lattice neighbour, stops pulling), σ narrowed from 1° to the
+        score's own (:data:`ANNEAL_SIGMAS_RAD`) so that the wide start finds the basin and
+        the narrow end its sharp optimum. A Huber fit does neither: measured from the true
+        pose, it moved 1–2 cm to a pose the sharp score rated half as well."""
+        for sigma in self.ANNEAL_SIGMAS_RAD:
+            for _ in range(self.ANNEAL_ROUNDS):
+                rows, cols = self._associate(obs, *self._pose(state), 3.0 * sigma)
+                if rows.size < 3:
+                    return state
+                pts = self.points[cols]
+                norms = np.linalg.norm(self._residuals(obs, rows, pts, state), axis=1)
+                root_w = np.exp(-(norms**2) / (4.0 * sigma**2))  # √ of the kernel
+                state = self._weighted_fit(obs, rows, pts, root_w, state, max_nfev=20)
+        return state
+
+    def _weighted_fit(
+        self,
+        obs: FloatArray,
+        rows: NDArray[np.int64],
+        pts: FloatArray,
+        root_w: FloatArray,
+        x0: FloatArray,
+        max_nfev: int = 50,
+    ) -> FloatArray:
+        """(x, y, yaw) by least squares over the pairs' residuals, each scaled by ``root_w``."""
+
+        def weighted(x: FloatArray) -> FloatArray:
+            out: FloatArray = (root_w[:, None] * self._residuals(obs, rows, pts, x)).ravel()
+            return out
+
+        fitted: FloatArray = least_squares(weighted, x0, max_nfev=max_nfev).x
+        return fitted
+
     #: the local search around the chosen place: ± this far and turned, in these steps
     POLISH_M, POLISH_STEP_M = 0.5, 0.05
     POLISH_RAD, POLISH_STEP_RAD = math.radians(4.0), math.radians(1.0)
-    #: the soft score's angular scale: a bearing counts exp(−θ²/2σ²) towards its landmark;
-    #: on the polish grid a wider one (a grid pose is up to half a step off)
-    SOFT_SIGMA_RAD = math.radians(0.4)
+    #: the soft score's angular scale: a bearing counts exp(−θ²/2σ²) towards its landmark.
+    #: Sharp — a corner's bearing is good to a few hundredths of a degree at pixel level —
+    #: so that a pose that pairs bearings with a board corner's lattice neighbours (0.4 m
+    #: apart: 2–4° at 6–12 m), a few tenths of a degree off each, scores far below the
+    #: true pose (measured: 5–8 against 10–17); on the polish grid a wider one (a grid pose
+    #: is up to half a step off)
+    SOFT_SIGMA_RAD = math.radians(0.1)
     GRID_SIGMA_RAD = math.radians(1.0)
+    #: the polish refines the best poses of its grid that are ≥ 2 steps apart, and the best
+    #: local maxima of the grid among the rest (another basin: a true pose that the best
+    #: few, all in one wrong basin, would never reach)
     POLISH_CANDIDATES = 10
-    #: a pose this far from the best that scores nearly as well: the place is not pinned down
+    POLISH_PEAKS = 5
+    #: the refinement anneals its kernel down to the soft score's σ, a few rounds each
+    ANNEAL_SIGMAS_RAD = tuple(math.radians(v) for v in (1.0, 0.5, 0.25, 0.1))
+    ANNEAL_ROUNDS = 2
+
+    #: a pose this far from the best, or turned this much from it, that scores nearly as
+    #: well: the place is not pinned down. Turned too: the corners of a board are a lattice
+    #: (0.4 m apart), and a turn by one lattice step with a few centimetres' shift pairs
+    #: each bearing with its landmark's neighbour — measured at pixel level, paper lawn,
+    #: the true pose and one 0.1 m and 2.4° off, each with 27 inliers, the wrong one
+    #: scoring 4 % better, accepted and permitted
     LOCAL_AMBIGUITY_M = 0.15
+    LOCAL_AMBIGUITY_RAD = math.radians(1.0)
     LOCAL_AMBIGUITY_RATIO = 0.9
 
     def soft_score(self, obs: FloatArray, state: FloatArray, sigma: float | None = None) -> float:
@@ -351,13 +411,17 @@ class GlobalRelocalizer:
         score: FloatArray = np.exp(-theta2 / (2 * self.GRID_SIGMA_RAD**2)).sum(axis=0)
         return score.ravel()
 
-    def _polish(self, obs: FloatArray, state: FloatArray) -> tuple[FloatArray, float]:
+    def _polish(
+        self, obs: FloatArray, state: FloatArray
+    ) -> tuple[FloatArray, float, FloatArray | None]:
         """Refinement from one start can stop in a local optimum a few decimetres off (two
         frames then agree on the same wrong pose), where the true pose explains the bearings
         much better at sub-degree precision. Every pose of a fine grid around it is scored
-        at once (soft score at the grid's precision), the best few are refined, and the one
-        with the best sharp soft score is kept; with it, how well the best pose more than
-        :data:`LOCAL_AMBIGUITY_M` away does (the ratio of their grid scores)."""
+        at once (soft score at the grid's precision), the best few and the best other local
+        maxima are refined (:meth:`_anneal`), and the one with the best sharp soft score is
+        kept; with it, how well the best optimum more than
+        :data:`LOCAL_AMBIGUITY_M` away or turned more than :data:`LOCAL_AMBIGUITY_RAD` does
+        (the ratio of their sharp soft scores), and that optimum."""
         d = np.arange(-self.POLISH_M, self.POLISH_M + 1e-9, self.POLISH_STEP_M)
         dyaw = np.arange(-self.POLISH_RAD, self.POLISH_RAD + 1e-9, self.POLISH_STEP_RAD)
         gx, gy, gyaw = np.meshgrid(state[0] + d, state[1] + d, state[2] + dyaw, indexing="ij")
@@ -370,23 +434,26 @@ class GlobalRelocalizer:
                 starts.append(poses[k])
             if len(starts) == self.POLISH_CANDIDATES:
                 break
-        refined = []
-        for start in starts:
-            cand = start
-            for angle in (math.radians(2.0), 1.5 * self.inlier_angle_rad):
-                rows, cols = self._associate(obs, *self._pose(cand), angle)
-                if rows.size < 3:
-                    break
-                cand = self._fit(obs, rows, cols, cand)
-            refined.append((self.soft_score(obs, cand), cand))
+        cube = score.reshape(d.size, d.size, dyaw.size)
+        peak = (cube >= maximum_filter(cube, size=3, mode="nearest")).ravel()
+        taken = {tuple(q) for q in starts}
+        peaks = [poses[k] for k in order[peak[order]].tolist() if tuple(poses[k]) not in taken]
+        starts += peaks[: self.POLISH_PEAKS]
+        annealed = [self._anneal(obs, start) for start in starts]
+        refined = [(self.soft_score(obs, cand), cand) for cand in annealed]
         refined.sort(key=lambda r: -r[0])
         top, best = refined[0]
         # the rival: the best refined optimum elsewhere, judged at the same sharp precision
         others = [
-            sc for sc, c in refined[1:] if np.hypot(*(c[:2] - best[:2])) > self.LOCAL_AMBIGUITY_M
+            (sc, c)
+            for sc, c in refined[1:]
+            if np.hypot(*(c[:2] - best[:2])) > self.LOCAL_AMBIGUITY_M
+            or abs(wrap_angle(float(c[2] - best[2]))) > self.LOCAL_AMBIGUITY_RAD
         ]
-        rival = max(others) / top if others and top > 0 else 0.0
-        return best, rival
+        if not others or top <= 0:
+            return best, 0.0, None
+        rival_score, rival = max(others, key=lambda r: r[0])
+        return best, rival_score / top, rival
 
     #: a bearing's σ in the covariance is at least this (rad): a pose that fits its inliers
     #: better than the corners can be located is not that sure
@@ -422,13 +489,7 @@ class GlobalRelocalizer:
 
         state = x0
         for _ in range(self.FINAL_ROUNDS):
-            root_w = np.sqrt(huber_weights(state))[:, None]
-
-            def weighted(x: FloatArray, root_w: FloatArray = root_w) -> FloatArray:
-                out: FloatArray = (root_w * self._residuals(obs, rows, pts, x)).ravel()
-                return out
-
-            state = least_squares(weighted, state, max_nfev=50).x
+            state = self._weighted_fit(obs, rows, pts, np.sqrt(huber_weights(state)), state)
         return state, huber_weights(state)
 
     def covariance(
@@ -567,7 +628,7 @@ class GlobalRelocalizer:
             scored.sort(key=lambda s: (not self._near(s[2], s[1], near, s[6]), -s[0], s[5]))
         n_best, r_wb, p_wb, rows, cols, _, _ = scored[0]
         yaw0 = math.atan2(r_wb[1, 0], r_wb[0, 0])
-        state, rival = self._polish(obs, np.array([p_wb[0], p_wb[1], yaw0]))
+        state, rival, rival_pose = self._polish(obs, np.array([p_wb[0], p_wb[1], yaw0]))
         if self.soft_score(obs, state) >= self.soft_score(obs, np.array([p_wb[0], p_wb[1], yaw0])):
             r_wb, p_wb = self._pose(state)
             rows, cols = self._associate(obs, r_wb, p_wb, self.inlier_angle_rad)
@@ -602,9 +663,12 @@ class GlobalRelocalizer:
                 )
         elif runner > self.ambiguity_ratio * n_best and n_best - runner < self.ambiguity_margin:
             return done(f"ambiguous: {n_best} inliers here, {runner} at another place", len(hyps))
-        if rival > self.LOCAL_AMBIGUITY_RATIO:
+        if rival > self.LOCAL_AMBIGUITY_RATIO and rival_pose is not None:
+            moved = float(np.hypot(*(rival_pose[:2] - state[:2])))
+            turn = math.degrees(abs(wrap_angle(float(rival_pose[2] - state[2]))))
             return done(
-                f"not pinned down: a pose {self.LOCAL_AMBIGUITY_M} m away fits {rival:.0%} as well",
+                f"not pinned down: a pose {moved:.2f} m away and turned {turn:.1f}° fits "
+                f"{rival:.0%} as well",
                 len(hyps),
             )
         to_lm = self.points[cols] - p_wb
