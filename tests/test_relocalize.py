@@ -358,13 +358,16 @@ def _boards(rng: np.random.Generator, n: int = 14) -> np.ndarray:
     return np.array(out)
 
 
-def test_a_turn_by_one_step_of_a_boards_corner_lattice_is_not_taken() -> None:
+@pytest.mark.parametrize("noise", [0.0004, 0.0035])
+def test_a_turn_by_one_step_of_a_boards_corner_lattice_is_not_taken(noise: float) -> None:
     """Boards whose corners are a lattice, 60 % of them in the map, 40 % seen (some of
     those not in the map): turned by one lattice step (2–3° at 7–11 m) and shifted a few
     centimetres, a pose pairs most bearings with their corners' neighbours and explains as
     many of them, a few tenths of a degree off each. Measured before the sharp polish: one
     of these ten answered 3 cm and 2.4° off (pixel level, paper lawn: 10 cm and 2.4° off,
-    permitted). Every answer is right or there is none."""
+    permitted). Bearings as sharp as a rendered corner's (0.02° per axis) and as a camera
+    ten times worse (0.2°: a score sharper than its bearings answered three of these ten
+    22–31 cm off). Every answer is right or there is none."""
     answered = 0
     for seed in range(10):
         rng = np.random.default_rng(seed)
@@ -373,10 +376,10 @@ def test_a_turn_by_one_step_of_a_boards_corner_lattice_is_not_taken() -> None:
         p = np.array([rng.uniform(-2, 2), rng.uniform(-2, 2), 0.0])
         yaw = rng.uniform(-math.pi, math.pi)
         seen = rng.random(len(pts)) < 0.4
-        res = GlobalRelocalizer(_map(pts[mapped])).locate(_view(pts[seen], p, yaw, rng, 0.0004))
+        res = GlobalRelocalizer(_map(pts[mapped])).locate(_view(pts[seen], p, yaw, rng, noise))
         if not res.ok:
             continue
         answered += 1
         assert np.linalg.norm(res.p_wb[:2] - p[:2]) < 0.05, seed
         assert abs(math.remainder(res.yaw - yaw, 2 * math.pi)) < math.radians(0.5), seed
-    assert answered >= 8
+    assert answered >= 8 if noise < 0.001 else answered >= 7

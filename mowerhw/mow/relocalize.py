@@ -290,15 +290,15 @@ class GlobalRelocalizer:
         rows, cols = self._associate(obs, r_wb, p_wb, self.inlier_angle_rad)
         return r_wb, p_wb, rows, cols
 
-    def _anneal(self, obs: FloatArray, state: FloatArray) -> FloatArray:
+    def _anneal(self, obs: FloatArray, state: FloatArray, sigmas: tuple[float, ...]) -> FloatArray:
         """(x, y, yaw) from ``state`` to a nearby maximum of the soft score: each bearing
         paired with its nearest landmark within 3 σ and weighed by the score's kernel
         exp(−θ²/2σ²) (a redescending loss: a feature beside a landmark's corner, or a pair
-        with the corner's lattice neighbour, stops pulling), σ narrowed from 1° to the
-        score's own (:data:`ANNEAL_SIGMAS_RAD`) so that the wide start finds the basin and
-        the narrow end its sharp optimum. A Huber fit does neither: measured from the true
-        pose, it moved 1–2 cm to a pose the sharp score rated half as well."""
-        for sigma in self.ANNEAL_SIGMAS_RAD:
+        with the corner's lattice neighbour, stops pulling), σ narrowed through ``sigmas``
+        so that the wide start finds the basin and the narrow end its sharp optimum. A
+        Huber fit does neither: measured from the true pose, it moved 1–2 cm to a pose the
+        sharp score rated half as well."""
+        for sigma in sigmas:
             for _ in range(self.ANNEAL_ROUNDS):
                 rows, cols = self._associate(obs, *self._pose(state), 3.0 * sigma)
                 if rows.size < 3:
@@ -344,8 +344,24 @@ class GlobalRelocalizer:
     POLISH_CANDIDATES = 10
     POLISH_PEAKS = 5
     #: the refinement anneals its kernel down to the soft score's σ, a few rounds each
-    ANNEAL_SIGMAS_RAD = tuple(math.radians(v) for v in (1.0, 0.5, 0.25, 0.1))
+    ANNEAL_SIGMAS_RAD = tuple(math.radians(v) for v in (1.0, 0.5, 0.25))
     ANNEAL_ROUNDS = 2
+    #: a frame's bearings are judged no sharper than this (a camera's worse ones widen it)
+    MAX_FRAME_SIGMA_RAD = math.radians(0.5)
+
+    def _frame_sigma(self, obs: FloatArray, candidates: list[FloatArray]) -> float:
+        """The soft score's σ for this frame: the bearings' own σ per axis, robustly from
+        the inliers of whichever candidate fits its inliers sharpest (the true pose, when
+        it is among them: a pose paired with lattice neighbours fits worse), no less than
+        :data:`SOFT_SIGMA_RAD` — a camera whose bearings are 0.2° off scored at 0.1° makes
+        every pose's score a few lucky pairs."""
+        best = self.MAX_FRAME_SIGMA_RAD
+        for cand in candidates:
+            rows, cols = self._associate(obs, *self._pose(cand), self.inlier_angle_rad)
+            if rows.size >= self.min_inliers:
+                norms = np.linalg.norm(self._residuals(obs, rows, self.points[cols], cand), axis=1)
+                best = min(best, float(np.median(norms)) / math.sqrt(2.0 * math.log(2.0)))
+        return max(self.SOFT_SIGMA_RAD, best)
 
     #: a pose this far from the best, or turned this much from it, that scores nearly as
     #: well: the place is not pinned down. Turned too: the corners of a board are a lattice
@@ -413,7 +429,7 @@ class GlobalRelocalizer:
 
     def _polish(
         self, obs: FloatArray, state: FloatArray
-    ) -> tuple[FloatArray, float, FloatArray | None]:
+    ) -> tuple[FloatArray, float, FloatArray | None, float]:
         """Refinement from one start can stop in a local optimum a few decimetres off (two
         frames then agree on the same wrong pose), where the true pose explains the bearings
         much better at sub-degree precision. Every pose of a fine grid around it is scored
@@ -439,8 +455,10 @@ class GlobalRelocalizer:
         taken = {tuple(q) for q in starts}
         peaks = [poses[k] for k in order[peak[order]].tolist() if tuple(poses[k]) not in taken]
         starts += peaks[: self.POLISH_PEAKS]
-        annealed = [self._anneal(obs, start) for start in starts]
-        refined = [(self.soft_score(obs, cand), cand) for cand in annealed]
+        coarse = [self._anneal(obs, start, self.ANNEAL_SIGMAS_RAD) for start in starts]
+        sigma = self._frame_sigma(obs, coarse)
+        annealed = [self._anneal(obs, cand, (sigma,)) for cand in coarse]
+        refined = [(self.soft_score(obs, cand, sigma), cand) for cand in annealed]
         refined.sort(key=lambda r: -r[0])
         top, best = refined[0]
         # the rival: the best refined optimum elsewhere, judged at the same sharp precision
@@ -451,9 +469,9 @@ class GlobalRelocalizer:
             or abs(wrap_angle(float(c[2] - best[2]))) > self.LOCAL_AMBIGUITY_RAD
         ]
         if not others or top <= 0:
-            return best, 0.0, None
+            return best, 0.0, None, sigma
         rival_score, rival = max(others, key=lambda r: r[0])
-        return best, rival_score / top, rival
+        return best, rival_score / top, rival, sigma
 
     #: a bearing's σ in the covariance is at least this (rad): a pose that fits its inliers
     #: better than the corners can be located is not that sure
@@ -628,8 +646,9 @@ class GlobalRelocalizer:
             scored.sort(key=lambda s: (not self._near(s[2], s[1], near, s[6]), -s[0], s[5]))
         n_best, r_wb, p_wb, rows, cols, _, _ = scored[0]
         yaw0 = math.atan2(r_wb[1, 0], r_wb[0, 0])
-        state, rival, rival_pose = self._polish(obs, np.array([p_wb[0], p_wb[1], yaw0]))
-        if self.soft_score(obs, state) >= self.soft_score(obs, np.array([p_wb[0], p_wb[1], yaw0])):
+        state, rival, rival_pose, sigma = self._polish(obs, np.array([p_wb[0], p_wb[1], yaw0]))
+        unpolished = np.array([p_wb[0], p_wb[1], yaw0])
+        if self.soft_score(obs, state, sigma) >= self.soft_score(obs, unpolished, sigma):
             r_wb, p_wb = self._pose(state)
             rows, cols = self._associate(obs, r_wb, p_wb, self.inlier_angle_rad)
             n_best = int(rows.size)
