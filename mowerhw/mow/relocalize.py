@@ -21,8 +21,9 @@ the *geometry*: where, around the mower and how high, the landmarks appear. So:
 3. **Polish** — a refinement can stop in a local optimum a few decimetres off, where the true
    pose explains the bearings far better at sub-degree precision: every pose of a 5 cm / 1°
    grid around the best is scored at once (soft score, σ 1°), its best ten poses and best
-   five other local maxima are refined by annealing the score's kernel from 1° to 0.1°, and
-   the one with the best sharp soft score (σ 0.1°) is kept (:meth:`GlobalRelocalizer._polish`):
+   five other local maxima are refined by annealing the score's kernel from 1° down to the
+   frame's own bearing σ (at least 0.1°), and the one with the best sharp soft score at that
+   σ is kept (:meth:`GlobalRelocalizer._polish`):
    a board's corners are a lattice, and a pose that pairs the bearings with their corners'
    neighbours explains as many of them, only less sharply.
 4. **Unique or nothing** — an answer only with at least :attr:`min_inliers` inliers spread
@@ -330,12 +331,13 @@ class GlobalRelocalizer:
     #: the local search around the chosen place: ± this far and turned, in these steps
     POLISH_M, POLISH_STEP_M = 0.5, 0.05
     POLISH_RAD, POLISH_STEP_RAD = math.radians(4.0), math.radians(1.0)
-    #: the soft score's angular scale: a bearing counts exp(−θ²/2σ²) towards its landmark.
-    #: Sharp — a corner's bearing is good to a few hundredths of a degree at pixel level —
-    #: so that a pose that pairs bearings with a board corner's lattice neighbours (0.4 m
-    #: apart: 2–4° at 6–12 m), a few tenths of a degree off each, scores far below the
-    #: true pose (measured: 5–8 against 10–17); on the polish grid a wider one (a grid pose
-    #: is up to half a step off)
+    #: the soft score's angular scale at its sharpest (a frame whose bearings are worse is
+    #: scored at their own σ: :meth:`_frame_sigma`): a bearing counts exp(−θ²/2σ²) towards
+    #: its landmark. Sharp — a corner's bearing is good to a few hundredths of a degree at
+    #: pixel level — so that a pose that pairs bearings with a board corner's lattice
+    #: neighbours (0.4 m apart: 2–4° at 6–12 m), a few tenths of a degree off each, scores
+    #: far below the true pose (measured: 5–8 against 10–17); on the polish grid a wider
+    #: one (a grid pose is up to half a step off)
     SOFT_SIGMA_RAD = math.radians(0.1)
     GRID_SIGMA_RAD = math.radians(1.0)
     #: the polish refines the best poses of its grid that are ≥ 2 steps apart, and the best
@@ -343,7 +345,7 @@ class GlobalRelocalizer:
     #: few, all in one wrong basin, would never reach)
     POLISH_CANDIDATES = 10
     POLISH_PEAKS = 5
-    #: the refinement anneals its kernel down to the soft score's σ, a few rounds each
+    #: the refinement anneals its kernel through these, then to the frame's σ, two rounds each
     ANNEAL_SIGMAS_RAD = tuple(math.radians(v) for v in (1.0, 0.5, 0.25))
     ANNEAL_ROUNDS = 2
     #: a frame's bearings are judged no sharper than this (a camera's worse ones widen it)
@@ -646,8 +648,8 @@ class GlobalRelocalizer:
             scored.sort(key=lambda s: (not self._near(s[2], s[1], near, s[6]), -s[0], s[5]))
         n_best, r_wb, p_wb, rows, cols, _, _ = scored[0]
         yaw0 = math.atan2(r_wb[1, 0], r_wb[0, 0])
-        state, rival, rival_pose, sigma = self._polish(obs, np.array([p_wb[0], p_wb[1], yaw0]))
         unpolished = np.array([p_wb[0], p_wb[1], yaw0])
+        state, rival, rival_pose, sigma = self._polish(obs, unpolished)
         if self.soft_score(obs, state, sigma) >= self.soft_score(obs, unpolished, sigma):
             r_wb, p_wb = self._pose(state)
             rows, cols = self._associate(obs, r_wb, p_wb, self.inlier_angle_rad)
