@@ -295,3 +295,42 @@ def test_starts_over_several_maps_pool_their_scores_and_nees(monkeypatch) -> Non
     for key in ("nees", "nees_in_map_frame"):
         per = out[key]["per_relocalization"]
         assert per["relocalizations"] == 12 and per["above_interval"] == 4
+
+
+def test_kidnaps_over_several_maps_pool_their_scores_and_nees(monkeypatch) -> None:
+    """``kidnap_runs_over_maps``: each map's kidnaps scored on their own (``per_map``) and
+    together — a wrong relocalization permitted on one map counts in the pool, a run that
+    was never kidnapped while mowing counts in neither."""
+    from mowerhw.evaluation import recovery as R
+
+    def run(wrong: bool, reloc: float | None) -> dict[str, object]:
+        return {
+            "time_to_halt_s": 0.01,
+            "time_to_relocalize_s": reloc,
+            "permits_during_carry": 0,
+            "permits_before_halt_over_0.15m": 0,
+            "permits_wrong_after_relocalization": 40 if wrong else 0,
+            "missed_halts": 0,
+        }
+
+    def fake_kidnaps(lawn_map, scenario, seed, runs, config, lifted, progress, compass):
+        out: list[dict[str, object]] = [
+            run(seed == 2 and i == 0, 2.3 + 0.01 * i) for i in range(runs)
+        ]
+        if seed == 3:
+            out[-1] = {"walk_m": 7.0, "kidnapped": False}
+        log = R._NeesLog(None)
+        log.series = [np.full(1000, 3.0) for r in out if r.get("kidnapped", True)]
+        log.aligned = list(log.series)
+        return out, log
+
+    monkeypatch.setattr(R, "_kidnaps", fake_kidnaps)
+    out = R.kidnap_runs_over_maps([(1, None), (2, None), (3, None)], "paper", 4)
+    assert out["maps"] == 3 and out["runs"] == 12
+    assert [m["seed"] for m in out["per_map"]] == [1, 2, 3]
+    assert [m["kidnapped_while_mowing"] for m in out["per_map"]] == [4, 4, 3]
+    assert [m["wrong_relocalizations_permitted"] for m in out["per_map"]] == [0, 1, 0]
+    assert out["kidnapped_while_mowing"] == 11 and out["relocalized"] == 11
+    assert out["wrong_relocalizations_permitted"] == 1
+    assert {r["seed"] for r in out["per_run"]} == {1, 2, 3}
+    assert out["nees"]["per_relocalization"]["relocalizations"] == 11

@@ -6,8 +6,9 @@ teach saved: ``--save-map`` writes it), then ``--starts`` random starts with no 
 ``--kidnaps`` kidnaps mid-mow (:mod:`mowerhw.evaluation.recovery`). ``--no-lift``: the
 kidnaps do not show on the accelerometer or the lift switch (only the camera can tell).
 ``--per-run``: keep every run's figures in the JSON. ``--map-seeds 3-22``: teach each of
-those yards and make ``--starts`` starts on each (one map draws its errors once for all its
-starts; many maps let the Monte-Carlo draw them too), scores and NEES pooled.
+those yards and make ``--starts`` starts and ``--kidnaps`` kidnaps on each (one map draws its
+errors once for all its runs; many maps let the Monte-Carlo draw them too), scores and NEES
+pooled, each map's scores kept.
 
     .venv/bin/python tools/recovery_pixel.py --scenario paper --seed 1 --starts 100 --kidnaps 20
 """
@@ -18,12 +19,14 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Iterable
 from typing import Any
 
 from mowerhw.evaluation.campaign import scenario_config, seeds_of
 from mowerhw.evaluation.pixel import pixel_map, yard_arguments
 from mowerhw.evaluation.recovery import (
     kidnap_runs,
+    kidnap_runs_over_maps,
     map_landmark_nees,
     start_runs,
     start_runs_over_maps,
@@ -41,7 +44,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     yard_arguments(ap)
     ap.add_argument("--starts", type=int, default=100)
-    ap.add_argument("--kidnaps", type=int, default=20)
+    ap.add_argument(
+        "--kidnaps",
+        type=int,
+        help="kidnaps mid-mow (default 20; with --map-seeds: per map, default 0)",
+    )
     ap.add_argument("--no-lift", action="store_true")
     ap.add_argument("--save-map", help="write the taught map here")
     ap.add_argument("--per-run", action="store_true")
@@ -49,14 +56,15 @@ def main() -> None:
     ap.add_argument(
         "--map-seeds",
         metavar="SEEDS",
-        help="e.g. 3-22: teach each of these yards and make --starts starts on each (the "
-        "Monte-Carlo draws the map too; starts only)",
+        help="e.g. 3-22: teach each of these yards and make --starts starts and --kidnaps "
+        "kidnaps on each (the Monte-Carlo draws the map too)",
     )
     args = ap.parse_args()
     cfg = scenario_config(args.scenario)  # the yard mower's own IMU grade
     if args.map_seeds:
         _over_maps(args, cfg)
         return
+    kidnaps = 20 if args.kidnaps is None else args.kidnaps
     t0 = time.perf_counter()
     lawn_map = pixel_map(args.scenario, args.seed, cfg, args.map, args.save_map)
     out: dict[str, Any] = {"scenario": args.scenario, "seed": args.seed}
@@ -77,13 +85,13 @@ def main() -> None:
         out["starts"]["wall_s"] = round(time.perf_counter() - t1, 1)
         if not args.per_run:
             out["starts"].pop("runs")
-    if args.kidnaps:
+    if kidnaps:
         t1 = time.perf_counter()
         out["kidnaps"] = kidnap_runs(
             lawn_map,
             args.scenario,
             args.seed,
-            args.kidnaps,
+            kidnaps,
             cfg,
             lifted=not args.no_lift,
             progress=_progress("kidnap"),
@@ -96,24 +104,42 @@ def main() -> None:
 
 
 def _over_maps(args: argparse.Namespace, cfg: Any) -> None:
-    """``--map-seeds``: one pixel-level teach per yard seed, ``--starts`` starts on each."""
+    """``--map-seeds``: one pixel-level teach per yard seed, ``--starts`` starts and
+    ``--kidnaps`` kidnaps on each."""
     try:
         seeds = seeds_of(args.map_seeds)
     except ValueError:
         sys.exit(f"--map-seeds {args.map_seeds!r}: expected e.g. 3-22 or 3,5,9")
+    kidnaps = args.kidnaps or 0
     t0 = time.perf_counter()
-    maps = ((seed, pixel_map(args.scenario, seed, cfg)) for seed in seeds)  # taught in turn
-    out = start_runs_over_maps(
-        maps,
-        args.scenario,
-        args.starts,
-        cfg,
-        progress=_progress("map"),
-        compass=not args.no_compass,
-    )
+    taught = ((seed, pixel_map(args.scenario, seed, cfg)) for seed in seeds)  # in turn
+    # starts and kidnaps both: each map taught once, kept for the second pool
+    maps: Iterable[tuple[int, Any]] = list(taught) if args.starts and kidnaps else taught
+    out: dict[str, Any] = {"scenario": args.scenario, "map_seeds": seeds}
+    if args.starts:
+        out["starts"] = start_runs_over_maps(
+            maps,
+            args.scenario,
+            args.starts,
+            cfg,
+            progress=_progress("starts, map"),
+            compass=not args.no_compass,
+        )
+        if not args.per_run:
+            out["starts"].pop("runs")
+    if kidnaps:
+        out["kidnaps"] = kidnap_runs_over_maps(
+            maps,
+            args.scenario,
+            kidnaps,
+            cfg,
+            lifted=not args.no_lift,
+            progress=_progress("kidnaps, map"),
+            compass=not args.no_compass,
+        )
+        if not args.per_run:
+            out["kidnaps"].pop("per_run")
     out["wall_s"] = round(time.perf_counter() - t0, 1)
-    if not args.per_run:
-        out.pop("runs")
     print(json.dumps(out))
 
 

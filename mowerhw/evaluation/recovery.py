@@ -399,6 +399,64 @@ def kidnap_runs(
 ) -> dict[str, Any]:
     """``runs`` kidnaps mid-mow: a 5–20 m walk (at :data:`CARRY_MPS`), put down at a
     random pose inside the lawn (module doc)."""
+    out_runs, nees = _kidnaps(lawn_map, scenario, seed, runs, config, lifted, progress, compass)
+    return {
+        "scenario": scenario,
+        "seed": seed,
+        "runs": runs,
+        "lift_seen": lifted,
+        "compass": compass and lawn_map.compass is not None,
+        **_kidnap_scores(out_runs),
+        **nees.summary(),
+        "per_run": out_runs,
+    }
+
+
+def kidnap_runs_over_maps(
+    maps: Iterable[tuple[int, LawnMap]],
+    scenario: str,
+    runs_per_map: int,
+    config: Config | None = None,
+    lifted: bool = True,
+    progress: Callable[[int, dict[str, Any]], None] | None = None,
+    compass: bool = True,
+) -> dict[str, Any]:
+    """:func:`kidnap_runs` spread over several independently taught maps (``maps``: the
+    yard's seed and its map), as :func:`start_runs_over_maps` does for the starts: scores
+    and NEES pooled; ``per_map`` each map's."""
+    runs: list[dict[str, Any]] = []
+    pooled = _NeesLog(None)
+    per_map = []
+    for seed, lawn_map in maps:
+        mine, nees = _kidnaps(lawn_map, scenario, seed, runs_per_map, config, lifted, None, compass)
+        pooled.extend(nees)
+        per_map.append({"seed": seed, **_kidnap_scores(mine)})
+        runs += [{"seed": seed, **r} for r in mine]
+        if progress is not None:
+            progress(len(per_map) - 1, per_map[-1])
+    return {
+        "scenario": scenario,
+        "maps": len(per_map),
+        "runs": len(runs),
+        "lift_seen": lifted,
+        **_kidnap_scores(runs),
+        **pooled.summary(),
+        "per_map": per_map,
+        "per_run": runs,
+    }
+
+
+def _kidnaps(
+    lawn_map: LawnMap,
+    scenario: str,
+    seed: int,
+    runs: int,
+    config: Config | None,
+    lifted: bool,
+    progress: Callable[[int, dict[str, Any]], None] | None,
+    compass: bool,
+) -> tuple[list[dict[str, Any]], _NeesLog]:
+    """The runs of :func:`kidnap_runs`, and their NEES."""
     lawn = _inside(scenario, seed, 0.5)
     rng = np.random.default_rng([seed, 18, 2])
     nees = _NeesLog(lawn_map)
@@ -472,15 +530,15 @@ def kidnap_runs(
         nees.add(out)
         if progress is not None:
             progress(i, run)
+    return out_runs, nees
+
+
+def _kidnap_scores(out_runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The scores of kidnap runs (:func:`kidnap_runs`, one map's or a pool's)."""
     done = [r for r in out_runs if r.get("kidnapped", True)]
     halts = [r["time_to_halt_s"] for r in done if r["time_to_halt_s"] is not None]
     relocs = [r["time_to_relocalize_s"] for r in done if r["time_to_relocalize_s"] is not None]
     return {
-        "scenario": scenario,
-        "seed": seed,
-        "runs": runs,
-        "lift_seen": lifted,
-        "compass": compass and lawn_map.compass is not None,
         "kidnapped_while_mowing": len(done),
         "time_to_halt_s": {"median": _pct(halts, 50), "max": max(halts) if halts else None},
         "relocalized": len(relocs),
@@ -493,6 +551,4 @@ def kidnap_runs(
         "wrong_relocalizations_permitted": sum(
             1 for r in done if r["permits_wrong_after_relocalization"]
         ),
-        **nees.summary(),
-        "per_run": out_runs,
     }
