@@ -277,6 +277,30 @@ def start_runs(
     }
 
 
+Runs = list[dict[str, Any]]
+
+
+def _over_maps(
+    maps: Iterable[tuple[int, LawnMap]],
+    one_map: Callable[[int, LawnMap], tuple[Runs, _NeesLog]],
+    score: Callable[[Runs], dict[str, Any]],
+    progress: Callable[[int, dict[str, Any]], None] | None,
+) -> tuple[Runs, _NeesLog, Runs]:
+    """``one_map``'s runs on each map (its seed in each run), their NEES pooled, and each
+    map's ``score``."""
+    runs: Runs = []
+    pooled = _NeesLog(None)
+    per_map: Runs = []
+    for seed, lawn_map in maps:
+        mine, nees = one_map(seed, lawn_map)
+        pooled.extend(nees)
+        per_map.append({"seed": seed, **score(mine)})
+        runs += [{"seed": seed, **r} for r in mine]
+        if progress is not None:
+            progress(len(per_map) - 1, per_map[-1])
+    return runs, pooled, per_map
+
+
 def start_runs_over_maps(
     maps: Iterable[tuple[int, LawnMap]],
     scenario: str,
@@ -288,18 +312,12 @@ def start_runs_over_maps(
     """:func:`start_runs` spread over several independently taught maps (``maps``: the
     yard's seed and its map): the Monte-Carlo then draws the map's errors too, where one map
     draws them once for all its starts. Scores and NEES pooled; ``per_map`` each map's."""
-    runs: list[dict[str, Any]] = []
-    pooled = _NeesLog(None)
-    per_map = []
-    for seed, lawn_map in maps:
-        mine, nees = _starts(
-            lawn_map, scenario, seed, starts_per_map, config, START_S, None, compass
-        )
-        pooled.extend(nees)
-        per_map.append({"seed": seed, **_start_scores(mine, starts_per_map)})
-        runs += [{"seed": seed, **r} for r in mine]
-        if progress is not None:
-            progress(len(per_map) - 1, per_map[-1])
+    runs, pooled, per_map = _over_maps(
+        maps,
+        lambda seed, m: _starts(m, scenario, seed, starts_per_map, config, START_S, None, compass),
+        lambda mine: _start_scores(mine, starts_per_map),
+        progress,
+    )
     return {
         "scenario": scenario,
         "maps": len(per_map),
@@ -424,16 +442,12 @@ def kidnap_runs_over_maps(
     """:func:`kidnap_runs` spread over several independently taught maps (``maps``: the
     yard's seed and its map), as :func:`start_runs_over_maps` does for the starts: scores
     and NEES pooled; ``per_map`` each map's."""
-    runs: list[dict[str, Any]] = []
-    pooled = _NeesLog(None)
-    per_map = []
-    for seed, lawn_map in maps:
-        mine, nees = _kidnaps(lawn_map, scenario, seed, runs_per_map, config, lifted, None, compass)
-        pooled.extend(nees)
-        per_map.append({"seed": seed, **_kidnap_scores(mine)})
-        runs += [{"seed": seed, **r} for r in mine]
-        if progress is not None:
-            progress(len(per_map) - 1, per_map[-1])
+    runs, pooled, per_map = _over_maps(
+        maps,
+        lambda seed, m: _kidnaps(m, scenario, seed, runs_per_map, config, lifted, None, compass),
+        _kidnap_scores,
+        progress,
+    )
     return {
         "scenario": scenario,
         "maps": len(per_map),
