@@ -50,6 +50,8 @@ MIN_DISPLACEMENT_M = 4.0
 #: simulated after each start with no prior (s)
 START_S = 12.0
 
+Runs = list[dict[str, Any]]  # one dict per run
+
 
 def _pct(a: list[float], q: float) -> float | None:
     return round(float(np.percentile(a, q)), 3) if a else None
@@ -269,15 +271,12 @@ def start_runs(
     return {
         "scenario": scenario,
         "seed": seed,
-        **_start_scores(runs, starts),
+        **_start_scores(runs),
         "compass": compass and lawn_map.compass is not None,
         "map_landmarks": len(lawn_map.landmarks),
         **nees.summary(),
         "runs": runs,
     }
-
-
-Runs = list[dict[str, Any]]
 
 
 def _over_maps(
@@ -315,13 +314,13 @@ def start_runs_over_maps(
     runs, pooled, per_map = _over_maps(
         maps,
         lambda seed, m: _starts(m, scenario, seed, starts_per_map, config, START_S, None, compass),
-        lambda mine: _start_scores(mine, starts_per_map),
+        _start_scores,
         progress,
     )
     return {
         "scenario": scenario,
         "maps": len(per_map),
-        **_start_scores(runs, len(runs)),
+        **_start_scores(runs),
         **pooled.summary(),
         "per_map": per_map,
         "runs": runs,
@@ -337,7 +336,7 @@ def _starts(
     seconds: float,
     progress: Callable[[int, dict[str, Any]], None] | None,
     compass: bool,
-) -> tuple[list[dict[str, Any]], _NeesLog]:
+) -> tuple[Runs, _NeesLog]:
     """The runs of :func:`start_runs`, and their NEES."""
     lawn = _inside(scenario, seed, 0.3)
     rng = np.random.default_rng([seed, 18, 1])
@@ -380,7 +379,7 @@ def _starts(
     return runs, nees
 
 
-def _start_scores(runs: list[dict[str, Any]], starts: int) -> dict[str, Any]:
+def _start_scores(runs: Runs) -> dict[str, Any]:
     """Success (within :data:`SUCCESS_M` and :data:`SUCCESS_RAD` in 5 s), times and the
     safety counts of start runs."""
     ok = [
@@ -393,8 +392,8 @@ def _start_scores(runs: list[dict[str, Any]], starts: int) -> dict[str, Any]:
     ]
     times = [r["accepted_s"] for r in runs if r["accepted_s"] is not None]
     return {
-        "starts": starts,
-        "success_rate": round(len(ok) / max(1, starts), 3),
+        "starts": len(runs),
+        "success_rate": round(len(ok) / max(1, len(runs)), 3),
         "accepted": len(times),
         "accepted_wrong_over_0.15m": sum(
             1 for r in runs if r["error_m"] is not None and r["error_m"] > WRONG_M
@@ -469,7 +468,7 @@ def _kidnaps(
     lifted: bool,
     progress: Callable[[int, dict[str, Any]], None] | None,
     compass: bool,
-) -> tuple[list[dict[str, Any]], _NeesLog]:
+) -> tuple[Runs, _NeesLog]:
     """The runs of :func:`kidnap_runs`, and their NEES."""
     lawn = _inside(scenario, seed, 0.5)
     rng = np.random.default_rng([seed, 18, 2])
@@ -547,7 +546,7 @@ def _kidnaps(
     return out_runs, nees
 
 
-def _kidnap_scores(out_runs: list[dict[str, Any]]) -> dict[str, Any]:
+def _kidnap_scores(out_runs: Runs) -> dict[str, Any]:
     """The scores of kidnap runs (:func:`kidnap_runs`, one map's or a pool's)."""
     done = [r for r in out_runs if r.get("kidnapped", True)]
     halts = [r["time_to_halt_s"] for r in done if r["time_to_halt_s"] is not None]

@@ -362,7 +362,7 @@ class GlobalRelocalizer:
             rows, cols = self._associate(obs, *self._pose(cand), self.inlier_angle_rad)
             if rows.size >= self.min_inliers:
                 norms = np.linalg.norm(self._residuals(obs, rows, self.points[cols], cand), axis=1)
-                best = min(best, float(np.median(norms)) / math.sqrt(2.0 * math.log(2.0)))
+                best = min(best, self._rayleigh_sigma(norms))
         return max(self.SOFT_SIGMA_RAD, best)
 
     #: a pose this far from the best, or turned this much from it, that scores nearly as
@@ -483,11 +483,16 @@ class GlobalRelocalizer:
     HUBER_K = 1.345
     FINAL_ROUNDS = 4
 
-    def _robust_sigma(self, norms: FloatArray) -> float:
+    @staticmethod
+    def _rayleigh_sigma(norms: FloatArray) -> float:
         """The bearings' σ per axis from residual norms, robustly: a residual has two free
         directions, its norm's median is σ·√(2 ln 2) (Rayleigh) — a few pairs a degree
         off (a corner next to the landmark's) do not move it."""
-        return max(self.MIN_RESIDUAL_RAD, float(np.median(norms)) / math.sqrt(2.0 * math.log(2.0)))
+        return float(np.median(norms)) / math.sqrt(2.0 * math.log(2.0))
+
+    def _robust_sigma(self, norms: FloatArray) -> float:
+        """:meth:`_rayleigh_sigma`, at least :data:`MIN_RESIDUAL_RAD` (the covariance's)."""
+        return max(self.MIN_RESIDUAL_RAD, self._rayleigh_sigma(norms))
 
     def _final_fit(
         self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], x0: FloatArray
