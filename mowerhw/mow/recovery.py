@@ -41,13 +41,11 @@ LOCAL_S = 3.0
 #: σ of an accepted pose: the answer's own (its fit's covariance, the map's landmark errors
 #: in it), within these bounds — at most what answers are off (measured: 1–3 cm, < 0.3°; a
 #: wider prior let the first association after it pair wrong corners, 2–3 cm of bias at
-#: σ 1 cm), at least what a frame's corners can tell (pixel level the answers' own σ are
-#: 1.6–3.8 mm and 0.013–0.026°, p10–p90: floors at 3 mm and 0.03° replaced most of them,
-#: a heading twice as unsure as it was)
+#: σ 1 cm), at least what a frame's corners can tell
 ACCEPT_SIGMA_M = 0.03
 ACCEPT_SIGMA_RAD = math.radians(0.5)
-ACCEPT_MIN_SIGMA_M = 0.0015
-ACCEPT_MIN_SIGMA_RAD = math.radians(0.01)
+ACCEPT_MIN_SIGMA_M = 0.003
+ACCEPT_MIN_SIGMA_RAD = math.radians(0.03)
 
 
 def accepted_covariance(covariance: FloatArray | None) -> FloatArray:

@@ -476,11 +476,8 @@ class GlobalRelocalizer:
         return best, rival_score / top, rival, sigma
 
     #: a bearing's σ in the covariance is at least this (rad): a pose that fits its inliers
-    #: better than the corners can be located is not that sure. Rendered corners' frames
-    #: measure 0.03–0.09° (p10–p90, median 0.05°, 385 pixel-level answers): a floor at 0.1°
-    #: stood in for the measure in nine frames of ten, and the answers claimed 1.6–1.9 times
-    #: the variance they had (NEES in the map's frame 1.6–1.9 of 3)
-    MIN_RESIDUAL_RAD = math.radians(0.05)
+    #: better than the corners can be located is not that sure
+    MIN_RESIDUAL_RAD = math.radians(0.1)
     #: the answer's fit (:meth:`_final_fit`): Huber weights at this many robust σ (95 %
     #: efficient on Gaussian errors), a few reweighting rounds
     HUBER_K = 1.345
@@ -533,8 +530,7 @@ class GlobalRelocalizer:
         central differences). A bearing's σᵢ² is its landmark's position variance seen from
         the pose (σ²_landmark / range²: the map's errors move the answer too) plus the
         bearings' own noise — the residuals' robust variance per axis beyond the map's mean
-        part; the map's part scaled down to that variance where it claims more — and at
-        least what its own residual shows (a pair the weights doubt is as far
+        part — and at least what its own residual shows (a pair the weights doubt is as far
         off as it looks), at least :attr:`MIN_RESIDUAL_RAD` squared. And how much the map's
         errors move it: the cross-covariance with the inliers' landmark positions (J_L: the
         residual's derivative with respect to the landmark; P_L its map covariance),
@@ -565,14 +561,10 @@ class GlobalRelocalizer:
         range2 = np.sum((pts - p_wb) ** 2, axis=1)
         seen_from_here = self._point_var[cols] / np.maximum(range2, 0.25)  # the map's part
         # the residuals show the map's errors too: the bearings' own noise is what they
-        # show beyond them (moments: E[s²] = noise² + mean map part), not all of it again;
-        # and where they show less than the map's covariances claim, the map is better
-        # than it says here: its part is scaled down to what they show
-        map_mean = float(seen_from_here.mean())
-        noise2 = max(0.0, s2 - map_mean)
-        map_part = seen_from_here * min(1.0, s2 / map_mean) if map_mean > 0.0 else seen_from_here
+        # show beyond them (moments: E[s²] = noise² + mean map part), not all of it again
+        noise2 = max(0.0, s2 - float(seen_from_here.mean()))
         own = 0.5 * norms**2  # per axis: a residual's two free directions
-        var = np.maximum(np.maximum(noise2 + map_part, own), self.MIN_RESIDUAL_RAD**2)
+        var = np.maximum(np.maximum(noise2 + seen_from_here, own), self.MIN_RESIDUAL_RAD**2)
         # the fit's error is −A (n + J_L δL) with A = (Σ wᵢ Jᵢᵀ Jᵢ)⁻¹ [wᵢ Jᵢᵀ], so its
         # covariance is A diag(σᵢ²) Aᵀ (a sandwich) …
         gain = np.linalg.pinv(np.einsum("nri,nrj,n->ij", jac, jac, w))
