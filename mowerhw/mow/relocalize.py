@@ -291,7 +291,7 @@ class GlobalRelocalizer:
         pts, o = self.points[cols], obs[rows]
 
         def residual(x: FloatArray) -> FloatArray:
-            return _cross_rows(o, self._predict(*self._pose(x), points=pts)).ravel()
+            return self._residuals(obs, rows, pts, x).ravel()
 
         def jacobian(x: FloatArray) -> FloatArray:
             return self._residual_jacobian(o, pts, x)[1].reshape(-1, 3)
@@ -341,12 +341,12 @@ class GlobalRelocalizer:
         x0: FloatArray,
         max_nfev: int = 50,
     ) -> FloatArray:
-        """(x, y, yaw) by least squares over the pairs' residuals, each scaled by ``root_w``
-        (one per pair, or (n, 3): one per residual component): Gauss–Newton with the
-        closed-form Jacobian (:meth:`_residual_jacobian`), a step that raises the cost
-        shortened Levenberg–Marquardt's way, at most ``max_nfev`` steps."""
+        """(x, y, yaw) by least squares over the pairs' residuals, each pair's scaled by its
+        ``root_w``: Gauss–Newton with the closed-form Jacobian (:meth:`_residual_jacobian`),
+        a step that raises the cost shortened Levenberg–Marquardt's way, at most
+        ``max_nfev`` steps."""
         o = obs[rows]
-        w2 = np.broadcast_to((root_w**2).reshape(len(rows), -1), (len(rows), 3))
+        w2 = np.broadcast_to((root_w**2)[:, None], (len(rows), 3))
         x = np.asarray(x0, dtype=np.float64).copy()
         r, jac = self._residual_jacobian(o, pts, x)
         cost = float(np.sum(w2 * r * r))
