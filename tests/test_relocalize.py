@@ -383,3 +383,28 @@ def test_a_turn_by_one_step_of_a_boards_corner_lattice_is_not_taken(noise: float
         assert np.linalg.norm(res.p_wb[:2] - p[:2]) < 0.05, seed
         assert abs(math.remainder(res.yaw - yaw, 2 * math.pi)) < math.radians(0.5), seed
     assert answered >= 8 if noise < 0.001 else answered >= 7
+
+
+def test_the_fits_closed_form_jacobian_is_the_residuals_derivative() -> None:
+    """The search's Gauss–Newton fits use the bearing residual's Jacobian in closed form
+    (issue 18, the relocalizer's cost): at random poses it matches the residual's central
+    differences, in position and heading, and its residual is the one the answers are
+    scored by."""
+    rng = np.random.default_rng(5)
+    pts = _ring(rng, 30)
+    reloc = GlobalRelocalizer(_map(pts))
+    obs = rng.normal(size=(30, 3))
+    obs /= np.linalg.norm(obs, axis=1, keepdims=True)
+    rows = np.arange(30)
+    for _ in range(5):
+        state = np.r_[rng.uniform(-3, 3, 2), rng.uniform(-math.pi, math.pi)]
+        r, jac = reloc._residual_jacobian(obs, pts, state)
+        assert np.array_equal(r, reloc._residuals(obs, rows, pts, state))
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = 1e-6
+            numeric = (
+                reloc._residuals(obs, rows, pts, state + d)
+                - reloc._residuals(obs, rows, pts, state - d)
+            ) / 2e-6
+            assert np.allclose(jac[:, :, k], numeric, atol=1e-8), k
