@@ -239,8 +239,7 @@ class FrontEnd:
         self._age += 1
         if self._ids.size < c.max_features:
             self._detect(image, pyr)
-        self._describe(image)
-        self._bear = self.lift(self._pts)
+        self._describe(image)  # the bearings are current: the epipolar check's and the new ones
         self._prev_pyr = pyr
         self._t_prev = t
         ms = (time.perf_counter() - t0) * 1e3
@@ -368,6 +367,7 @@ class FrontEnd:
         )
         self.stats.lost_epipolar += int((~inl).sum())
         self._end(~inl)
+        self._bear = y2  # the tracks' bearings now, kept with them (not lifted twice a frame)
         self._keep(inl)
 
     def _candidates(self, image: NDArray[np.uint8]) -> FloatArray:
