@@ -596,9 +596,10 @@ class GlobalRelocalizer:
         weights: FloatArray | None = None,
     ) -> tuple[FloatArray, FloatArray]:
         """The (x, y, heading) covariance of a pose fitted to the inliers with ``weights``
-        (:meth:`_final_fit`; default all 1) over their angular residuals (linearised, J by
-        central differences). A bearing's σᵢ² is its landmark's position variance seen from
-        the pose (σ²_landmark / range²: the map's errors move the answer too) plus the
+        (:meth:`_final_fit`; default all 1) over their angular residuals (linearised, J in
+        closed form: :meth:`_residual_jacobian`). A bearing's σᵢ² is its landmark's position
+        variance seen from the pose (σ²_landmark / range²: the map's errors move the answer
+        too) plus the
         bearings' own noise — the residuals' robust variance per axis beyond the map's mean
         part — and at least what its own residual shows (a pair the weights doubt is as far
         off as it looks), at least :attr:`MIN_RESIDUAL_RAD` squared. And how much the map's
@@ -609,22 +610,16 @@ class GlobalRelocalizer:
         pts = self.points[cols]
         w = np.ones(rows.size) if weights is None else weights
 
-        def residual(x: FloatArray, points: FloatArray = pts) -> FloatArray:
-            return self._residuals(obs, rows, points, x)
+        def at(points: FloatArray) -> FloatArray:
+            return self._residuals(obs, rows, points, state)
 
-        r0 = residual(state)
-        steps = (1e-4, 1e-4, 1e-5)
-        jac = np.empty((r0.shape[0], 3, 3))  # (n, residual, pose)
-        for k, h in enumerate(steps):
-            d = np.zeros(3)
-            d[k] = h
-            jac[:, :, k] = (residual(state + d) - residual(state - d)) / (2 * h)
+        r0, jac = self._residual_jacobian(obs[rows], pts, state)  # jac: (n, residual, pose)
         # each residual depends on its own landmark only: one shift of all of them per axis
         jac_l = np.empty((r0.shape[0], 3, 3))  # (n, residual, landmark axis)
         for k in range(3):
             d = np.zeros(3)
             d[k] = 1e-4
-            jac_l[:, :, k] = (residual(state, pts + d) - residual(state, pts - d)) / 2e-4
+            jac_l[:, :, k] = (at(pts + d) - at(pts - d)) / 2e-4
         norms = np.linalg.norm(r0, axis=1)
         s2 = self._robust_sigma(norms) ** 2
         _, p_wb = self._pose(state)
