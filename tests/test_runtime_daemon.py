@@ -86,6 +86,17 @@ def test_daemon_in_process_on_the_virtual_bus(tmp_path: Path) -> None:
         await _until(lambda: reason() not in ("", "NOT_MOWING"), 5, "a mow-mode halt")
         seen.append(reason())
         (tmp_path / "lawn.json").write_text("{not json")  # a corrupt map file
+        details: list[str] = []
+
+        def map_halt(why: str) -> bool:  # the halts' details, in order, as they come
+            d = daemon.core.decision
+            if d.reason == "MAP_INVALID" and (not details or details[-1] != d.detail):
+                details.append(d.detail)
+            return why in " ".join(details)
+
+        # the change halts the deck at once, before the file is loaded; then its problem
+        await _until(lambda: map_halt("not valid JSON"), 5, "the corrupt map's problem")
+        assert "changed: checking it" in details[0], details
         await _until(lambda: reason() == "MAP_INVALID", 5, "MAP_INVALID on CAN")
         seen.append(reason())
         _lawn_map().save(tmp_path / "lawn.json")  # the same map again

@@ -360,11 +360,17 @@ class Daemon:
         self.core.map_loaded(got, self.pose_file.load(got))
 
     def _check_map_file(self) -> None:
-        """Mow mode: a map file that changed is reloaded."""
+        """Mow mode: a map file that changed is reloaded. The deck halts at once (MAP_INVALID,
+        "checking") and runs again only when the new file has loaded and checked: an edited
+        keep-out must not be mowed on the old map meanwhile, and a damaged file stops the deck
+        within ``runtime.map_check_period_s``, not after its load in a child interpreter
+        (about 0.35 s more)."""
         if not self.map_file.changed():
             return
         if not self.map_file.retrying():
-            log.warning("map file %s changed: reloading", self.map_file.path)
+            path = self.map_file.path
+            log.warning("map file %s changed: halting until it is reloaded and checked", path)
+            self.core.map_invalid(f"{path} changed: checking it before mowing on it")
 
         async def reload() -> None:
             got = await self.map_file.load(self._work_pool)
