@@ -15,6 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.can.isobus import (
+    PGN_CCVS1,
+    PGN_ETC2,
     PGN_GBSD,
     PGN_HEARTBEAT,
     PGN_ISB,
@@ -22,6 +24,7 @@ from drivers.can.isobus import (
     can_id,
     open_bus,
     parse_id,
+    pgn_filters,
 )
 from drivers.can.mock_mower import MockMowerController
 from drivers.can.mock_speed import MockSpeedSensor
@@ -541,3 +544,37 @@ def test_real_tractor_bus(log):
     assert "speed sensor reports not available (GBSD from 0x47)" in ground["halt_details"]
     assert wheel["valid"] >= 0.9 * wheel["speed_frames_recognised"] > 100
     assert wheel["speed_mps"] == [0.0] and wheel["fresh_fraction"] > 0.3
+
+
+@pytest.mark.skipif(not TRACTOR_LOGS, reason=f"real tractor CAN logs not present ({real_can.LOGS})")
+def test_pgn_filters_let_through_exactly_the_pgns_asked_for_on_a_real_bus() -> None:
+    """Every frame of a real tractor's log through python-can's acceptance filters (the
+    masks SocketCAN applies in the kernel): what comes out is every frame of the PGNs asked
+    for, from any source, and nothing else — an addressed PGN (TP.CM, PF < 240) too."""
+    frames = [m for m in can.CanutilsLogReader(str(TRACTOR_LOGS[0])) if m.is_extended_id]
+    pgns = {PGN_CCVS1, PGN_ETC2, 0xEC00, 0xFF11}  # with TP.CM, addressed (PS = destination)
+    present = {parse_id(m.arbitration_id).pgn for m in frames}
+    assert {PGN_CCVS1, PGN_ETC2, 0xEC00} <= present and len(present) > 10
+    channel = f"filters-{time.monotonic_ns()}"
+    tx = can.Bus(interface="virtual", channel=channel)
+    rx = can.Bus(interface="virtual", channel=channel, can_filters=pgn_filters(pgns))
+    try:
+        for m in frames:
+            tx.send(m)
+        got = []
+        while (m := rx.recv(timeout=0.2)) is not None:
+            got.append(m.arbitration_id)
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+    want = [m.arbitration_id for m in frames if parse_id(m.arbitration_id).pgn in pgns]
+    assert got == want and 100 < len(want) < len(frames) // 4
+    with pytest.raises(ValueError, match="18-bit"):
+        pgn_filters([1 << 18])
+
+
+def test_a_speed_reader_says_which_pgns_it_reads() -> None:
+    assert SpeedReader("ground").pgns == {PGN_GBSD}
+    assert SpeedReader("ccvs1").pgns == {PGN_CCVS1, PGN_ETC2}  # the gear signs the speed
+    assert SpeedReader("ccvs1", ccvs1_direction="forward").pgns == {PGN_CCVS1}
+    assert SpeedReader("any").pgns == {PGN_GBSD, PGN_WBSD, PGN_CCVS1, PGN_ETC2}

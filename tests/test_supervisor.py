@@ -9,12 +9,18 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from drivers.can.isobus import open_bus
+import can
+import pytest
+from _tools import load_tool
+
+from drivers.can.isobus import open_bus, pgn_filters
 from drivers.can.mock_mower import MockMowerController
 from drivers.can.mock_speed import MockSpeedSensor
 from drivers.can.permit import HB_ERROR
+from drivers.can.speed import SpeedReader
 from mowerhw.config import config_from_dict, config_to_dict, default_config
 from mowerhw.mow.containment import Reason, State
+from mowerhw.runtime.devices import CanFrames
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.supervisor.mock_estimator import scripted_estimator
 from mowerhw.supervisor.process import Supervisor
@@ -91,8 +97,6 @@ def test_the_supervisor_halts_a_quiet_estimator_and_ends_when_it_dies(tmp_path: 
 
 
 def test_the_switch_frame_round_trips_and_decodes_with_the_shipped_dbc() -> None:
-    import pytest
-
     from drivers.can.isobus import can_id
     from drivers.can.switches import PGN_SWITCHES, Switches, decode_switches, encode_switches
 
@@ -236,3 +240,59 @@ def test_the_supervisors_own_speed_halt_is_timed_from_the_speeds_limit(tmp_path:
     finally:
         if sup.port.bus is not None:
             sup.port.bus.shutdown()
+
+
+def test_the_estimation_side_reads_a_real_tractors_speed_as_a_reader_on_the_bus_would(
+    tmp_path: Path,
+) -> None:
+    """A real tractor's bus (John Deere log: CCVS1 speed signed by the ETC2 gear, among 9k
+    frames of 37 PGNs in 33 s) into the supervisor: the frames its bus lets through and passes
+    down give the estimation side the same speed samples as a reader on the bus itself (the
+    gear's frames as well as the speed's: before, a CCVS1 speed was never valid behind the
+    supervisor); it reads only those PGNs and the switches'; recording, it reads everything."""
+    logs = sorted(load_tool("check_real_can").LOGS.glob("*.log"))
+    if not logs:
+        pytest.skip("real tractor CAN logs not present (../shared/data/real)")
+    frames = [m for m in can.CanutilsLogReader(str(logs[-1])) if m.is_extended_id]
+    channel = f"jd-{uuid.uuid4().hex[:8]}"
+    raw = config_to_dict(default_config())
+    raw["can"].update(interface="virtual", channel=channel)
+    raw["speed"].update(source="ccvs1", ccvs1_direction="etc2")
+    cfg = config_from_dict(raw, tmp_path, "test config")
+    sup = Supervisor(cfg)
+    passed: list[tuple[str, Any]] = []
+    sup._to_child = passed.append  # type: ignore[method-assign]
+    assert sup.port.ensure(time.monotonic()) and sup.port.bus is not None
+    reads = {61445, 65265, cfg.safety.switches_pgn}  # ETC2, CCVS1, the switches
+    assert sup.port.filters == pgn_filters(reads)
+    rx = threading.Thread(target=sup._receive, daemon=True)
+    rx.start()
+    tx = open_bus("virtual", channel)
+    direct = SpeedReader("ccvs1", ccvs1_direction="etc2")
+    want = []
+    try:
+        for m in frames:
+            tx.send(m)
+            s = direct.handle(m.arbitration_id, bytes(m.data), time.monotonic())
+            if s is not None:
+                want.append((s.valid, s.speed_mps if s.valid else None))
+        t_end = time.monotonic() + 10.0
+        while len(passed) < direct.stats.frames + direct.stats.gear_frames:
+            assert time.monotonic() < t_end, (len(passed), vars(direct.stats))
+            time.sleep(0.02)
+    finally:
+        sup.stop_requested = "test"
+        rx.join(2.0)
+        tx.shutdown()
+        if sup.port.bus is not None:
+            sup.port.bus.shutdown()
+    got: list[Any] = []
+    child = CanFrames(cfg, got.append)
+    for kind, body in passed:
+        assert kind == "can"
+        child.handle(*body)
+    assert [(s.valid, s.speed_mps if s.valid else None) for s in got] == want
+    assert sum(v for v, _ in want) > 100  # valid speeds: 0 m/s, signed by the gear
+    assert len(passed) == direct.stats.frames + direct.stats.gear_frames < len(frames) // 10
+    recording = Supervisor(cfg, record=tmp_path / "run.mcap")
+    assert recording.port.filters is None  # it records every frame: no filter

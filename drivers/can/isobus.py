@@ -7,6 +7,7 @@ A 29-bit identifier is ``priority<<26 | EDP<<25 | DP<<24 | PF<<16 | PS<<8 | SA``
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -41,6 +42,22 @@ def can_id(priority: int, pgn: int, source: int, destination: int = GLOBAL_ADDRE
     dp = (pgn >> 16) & 1
     edp = (pgn >> 17) & 1
     return (priority << 26) | (edp << 25) | (dp << 24) | (pf << 16) | (ps << 8) | source
+
+
+def pgn_filters(pgns: Iterable[int]) -> list[dict[str, Any]]:
+    """python-can acceptance filters (``can_filters``) that let through the 29-bit frames of
+    ``pgns`` from any source (and, addressed PGNs, to any destination). SocketCAN applies
+    them in the kernel, so a busy tractor bus (the John Deere logs in ``data/real``: about
+    300 frames a second) does not wake the reader for frames it does not read; other
+    interfaces apply them in python-can."""
+    out: list[dict[str, Any]] = []
+    for pgn in sorted(set(pgns)):
+        if not 0 <= pgn < 1 << 18:
+            raise ValueError(f"PGN {pgn} is not an 18-bit parameter group number")
+        pdu2 = ((pgn >> 8) & 0xFF) >= 240
+        mask = 0x3FFFF00 if pdu2 else 0x3FF0000  # EDP, DP, PF (and PS when it is the PGN's)
+        out.append({"can_id": (pgn << 8) & mask, "can_mask": mask, "extended": True})
+    return out
 
 
 def parse_id(arbitration_id: int) -> J1939Id:

@@ -179,6 +179,13 @@ class SpeedReader:
         self.source = source
         self.sensor_address = sensor_address
         self.ccvs1_direction = ccvs1_direction
+        #: the PGNs this reader reads: its speed message(s), and ETC2 when a CCVS1 speed is
+        #: signed by the gear (what a bus filter must let through, and a process that reads
+        #: the bus for another must pass on)
+        self.pgns = frozenset(
+            [pgn for pgn, (name, _) in SPEED_PGNS.items() if source in (name, "any")]
+            + ([PGN_ETC2] if source in ("ccvs1", "any") and ccvs1_direction == "etc2" else [])
+        )
         self.stats = SpeedStats()
         self.last_valid: SpeedSample | None = None
         self.last_invalid: SpeedSample | None = None

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+from typing import Any
 
 import can
 
@@ -21,8 +22,11 @@ SUMMARY_PERIOD_S = 60.0
 class CanPort:
     """The bus, reopened with backoff when it fails; one log line per change of state."""
 
-    def __init__(self, cfg: Config) -> None:
+    def __init__(self, cfg: Config, filters: list[dict[str, Any]] | None = None) -> None:
+        """``filters``: python-can acceptance filters for every bus opened (None: every
+        frame)."""
         self.cfg = cfg
+        self.filters = filters
         self.bus: can.BusABC | None = None
         self.up_since: float | None = None
         self.down_since: float | None = time.monotonic()
@@ -46,7 +50,9 @@ class CanPort:
             self._failed(now, "cannot open (No such device: the interface is away)")
             return False
         try:
-            self.bus = open_bus(c.interface, c.channel, c.bitrate, udp_port=c.udp_port)
+            self.bus = open_bus(
+                c.interface, c.channel, c.bitrate, udp_port=c.udp_port, can_filters=self.filters
+            )
         except Exception as exc:
             self._failed(now, f"cannot open ({exc})")
             return False

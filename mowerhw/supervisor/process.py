@@ -30,7 +30,7 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
-from drivers.can.isobus import parse_id
+from drivers.can.isobus import parse_id, pgn_filters
 from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
 from drivers.can.switches import decode_switches
@@ -118,7 +118,13 @@ class Supervisor:
         self.child_target = child_target
         self.gate = SupervisorGate(config.supervisor.lease_s, config.supervisor.settle_s)
         self.speed_gate = PermitGate({"speed": config.speed.stale_after_s}, log_changes=False)
-        self.port = CanPort(config)
+        self._speed = SpeedReader(
+            config.speed.source, config.speed.sensor_address, config.speed.ccvs1_direction
+        )
+        #: the frames it reads (the speed's, the switches'), unless it records every frame:
+        #: on SocketCAN the kernel drops the rest of a busy bus before the thread wakes
+        reads = self._speed.pgns | {config.safety.switches_pgn}
+        self.port = CanPort(config, None if record is not None else pgn_filters(reads))
         self.safety = SafetyMonitor(config.safety)
         self._safety_lock = threading.Lock()
         self.sender: PermitSender | None = None
@@ -138,9 +144,6 @@ class Supervisor:
         #: its own halts (the ground speed silent past its limit): limit → stop frame sent
         self.own_halt_ms: deque[float] = deque(maxlen=LATENCIES_KEPT)
         self.max_loop_lag_ms = 0.0
-        self._speed = SpeedReader(
-            config.speed.source, config.speed.sensor_address, config.speed.ccvs1_direction
-        )
         self._speed_arrival: dict[str, float | None] = {"speed": None}
         self._send_lock = threading.Lock()
         self._rx: threading.Thread | None = None
@@ -202,7 +205,8 @@ class Supervisor:
                 continue
             now = time.monotonic()
             data = bytes(msg.data)
-            if parse_id(msg.arbitration_id).pgn == self.cfg.safety.switches_pgn:
+            pgn = parse_id(msg.arbitration_id).pgn
+            if pgn == self.cfg.safety.switches_pgn:
                 sw = decode_switches(data)
                 if sw is not None:
                     with self._safety_lock:
@@ -216,9 +220,10 @@ class Supervisor:
             s = self._speed.handle(msg.arbitration_id, data, now)
             if s is not None and s.valid:
                 self._speed_arrival["speed"] = now
-            # the child decodes the ground speed, and records every frame when it records
-            # (only what it needs: each frame forwarded is a wake-up of both processes)
-            if s is not None or self.record is not None:
+            # the child decodes the ground speed (from every frame its reader reads: the
+            # speed's, and the gear's that signs a CCVS1 speed), and records every frame when
+            # it records (only what it needs: each frame forwarded is a wake-up of both)
+            if pgn in self._speed.pgns or self.record is not None:
                 self._to_child(("can", (now, msg.arbitration_id, data, True)))
                 self.counts["frames_forwarded"] += 1
 
