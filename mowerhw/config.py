@@ -586,6 +586,14 @@ class SafetyConfig:
     switches_pgn: int = opt(
         0xFF11, "PGN of the mower controller's lift/bump/stop switch frame", ge=0xFF00, le=0xFFFF
     )
+    specific_force_stale_s: float = opt(
+        0.25,
+        "while mowing, halt (SENSOR_STALE) when no specific force has come from the IMU for "
+        "this long: lift and tilt are judged by it (an IMU that sends no acceleration, e.g. "
+        "imu.configure_sensor false with gyro-only outputs, cannot mow)",
+        gt=0.0,
+        le=2.0,
+    )
 
 
 @dataclass(frozen=True)

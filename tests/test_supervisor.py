@@ -3,6 +3,8 @@ process on python-can's virtual bus, the mock mower controller listening."""
 
 from __future__ import annotations
 
+import math
+import multiprocessing
 import threading
 import time
 import uuid
@@ -10,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+import numpy as np
 import pytest
 from _tools import load_tool
 
@@ -23,7 +26,7 @@ from mowerhw.mow.containment import Reason, State
 from mowerhw.runtime.devices import CanFrames
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.supervisor.mock_estimator import scripted_estimator
-from mowerhw.supervisor.process import Supervisor
+from mowerhw.supervisor.process import FORCE, Supervisor
 
 
 def _lease(permit: bool = True, reason: str = "") -> Lease:
@@ -223,12 +226,13 @@ def test_the_supervisors_own_speed_halt_is_timed_from_the_speeds_limit(tmp_path:
     limit = cfg.speed.stale_after_s
     try:
         now = time.monotonic()
-        sup._speed_arrival["speed"] = now
+        sup._arrival["speed"] = sup._arrival[FORCE] = now
         sup.gate.renew(_lease(), now)
         sup._decide(now)
         assert sup.gate.current.permit and not sup.own_halt_ms
         late = now + limit + 0.004
         sup.gate.renew(_lease(), late)
+        sup._arrival[FORCE] = late  # the IMU's specific force keeps coming
         while time.monotonic() < late:
             time.sleep(0.001)
         sup._decide(late)
@@ -296,3 +300,45 @@ def test_the_estimation_side_reads_a_real_tractors_speed_as_a_reader_on_the_bus_
     assert len(passed) == direct.stats.frames + direct.stats.gear_frames < len(frames) // 10
     recording = Supervisor(cfg, record=tmp_path / "run.mcap")
     assert recording.port.filters is None  # it records every frame: no filter
+
+
+def test_an_imu_without_specific_force_cannot_mow(tmp_path: Path) -> None:
+    """Lift and tilt are judged by the specific force the leases carry: leases without it
+    (an IMU configured for rates only) permit only until its limit, then the supervisor
+    halts naming why; leases with it permit again (fail-closed, not a silent loss of the
+    lift and tilt checks)."""
+    raw = config_to_dict(default_config())
+    raw["can"].update(interface="virtual", channel=f"force-{uuid.uuid4().hex[:8]}")
+    cfg = config_from_dict(raw, tmp_path, "test config")
+    sup = Supervisor(cfg)
+    limit = cfg.safety.specific_force_stale_s
+    estimator, sup.conn = multiprocessing.Pipe()
+
+    def leases(t0: float, t1: float, accel: tuple[float, float, float]) -> float | None:
+        """A lease every 20 ms from t0 to t1 with ``accel``; when the deck first halted."""
+        halted = None
+        for t in np.arange(t0, t1, 0.02).tolist():
+            estimator.send(("lease", Lease(True, "INSIDE", "", "", 1.0, 0, 0, 0, t, accel).wire()))
+            sup._drain(t)
+            sup._decide(t)
+            if halted is None and not sup.gate.current.permit:
+                halted = t
+        return halted
+
+    try:
+        t0 = time.monotonic()
+        sup._arrival["speed"] = t0 + 10.0  # the ground speed fresh throughout
+        level = (0.0, 0.0, 9.81)
+        assert leases(t0, t0 + 0.2, level) is None
+        nan = (math.nan, math.nan, math.nan)
+        stopped = leases(t0 + 0.2, t0 + 0.2 + 2 * limit, nan)  # the IMU sends rates only
+        assert stopped is not None and limit <= stopped - (t0 + 0.18) <= limit + 0.025
+        d = sup.gate.current
+        assert not d.permit and d.reason == Reason.SENSOR_STALE, d
+        assert "sends no acceleration: lift and tilt cannot be checked" in d.detail
+        leases(t0 + 0.2 + 2 * limit, t0 + 1.0 + 2 * limit, level)  # it comes again
+        assert sup.gate.current.permit, sup.gate.current
+    finally:
+        estimator.close()
+        if sup.port.bus is not None:
+            sup.port.bus.shutdown()

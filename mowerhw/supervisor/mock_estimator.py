@@ -8,6 +8,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from mowerhw.common.units import GRAVITY_MPS2
 from mowerhw.supervisor.lease import Lease
 
 #: (seconds, what): "permit" (leases that permit, every 10 ms), "quiet" (no lease), "exit"
@@ -39,6 +40,9 @@ def scripted_estimator(
                 conn.recv()  # CAN frames and status from the supervisor
             if what == "permit":
                 now = time.monotonic()
-                conn.send(("lease", Lease(True, "INSIDE", "", "", 1.0, 0.0, 0.0, 0.0, now).wire()))
+                # an upright mower's IMU: gravity on body z (the supervisor's lift/tilt input)
+                level = (0.0, 0.0, GRAVITY_MPS2)
+                lease = Lease(True, "INSIDE", "", "", 1.0, 0.0, 0.0, 0.0, now, level)
+                conn.send(("lease", lease.wire()))
             time.sleep(0.01)
     raise SystemExit(0)

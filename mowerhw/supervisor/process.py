@@ -49,6 +49,12 @@ log = logging.getLogger("mowerhw.supervisor")
 TICK_MAX_S = 0.1  # the watchdog, the status down to the child, the web process
 STATUS_PERIOD_S = 0.5  # the supervisor's status, down to the child (for `mowerhw ctl status`)
 LATENCIES_KEPT = 2000  # the newest latencies its status gives percentiles of
+#: the stream of the IMU's specific force, as the leases carry it (its halt names it)
+FORCE = "imu specific force"
+NO_FORCE = (
+    "the IMU sends no acceleration: lift and tilt cannot be checked (the VN-100 needs an "
+    "acceleration output: imu.configure_sensor true sets one)"
+)
 
 
 def set_priority(nice: int, who: str) -> None:
@@ -117,7 +123,12 @@ class Supervisor:
         self.record = record
         self.child_target = child_target
         self.gate = SupervisorGate(config.supervisor.lease_s, config.supervisor.settle_s)
-        self.speed_gate = PermitGate({"speed": config.speed.stale_after_s}, log_changes=False)
+        #: the streams it checks itself while mowing: the ground speed it reads from CAN, and
+        #: the IMU's specific force the leases carry (lift and tilt are judged by it)
+        self.stream_gate = PermitGate(
+            {"speed": config.speed.stale_after_s, FORCE: config.safety.specific_force_stale_s},
+            log_changes=False,
+        )
         self._speed = SpeedReader(
             config.speed.source, config.speed.sensor_address, config.speed.ccvs1_direction
         )
@@ -144,7 +155,9 @@ class Supervisor:
         #: its own halts (the ground speed silent past its limit): limit → stop frame sent
         self.own_halt_ms: deque[float] = deque(maxlen=LATENCIES_KEPT)
         self.max_loop_lag_ms = 0.0
-        self._speed_arrival: dict[str, float | None] = {"speed": None}
+        self._arrival: dict[str, float | None] = {"speed": None, FORCE: None}
+        self._notes: dict[str, tuple[float, str]] = {}  # why a stream's newest data is no use
+        self._own_stale = "speed"  # the stream of its newest own halt
         self._send_lock = threading.Lock()
         self._rx: threading.Thread | None = None
         # the CAN receive thread wakes the loop when a switch frame changes a safety latch
@@ -219,7 +232,7 @@ class Supervisor:
                 continue
             s = self._speed.handle(msg.arbitration_id, data, now)
             if s is not None and s.valid:
-                self._speed_arrival["speed"] = now
+                self._arrival["speed"] = now
             # the child decodes the ground speed (from every frame its reader reads: the
             # speed's, and the gear's that signs a CCVS1 speed), and records every frame when
             # it records (only what it needs: each frame forwarded is a wake-up of both)
@@ -265,8 +278,9 @@ class Supervisor:
         if unsafe is not None:
             return unsafe
         if self.lease_mow():
-            stale = self.speed_gate.stale(now, self._speed_arrival)
+            stale = self.stream_gate.stale(now, self._arrival, self._notes)
             if stale is not None:
+                self._own_stale = stale[0]
                 return Reason.SENSOR_STALE, f"{stale[1]} (seen by the supervisor)"
         return None
 
@@ -318,7 +332,7 @@ class Supervisor:
             if expires > now:
                 due = min(due, expires + 1e-4)
             if self.lease_mow():
-                due = min(due, self.speed_gate.next_stale_deadline(now, self._speed_arrival) + 1e-4)
+                due = min(due, self.stream_gate.next_stale_deadline(now, self._arrival) + 1e-4)
             ready = wait([self.conn, self.child.sentinel, self._wake_r], max(0.0005, due - now))
             now = time.monotonic()
             if self._wake_r in ready:
@@ -371,6 +385,10 @@ class Supervisor:
                     self.counts["leases"] += 1
                     with self._safety_lock:
                         self.safety.imu(lease.decided_at, lease.accel)
+                    if all(math.isfinite(a) for a in lease.accel):
+                        self._arrival[FORCE] = now
+                    else:
+                        self._notes[FORCE] = (now, NO_FORCE)
                 elif kind == "fault" and body.get("kind") == "can-down":
                     self.port.take_away(now, float(body.get("seconds", 3.0)))
                 elif kind == "ready":
@@ -385,7 +403,8 @@ class Supervisor:
         d = self.gate.decide(now, own)
         if self._send_frames(d, now) and own is not None and own[0] == Reason.SENSOR_STALE:
             # the deck ran until the supervisor's own check stopped it: how long after the limit
-            limit = self.speed_gate.revealed_at(now, ("speed", ""), self._speed_arrival, None)
+            stream = (self._own_stale, "")
+            limit = self.stream_gate.revealed_at(now, stream, self._arrival, None)
             self.own_halt_ms.append(round((time.monotonic() - limit) * 1e3, 3))
         lifted = own is not None and own[0] == Reason.LIFTED
         if lifted != self._lifted_told:  # the localizer gives its pose up while lifted
