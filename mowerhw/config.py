@@ -586,6 +586,14 @@ class SafetyConfig:
     switches_pgn: int = opt(
         0xFF11, "PGN of the mower controller's lift/bump/stop switch frame", ge=0xFF00, le=0xFFFF
     )
+    switches_address: int | None = opt(
+        None,
+        "accept the switch frame only from this source address, the mower controller's "
+        "(null: any; Proprietary B PGNs are each maker's own, and a tractor's bus carries "
+        "several from several ECUs)",
+        ge=0,
+        le=253,
+    )
     specific_force_stale_s: float = opt(
         0.25,
         "while mowing, halt (SENSOR_STALE) when no specific force has come from the IMU for "

@@ -342,3 +342,41 @@ def test_an_imu_without_specific_force_cannot_mow(tmp_path: Path) -> None:
         estimator.close()
         if sup.port.bus is not None:
             sup.port.bus.shutdown()
+
+
+def test_the_switch_frame_counts_only_from_the_controllers_address_when_set(
+    tmp_path: Path,
+) -> None:
+    """Proprietary B PGNs are each maker's own: with ``safety.switches_address`` set, the
+    same PGN from another ECU saying "lifted" is not the mower's lift switch; from the
+    controller it is (and with no address set, from anyone)."""
+    from drivers.can.isobus import can_id
+    from drivers.can.switches import Switches, encode_switches
+
+    def lifted_after(address: int | None, sender: int) -> bool:
+        channel = f"sw-{uuid.uuid4().hex[:8]}"
+        raw = config_to_dict(default_config())
+        raw["can"].update(interface="virtual", channel=channel)
+        raw["safety"].update(switches_address=address)
+        cfg = config_from_dict(raw, tmp_path, "test config")
+        sup = Supervisor(cfg)
+        assert sup.port.ensure(time.monotonic())
+        rx = threading.Thread(target=sup._receive, daemon=True)
+        rx.start()
+        tx = open_bus("virtual", channel)
+        try:
+            frame_id = can_id(6, cfg.safety.switches_pgn, sender)
+            data = encode_switches(Switches(lifted=True))
+            tx.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=True))
+            time.sleep(0.3)
+            halt = sup.safety.halt(time.monotonic())
+        finally:
+            sup.stop_requested = "test"
+            rx.join(2.0)
+            tx.shutdown()
+            if sup.port.bus is not None:
+                sup.port.bus.shutdown()
+        return halt is not None and halt[0] == Reason.LIFTED
+
+    assert lifted_after(0x28, 0x28) and lifted_after(None, 0x31)
+    assert not lifted_after(0x28, 0x31)

@@ -203,6 +203,7 @@ class Supervisor:
     def _receive(self) -> None:
         """CAN receive thread: every frame down to the child, the speed's freshness here."""
         own = self.cfg.can.source_address
+        switches_from = self.cfg.safety.switches_address
         while not self.stop_requested:
             bus = self.port.bus
             if bus is None:
@@ -220,6 +221,8 @@ class Supervisor:
             data = bytes(msg.data)
             pgn = parse_id(msg.arbitration_id).pgn
             if pgn == self.cfg.safety.switches_pgn:
+                if switches_from is not None and msg.arbitration_id & 0xFF != switches_from:
+                    continue  # the same proprietary PGN from another ECU: not our switches
                 sw = decode_switches(data)
                 if sw is not None:
                     with self._safety_lock:
