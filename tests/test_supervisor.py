@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from _tools import load_tool
 
-from drivers.can.isobus import open_bus, pgn_filters
+from drivers.can.isobus import open_bus, parse_id, pgn_filters
 from drivers.can.mock_mower import MockMowerController
 from drivers.can.mock_speed import MockSpeedSensor
 from drivers.can.permit import HB_ERROR
@@ -380,3 +380,47 @@ def test_the_switch_frame_counts_only_from_the_controllers_address_when_set(
 
     assert lifted_after(0x28, 0x28) and lifted_after(None, 0x31)
     assert not lifted_after(0x28, 0x31)
+
+
+def test_a_recording_gets_every_frame_the_supervisor_receives_and_sends(tmp_path: Path) -> None:
+    """Recording, the supervisor passes down every frame it receives — the switches' too —
+    and every frame it sends (SocketCAN gives a sender none of its own back), so the
+    estimation process's recording holds the bus both ways: rx and tx."""
+    from drivers.can.isobus import PGN_HEARTBEAT, PGN_ISB, can_id
+    from drivers.can.switches import Switches, encode_switches
+
+    channel = f"rec-{uuid.uuid4().hex[:8]}"
+    raw = config_to_dict(default_config())
+    raw["can"].update(interface="virtual", channel=channel)
+    cfg = config_from_dict(raw, tmp_path, "test config")
+    sup = Supervisor(cfg, record=tmp_path / "run.mcap")
+    passed: list[tuple[str, Any]] = []
+    sup._to_child = passed.append  # type: ignore[method-assign]
+    assert sup.port.ensure(time.monotonic())
+    rx = threading.Thread(target=sup._receive, daemon=True)
+    rx.start()
+    tx = open_bus("virtual", channel)
+    try:
+        switches = can_id(6, cfg.safety.switches_pgn, 0x28)
+        tx.send(can.Message(arbitration_id=switches, data=encode_switches(Switches())))
+        now = time.monotonic()
+        sup._send_frames(_lease(), now)
+        time.sleep(0.3)
+    finally:
+        sup.stop_requested = "test"
+        rx.join(2.0)
+        tx.shutdown()
+        if sup.port.bus is not None:
+            sup.port.bus.shutdown()
+    recorded: list[tuple[int, bool]] = []
+
+    class Recorder:
+        def can(self, _ns: int, ident: int, _data: bytes, _ext: bool, is_rx: bool) -> None:
+            recorded.append((parse_id(ident).pgn, is_rx))
+
+    child = CanFrames(cfg, lambda s: None, Recorder())  # type: ignore[arg-type]
+    for kind, body in passed:
+        assert kind == "can"
+        child.handle(*body)
+    assert (cfg.safety.switches_pgn, True) in recorded  # received
+    assert {(PGN_ISB, False), (PGN_HEARTBEAT, False)} <= set(recorded)  # sent

@@ -21,6 +21,7 @@ import logging
 import math
 import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import can
@@ -171,6 +172,9 @@ class PermitSender:
         self.last_isb_time: float | None = None  # when a stop/permit frame last went out
         #: while set, every heartbeat says 254 (an internal fault: the sender is not healthy)
         self.fault = False
+        #: called with each frame sent (a recording of the bus: SocketCAN does not give a
+        #: sender its own frames back)
+        self.on_sent: Callable[[can.Message], None] | None = None
 
     def _send(self, pgn: int, data: bytes, priority: int = 3) -> None:
         import can
@@ -180,6 +184,8 @@ class PermitSender:
         )
         try:
             self.bus.send(msg, timeout=self.send_timeout_s)
+            if self.on_sent is not None:
+                self.on_sent(msg)
         except (can.CanError, OSError) as exc:
             self.stats.send_errors += 1
             self._errors_since_log += 1

@@ -28,7 +28,7 @@ from collections import deque
 from collections.abc import Collection
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivers.can.isobus import parse_id, pgn_filters
 from drivers.can.permit import PermitSender, Status
@@ -43,6 +43,9 @@ from mowerhw.supervisor.canport import CanPort
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.supervisor.web_child import web_child_main
 from mowerhw.web.process import WebProcess
+
+if TYPE_CHECKING:
+    import can
 
 log = logging.getLogger("mowerhw.supervisor")
 
@@ -220,6 +223,12 @@ class Supervisor:
             now = time.monotonic()
             data = bytes(msg.data)
             pgn = parse_id(msg.arbitration_id).pgn
+            # the child decodes the ground speed (from every frame its reader reads: the
+            # speed's, and the gear's that signs a CCVS1 speed), and records every frame when
+            # it records (only what it needs: each frame forwarded is a wake-up of both)
+            if pgn in self._speed.pgns or self.record is not None:
+                self._to_child(("can", (now, msg.arbitration_id, data, True)))
+                self.counts["frames_forwarded"] += 1
             if pgn == self.cfg.safety.switches_pgn:
                 if switches_from is not None and msg.arbitration_id & 0xFF != switches_from:
                     continue  # the same proprietary PGN from another ECU: not our switches
@@ -236,12 +245,9 @@ class Supervisor:
             s = self._speed.handle(msg.arbitration_id, data, now)
             if s is not None and s.valid:
                 self._arrival["speed"] = now
-            # the child decodes the ground speed (from every frame its reader reads: the
-            # speed's, and the gear's that signs a CCVS1 speed), and records every frame when
-            # it records (only what it needs: each frame forwarded is a wake-up of both)
-            if pgn in self._speed.pgns or self.record is not None:
-                self._to_child(("can", (now, msg.arbitration_id, data, True)))
-                self.counts["frames_forwarded"] += 1
+
+    def _record_sent(self, msg: can.Message) -> None:
+        self._to_child(("can", (time.monotonic(), msg.arbitration_id, bytes(msg.data), True)))
 
     def _send_frames(self, d: Lease, now: float) -> bool:
         """The frames of decision ``d``; True when this sent the stop of a running deck."""
@@ -255,6 +261,8 @@ class Supervisor:
             self.sender = PermitSender(
                 bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s, 0.0
             )
+            if self.record is not None:  # the recording has the frames sent too
+                self.sender.on_sent = self._record_sent
         sender = self.sender
         errors = sender.stats.send_errors
         status = Status(
