@@ -187,3 +187,28 @@ def test_an_imu_handler_that_raises_ends_the_daemon_non_zero(tmp_path: Path, cap
     assert status == 1
     assert "the IMU sample handler failed" in caplog.text
     assert daemon.core.shutting_down  # the deck was halted on the way out
+
+
+def test_a_frame_not_of_the_calibrations_size_is_refused_naming_why(tmp_path: Path) -> None:
+    """A camera may deliver another mode than the one asked for: its pixels through the
+    calibration's intrinsics would be wrong bearings (the front end tracks such a frame
+    without complaint). The frame is refused, it does not count as the camera alive, and
+    the halt says what the camera delivers against what the calibration is for; a frame of
+    the right size clears it."""
+    from mowerhw.common.samples import FrameSample
+
+    cfg = _config(tmp_path, f"size-{uuid.uuid4().hex[:8]}")
+    daemon = Daemon(cfg, "idle")
+    core = daemon.core
+    core.set_mode("mow")
+    now = time.monotonic()
+    core.last_arrival.update(imu=now, speed=now)
+    small = FrameSample(t=now, image=np.zeros((720, 1280), np.uint8), sequence=1)
+    daemon._on_frame(small)
+    assert core.last_arrival["camera"] is None and core.counts["frames_refused"] == 1
+    d = core.decide(now + 0.01)
+    assert d.reason == "SENSOR_STALE" and "the camera delivers 1280x720 frames" in d.detail
+    assert f"the calibration is for {cfg.camera.width}x{cfg.camera.height}" in d.detail
+    good = np.zeros((cfg.camera.height, cfg.camera.width), np.uint8)
+    daemon._on_frame(FrameSample(t=now, image=good, sequence=2))
+    assert core.last_arrival["camera"] is not None and "camera" not in core.stream_notes

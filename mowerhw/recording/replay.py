@@ -378,6 +378,8 @@ def replay_journal(
             core.lifted(bool(rec["lifted"]))
         elif kind == "camera_frame":
             core.camera_frame(rec["now"])
+        elif kind == "camera_refused":
+            core.camera_refused(rec["now"], rec["why"])
         elif kind == "tracks":
             core.tracks(int(rec["serial"]), dec.tracks(rec["tracks"]))
         elif kind == "install":

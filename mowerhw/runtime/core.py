@@ -211,7 +211,15 @@ class RuntimeCore:
         """A camera frame arrived (the camera is alive, whatever the front end makes of it)."""
         self._log("camera_frame", now=now)
         self.last_arrival["camera"] = now
+        self.stream_notes.pop("camera", None)
         self.counts["frames"] += 1
+
+    def camera_refused(self, now: float, why: str) -> None:
+        """A frame that cannot be used at all (not the calibration's size): not a fresh frame;
+        ``why`` is the camera's halt detail while no good one comes."""
+        self._log("camera_refused", now=now, why=why)
+        self.stream_notes["camera"] = (now, why)
+        self.counts["frames_refused"] += 1
 
     def frame_pipeline(self) -> tuple[int, Pipeline] | None:
         """The chain a new frame is for (its serial, for :meth:`tracks`), if wanted now."""

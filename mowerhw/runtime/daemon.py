@@ -221,8 +221,26 @@ class Daemon:
         now = time.monotonic()
         self._send(self.core.imu(s, now), time.monotonic())
 
-    def _on_frame(self, _frame: FrameSample) -> None:
-        self.core.camera_frame(time.monotonic())
+    def _on_frame(self, frame: FrameSample) -> None:
+        problem = self._frame_problem(frame)
+        if problem:
+            self.core.camera_refused(time.monotonic(), problem)
+        else:
+            self.core.camera_frame(time.monotonic())
+
+    def _frame_problem(self, frame: FrameSample) -> str:
+        """Why a frame cannot be used at all, or "": its size must be the calibration's (a
+        camera may deliver another mode than the one asked for; its pixels would be lifted
+        to bearings through the wrong intrinsics)."""
+        h, w = frame.image.shape[:2]
+        cam = self.camera_model
+        if (w, h) == (cam.width, cam.height):
+            return ""
+        return (
+            f"the camera delivers {w}x{h} frames, the calibration is for {cam.width}x"
+            f"{cam.height} ({self.cfg.camera.calibration}): frames refused; give camera.width/"
+            "height a mode the camera has (v4l2-ctl --list-formats-ext) and calibrate at it"
+        )
 
     def _on_speed(self, s: SpeedSample) -> None:
         self.core.speed(s)
@@ -234,6 +252,8 @@ class Daemon:
             frame = await self._frames.get()
             if self.recorder is not None:
                 self.recorder.frame(time.monotonic_ns(), frame.t, frame.sequence, frame.image)
+            if self._frame_problem(frame):  # refused as it arrived
+                continue
             target = self.core.frame_pipeline()
             if target is None:
                 continue
