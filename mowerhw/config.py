@@ -1060,6 +1060,16 @@ def _cross_checks(cfg: Config) -> list[str]:
             f"imu.baudrate: {cfg.imu.baudrate} is too slow for {cfg.imu.rate_hz} Hz ASCII output "
             "(docs/design.md §7); use 230400 or more, or imu.output: binary"
         )
+    for name, limit, key, rate in (
+        ("imu", cfg.imu.stale_after_s, "imu.rate_hz", float(cfg.imu.rate_hz)),
+        ("camera", cfg.camera.stale_after_s, "camera.fps", cfg.camera.fps),
+    ):
+        if limit < 2.0 / rate:  # one late or lost sample must not halt the deck
+            problems.append(
+                f"{name}.stale_after_s: {limit:g} s is under two sample periods at {key} "
+                f"{rate:g} ({2.0 / rate:g} s): every late sample would halt; raise it to at "
+                f"least {2.0 / rate:g} s, or the rate"
+            )
     fe = cfg.frontend
     if fe.klt_base_level > fe.klt_levels:
         problems.append(

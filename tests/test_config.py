@@ -69,6 +69,14 @@ BAD_VALUES = [
     ),
     ({"imu": {"driver": "vn200"}}, "imu.driver: 'vn200' is not one of vn100, mock"),
     (
+        {"imu": {"rate_hz": 10}},
+        "imu.stale_after_s: 0.1 s is under two sample periods at imu.rate_hz 10 (0.2 s)",
+    ),
+    (
+        {"camera": {"fps": 1.5}},
+        "camera.stale_after_s: 1 s is under two sample periods at camera.fps 1.5 (1.33333 s)",
+    ),
+    (
         {"frontend": {"klt_base_level": 2, "klt_levels": 1}},
         "frontend.klt_base_level: 2 is above frontend.klt_levels (1)",
     ),
