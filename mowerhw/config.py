@@ -1060,6 +1060,16 @@ def _cross_checks(cfg: Config) -> list[str]:
             f"imu.baudrate: {cfg.imu.baudrate} is too slow for {cfg.imu.rate_hz} Hz ASCII output "
             "(docs/design.md §7); use 230400 or more, or imu.output: binary"
         )
+    own = cfg.can.source_address
+    for key, other in (
+        ("speed.sensor_address", cfg.speed.sensor_address),
+        ("safety.switches_address", cfg.safety.switches_address),
+    ):
+        if other == own:
+            problems.append(
+                f"{key}: 0x{other:02X} is can.source_address, this ECU's own: its frames would "
+                "be taken for our own and dropped (each ECU on the bus needs its own address)"
+            )
     for name, limit, key, rate in (
         ("imu", cfg.imu.stale_after_s, "imu.rate_hz", float(cfg.imu.rate_hz)),
         ("camera", cfg.camera.stale_after_s, "camera.fps", cfg.camera.fps),

@@ -69,6 +69,10 @@ BAD_VALUES = [
     ),
     ({"imu": {"driver": "vn200"}}, "imu.driver: 'vn200' is not one of vn100, mock"),
     (
+        {"can": {"source_address": 0x80}, "speed": {"sensor_address": 0x80}},
+        "speed.sensor_address: 0x80 is can.source_address, this ECU's own",
+    ),
+    (
         {"imu": {"rate_hz": 10}},
         "imu.stale_after_s: 0.1 s is under two sample periods at imu.rate_hz 10 (0.2 s)",
     ),
