@@ -3,11 +3,13 @@ process on python-can's virtual bus, the mock mower controller listening."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing
 import threading
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +33,24 @@ from mowerhw.supervisor.process import FORCE, Supervisor
 
 def _lease(permit: bool = True, reason: str = "") -> Lease:
     return Lease(permit, "INSIDE", reason, "", 1.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@contextlib.contextmanager
+def _receiving(sup: Supervisor, channel: str) -> Iterator[can.BusABC]:
+    """The supervisor's CAN receive thread running on its bus, and another node's bus on the
+    same channel to send from; stopped and shut down after."""
+    assert sup.port.ensure(time.monotonic())
+    rx = threading.Thread(target=sup._receive, daemon=True)
+    rx.start()
+    tx = open_bus("virtual", channel)
+    try:
+        yield tx
+    finally:
+        sup.stop_requested = "test"
+        rx.join(2.0)
+        tx.shutdown()
+        if sup.port.bus is not None:
+            sup.port.bus.shutdown()
 
 
 def test_a_lease_permits_only_while_it_is_fresh() -> None:
@@ -266,15 +286,11 @@ def test_the_estimation_side_reads_a_real_tractors_speed_as_a_reader_on_the_bus_
     sup = Supervisor(cfg)
     passed: list[tuple[str, Any]] = []
     sup._to_child = passed.append  # type: ignore[method-assign]
-    assert sup.port.ensure(time.monotonic()) and sup.port.bus is not None
     reads = {61445, 65265, cfg.safety.switches_pgn}  # ETC2, CCVS1, the switches
     assert sup.port.filters == pgn_filters(reads)
-    rx = threading.Thread(target=sup._receive, daemon=True)
-    rx.start()
-    tx = open_bus("virtual", channel)
     direct = SpeedReader("ccvs1", ccvs1_direction="etc2")
     want = []
-    try:
+    with _receiving(sup, channel) as tx:
         for m in frames:
             tx.send(m)
             s = direct.handle(m.arbitration_id, bytes(m.data), time.monotonic())
@@ -284,12 +300,6 @@ def test_the_estimation_side_reads_a_real_tractors_speed_as_a_reader_on_the_bus_
         while len(passed) < direct.stats.frames + direct.stats.gear_frames:
             assert time.monotonic() < t_end, (len(passed), vars(direct.stats))
             time.sleep(0.02)
-    finally:
-        sup.stop_requested = "test"
-        rx.join(2.0)
-        tx.shutdown()
-        if sup.port.bus is not None:
-            sup.port.bus.shutdown()
     got: list[Any] = []
     child = CanFrames(cfg, got.append)
     for kind, body in passed:
@@ -360,22 +370,12 @@ def test_the_switch_frame_counts_only_from_the_controllers_address_when_set(
         raw["safety"].update(switches_address=address)
         cfg = config_from_dict(raw, tmp_path, "test config")
         sup = Supervisor(cfg)
-        assert sup.port.ensure(time.monotonic())
-        rx = threading.Thread(target=sup._receive, daemon=True)
-        rx.start()
-        tx = open_bus("virtual", channel)
-        try:
+        with _receiving(sup, channel) as tx:
             frame_id = can_id(6, cfg.safety.switches_pgn, sender)
             data = encode_switches(Switches(lifted=True))
             tx.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=True))
             time.sleep(0.3)
             halt = sup.safety.halt(time.monotonic())
-        finally:
-            sup.stop_requested = "test"
-            rx.join(2.0)
-            tx.shutdown()
-            if sup.port.bus is not None:
-                sup.port.bus.shutdown()
         return halt is not None and halt[0] == Reason.LIFTED
 
     assert lifted_after(0x28, 0x28) and lifted_after(None, 0x31)
@@ -396,22 +396,11 @@ def test_a_recording_gets_every_frame_the_supervisor_receives_and_sends(tmp_path
     sup = Supervisor(cfg, record=tmp_path / "run.mcap")
     passed: list[tuple[str, Any]] = []
     sup._to_child = passed.append  # type: ignore[method-assign]
-    assert sup.port.ensure(time.monotonic())
-    rx = threading.Thread(target=sup._receive, daemon=True)
-    rx.start()
-    tx = open_bus("virtual", channel)
-    try:
+    with _receiving(sup, channel) as tx:
         switches = can_id(6, cfg.safety.switches_pgn, 0x28)
         tx.send(can.Message(arbitration_id=switches, data=encode_switches(Switches())))
-        now = time.monotonic()
-        sup._send_frames(_lease(), now)
+        sup._send_frames(_lease(), time.monotonic())
         time.sleep(0.3)
-    finally:
-        sup.stop_requested = "test"
-        rx.join(2.0)
-        tx.shutdown()
-        if sup.port.bus is not None:
-            sup.port.bus.shutdown()
     recorded: list[tuple[int, bool]] = []
 
     class Recorder:
