@@ -2,11 +2,13 @@
 
 It owns the CAN bus and is the only writer of the permit frames; it starts the estimation
 process (:func:`mowerhw.supervisor.child.estimator_main`) and talks to it over one pipe:
-the ground-speed frames it receives go down (the child decodes them; every frame while it
-records), every decision comes up as a lease. One plain loop, no numpy, no asyncio: it wakes when a
-lease arrives, when the newest lease runs out, when a frame is due, when the ground speed it
-watches would go stale, when a switch frame of the mower's controller changes a safety latch
-(the CAN receive thread says so through a pipe), and at least every 0.1 s.
+the frames of the PGNs the child's speed reader reads go down (the child decodes them; while
+it records, every frame received and sent), every decision comes up as a lease, with the
+IMU's specific force that lift and tilt are judged by. One plain loop, no numpy, no asyncio: it
+wakes when a lease arrives, when the newest lease runs out, when a frame is due, when the
+ground speed or the specific force it watches would go stale, when a switch frame of the
+mower's controller changes a safety latch (the CAN receive thread says so through a pipe),
+and at least every 0.1 s.
 
 Crash-only: the estimation process dying (or not starting) halts the deck, announces the
 fault (heartbeat 254), names it in the log and ends the service with exit status 1, for
@@ -155,7 +157,7 @@ class Supervisor:
         }
         #: decision → frames sent, the newest ``LATENCIES_KEPT``
         self.lease_to_frame_ms: deque[float] = deque(maxlen=LATENCIES_KEPT)
-        #: its own halts (the ground speed silent past its limit): limit → stop frame sent
+        #: its own halts (a stream it watches silent past its limit): limit → stop frame sent
         self.own_halt_ms: deque[float] = deque(maxlen=LATENCIES_KEPT)
         self.max_loop_lag_ms = 0.0
         self._arrival: dict[str, float | None] = {"speed": None, FORCE: None}
@@ -204,7 +206,8 @@ class Supervisor:
     # ----------------------------------------------------------------------------- CAN
 
     def _receive(self) -> None:
-        """CAN receive thread: every frame down to the child, the speed's freshness here."""
+        """CAN receive thread: the frames the child reads (every frame while it records) down
+        to the child; the speed's freshness and the switches here."""
         own = self.cfg.can.source_address
         switches_from = self.cfg.safety.switches_address
         while not self.stop_requested:
