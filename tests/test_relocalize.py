@@ -304,10 +304,11 @@ def test_the_vote_counts_what_its_definition_says() -> None:
     azimuth = np.arctan2(bearings[:, 1], bearings[:, 0])
     elevation = np.arctan2(bearings[:, 2], np.hypot(bearings[:, 0], bearings[:, 1]))
     expected = np.zeros((reloc.grid.shape[0], reloc.n_bins), dtype=np.int64)
+    table_azimuth, table_elevation, in_range = reloc.tables(slice(None))  # every position
     for k in range(azimuth.size):
-        ok = reloc._in_range & (np.abs(reloc._elevation - elevation[k]) < reloc.elevation_tol_rad)
+        ok = in_range & (np.abs(table_elevation - elevation[k]) < reloc.elevation_tol_rad)
         p_idx, n_idx = np.nonzero(ok)
-        yaw = (reloc._azimuth[p_idx, n_idx] - azimuth[k]) % (2 * math.pi)
+        yaw = (table_azimuth[p_idx, n_idx] - azimuth[k]) % (2 * math.pi)
         bins = np.floor(yaw / reloc.yaw_bin).astype(np.int64) % reloc.n_bins
         cells = np.unique(p_idx * reloc.n_bins + bins)
         expected.ravel()[cells] += 1

@@ -152,28 +152,36 @@ class GlobalRelocalizer:
         gx, gy = np.meshgrid(np.arange(minx, maxx, grid_m), np.arange(miny, maxy, grid_m))
         inside = shapely.contains_xy(region, gx, gy)
         self.grid = np.column_stack([gx[inside], gy[inside]])  # (P, 2)
-        d = self.points[None, :, :2] - self.grid[:, None, :]  # (P, N, 2)
-        self._azimuth = np.arctan2(d[..., 1], d[..., 0])
-        horizontal = np.hypot(d[..., 0], d[..., 1])
-        self._elevation = np.arctan2(self.points[None, :, 2] - self.height, horizontal)
-        self._in_range = horizontal <= max_range_m
         # every (position, landmark) pair in range, in blocks of positions, each sorted by
         # elevation: an observation's compatible pairs in a block are one slice (the vote
         # costs what it counts, not P × N), and a block's part of the vote table stays in
-        # the processor's cache while its slices are counted
-        pi, ni = np.nonzero(self._in_range)  # in position order, so in block order
-        elevation = self._elevation[pi, ni]
-        n_blocks = -(-self.grid.shape[0] // self.VOTE_BLOCK)
-        starts = np.searchsorted(pi, np.arange(n_blocks + 1) * self.VOTE_BLOCK)
-        order = np.concatenate(
-            [np.zeros(0, np.intp)]
-            + [a + np.argsort(elevation[a:b]) for a, b in itertools.pairwise(starts.tolist())]
-        )
-        self._pair_elevation = elevation[order]
-        # a pair's azimuth in heading bins, in [0, bins), and its first vote in its block
-        self._pair_azimuth_bins = (self._azimuth[pi, ni][order] % (2 * math.pi)) / yaw_bin_rad
-        self._pair_vote_base = (pi[order] % self.VOTE_BLOCK).astype(np.intp) * self.n_bins
-        self._block_start = starts
+        # the processor's cache while its slices are counted. Built a block at a time and
+        # only the pairs kept: a garden's (P, N) tables would not fit a mower's memory
+        elevations, bins, bases, counts = [], [], [], [0]
+        for p0 in range(0, self.grid.shape[0], self.VOTE_BLOCK):
+            azimuth, elevation, in_range = self.tables(slice(p0, p0 + self.VOTE_BLOCK))
+            pi, ni = np.nonzero(in_range)  # pi: the position within the block
+            pair_elevation = elevation[pi, ni]
+            order = np.argsort(pair_elevation)
+            elevations.append(pair_elevation[order])
+            # a pair's azimuth in heading bins, in [0, bins), and its first vote in its block
+            bins.append((azimuth[pi, ni][order] % (2 * math.pi)) / yaw_bin_rad)
+            bases.append(pi[order].astype(np.intp) * self.n_bins)
+            counts.append(pi.size)
+        self._pair_elevation = np.concatenate([np.zeros(0), *elevations])
+        self._pair_azimuth_bins = np.concatenate([np.zeros(0), *bins])
+        self._pair_vote_base = np.concatenate([np.zeros(0, np.intp), *bases])
+        self._block_start = np.cumsum(counts)
+
+    def tables(self, rows: slice) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """From the grid positions ``rows`` to every landmark: azimuth and elevation (rad,
+        the mower upright at the dock's camera height), and whether within the search's
+        range — (positions, landmarks) each."""
+        d = self.points[None, :, :2] - self.grid[rows, None, :]
+        azimuth = np.arctan2(d[..., 1], d[..., 0])
+        horizontal = np.hypot(d[..., 0], d[..., 1])
+        elevation = np.arctan2(self.points[None, :, 2] - self.height, horizontal)
+        return azimuth, elevation, horizontal <= self.max_range_m
 
     # ---------------------------------------------------------------------------- search
 
