@@ -157,31 +157,40 @@ class GlobalRelocalizer:
         # costs what it counts, not P × N), and a block's part of the vote table stays in
         # the processor's cache while its slices are counted. Built a block at a time and
         # only the pairs kept: a garden's (P, N) tables would not fit a mower's memory
-        elevations, bins, bases, counts = [], [], [], [0]
-        for p0 in range(0, self.grid.shape[0], self.VOTE_BLOCK):
+        blocks = range(0, self.grid.shape[0], self.VOTE_BLOCK)
+        counts = [0] + [  # a first pass counts the pairs, so the build holds no second copy
+            int(np.count_nonzero(self.tables(slice(p0, p0 + self.VOTE_BLOCK), True)[2]))
+            for p0 in blocks
+        ]
+        self._block_start = starts = np.cumsum(counts)
+        self._pair_elevation = np.empty(starts[-1])
+        self._pair_azimuth_bins = np.empty(starts[-1])
+        self._pair_vote_base = np.empty(starts[-1], np.intp)
+        for a, b, p0 in zip(starts[:-1].tolist(), starts[1:].tolist(), blocks, strict=True):
             azimuth, elevation, in_range = self.tables(slice(p0, p0 + self.VOTE_BLOCK))
             pi, ni = np.nonzero(in_range)  # pi: the position within the block
             pair_elevation = elevation[pi, ni]
             order = np.argsort(pair_elevation)
-            elevations.append(pair_elevation[order])
+            self._pair_elevation[a:b] = pair_elevation[order]
             # a pair's azimuth in heading bins, in [0, bins), and its first vote in its block
-            bins.append((azimuth[pi, ni][order] % (2 * math.pi)) / yaw_bin_rad)
-            bases.append(pi[order].astype(np.intp) * self.n_bins)
-            counts.append(pi.size)
-        self._pair_elevation = np.concatenate([np.zeros(0), *elevations])
-        self._pair_azimuth_bins = np.concatenate([np.zeros(0), *bins])
-        self._pair_vote_base = np.concatenate([np.zeros(0, np.intp), *bases])
-        self._block_start = np.cumsum(counts)
+            self._pair_azimuth_bins[a:b] = (azimuth[pi, ni][order] % (2 * math.pi)) / yaw_bin_rad
+            self._pair_vote_base[a:b] = pi[order] * self.n_bins
 
-    def tables(self, rows: slice) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    def tables(
+        self, rows: slice, range_only: bool = False
+    ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
         """From the grid positions ``rows`` to every landmark: azimuth and elevation (rad,
         the mower upright at the dock's camera height), and whether within the search's
-        range — (positions, landmarks) each."""
+        range — (positions, landmarks) each (``range_only``: the last alone, the others
+        empty)."""
         d = self.points[None, :, :2] - self.grid[rows, None, :]
-        azimuth = np.arctan2(d[..., 1], d[..., 0])
         horizontal = np.hypot(d[..., 0], d[..., 1])
+        in_range = horizontal <= self.max_range_m
+        if range_only:
+            return np.zeros((0, 0)), np.zeros((0, 0)), in_range
+        azimuth = np.arctan2(d[..., 1], d[..., 0])
         elevation = np.arctan2(self.points[None, :, 2] - self.height, horizontal)
-        return azimuth, elevation, horizontal <= self.max_range_m
+        return azimuth, elevation, in_range
 
     # ---------------------------------------------------------------------------- search
 
