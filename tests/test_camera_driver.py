@@ -72,12 +72,21 @@ class FlakyCapture:
             return self.device.device_ms
         return self.props.get(prop, 0.0)
 
-    def read(self):
+    def grab(self) -> bool:
+        """The next frame, every 10 ms (a 100 fps camera), not decoded yet."""
         time.sleep(0.01)
         if not self.device.present or self.released:
-            return False, None
+            return False
         self.device.device_ms = 5000.0 + 1000.0 * (time.monotonic() - self.device.t0)
+        self.device.grabbed += 1
+        return True
+
+    def retrieve(self):
+        self.device.decoded += 1
         return True, np.full((48, 64, 3), 128, np.uint8)
+
+    def read(self):
+        return self.retrieve() if self.grab() else (False, None)
 
     def release(self) -> None:
         self.released = True
@@ -89,6 +98,8 @@ class FakeDevice:
         self.t0 = time.monotonic()
         self.device_ms = 0.0
         self.opens = 0
+        self.grabbed = 0
+        self.decoded = 0
 
     def open(self, path: str) -> FlakyCapture:
         self.opens += 1
@@ -145,3 +156,30 @@ def test_asyncio_sink_hands_frames_over_and_drops_the_oldest():
 def test_test_pattern_moves():
     a, b = synthetic_frame(0.0, 64, 48), synthetic_frame(0.2, 64, 48)
     assert a.shape == (48, 64) and not np.array_equal(a, b)
+
+
+def test_v4l2_driver_decodes_no_more_frames_than_its_rate():
+    """A camera that delivers faster than ``camera.fps`` (a USB camera with no mode at the
+    rate asked for; here 100 fps for 10 asked): the extra frames are grabbed and dropped
+    undecoded, so the front end sees about the rate configured, not the camera's."""
+    dev = FakeDevice()
+    cam = V4l2Camera("/dev/video0", width=64, height=48, fps=10, capture_factory=dev.open)
+    frames = []
+    cam.start(frames.append)
+    try:
+        assert wait_for(lambda: dev.grabbed >= 60)
+    finally:
+        cam.stop()
+    seconds = frames[-1].t - frames[0].t
+    rate = (len(frames) - 1) / seconds
+    assert 8.0 <= rate <= 12.0, (rate, len(frames), dev.grabbed)  # 10 fps
+    assert dev.decoded == len(frames) and cam.stats.skipped >= 0.7 * dev.grabbed
+    # a camera at the rate asked for keeps (nearly) every frame, its jitter notwithstanding
+    dev = FakeDevice()
+    cam = V4l2Camera("/dev/video0", width=64, height=48, fps=100, capture_factory=dev.open)
+    cam.start(lambda f: None)
+    try:
+        assert wait_for(lambda: dev.grabbed >= 60)
+    finally:
+        cam.stop()
+    assert cam.stats.skipped <= 0.1 * dev.grabbed, (cam.stats.skipped, dev.grabbed)

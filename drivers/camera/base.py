@@ -25,6 +25,8 @@ class CameraStats:
     read_failures: int = 0
     reconnects: int = 0
     open_failures: int = 0
+    #: frames the camera delivered faster than its configured rate, dropped undecoded
+    skipped: int = 0
     last_error: str = ""
     connected: bool = False
 

@@ -1,7 +1,8 @@
 """The V4L2 camera (OpenCV): a :class:`~drivers.camera.base.CameraSource`.
 
 :class:`V4l2Camera` opens ``cv2.VideoCapture(device, cv2.CAP_V4L2)`` with the
-configured size, pixel format and rate, reads frames in its own thread, maps the driver's
+configured size, pixel format and rate, reads frames in its own thread (at most at that rate:
+a camera that delivers faster has the extra frames dropped undecoded), maps the driver's
 buffer timestamp (``CAP_PROP_POS_MSEC``) onto the host clock with a
 :class:`mowerhw.common.clocksync.ClockSync`, and when the device disappears (USB unplugged, driver
 reset) releases it and reopens it with backoff.
@@ -27,6 +28,10 @@ _FOURCC = {"GREY": "GREY", "YUYV": "YUYV", "MJPG": "MJPG", "BGR3": "BGR3"}
 
 class V4l2Camera(CameraSource):
     """A V4L2 camera through OpenCV (see the module doc)."""
+
+    #: a frame is decoded from this share of a period before it is due (a camera at the
+    #: rate asked for, with its jitter, keeps every frame)
+    RATE_TOLERANCE = 0.25
 
     def __init__(
         self,
@@ -75,6 +80,8 @@ class V4l2Camera(CameraSource):
         cap = None
         backoff = 0.1
         failures = 0
+        next_due = 0.0  # when the next frame to decode is due (host s)
+        period = 1.0 / self.fps
         while not self._stop.is_set():
             if cap is None:
                 try:
@@ -88,8 +95,16 @@ class V4l2Camera(CameraSource):
                     self._stop.wait(backoff)
                     backoff = min(backoff * 2, self.reconnect_max_backoff_s)
                     continue
-            ok, img = cap.read()
+            ok = cap.grab()
             host_s = time.monotonic()
+            if ok and host_s < next_due - self.RATE_TOLERANCE * period:
+                # faster than camera.fps (many USB cameras have no mode at the rate asked
+                # for): the frame is dropped before it is decoded, or the front end would
+                # track every one of them on a computer sized for the rate configured
+                self.stats.skipped += 1
+                failures = 0
+                continue
+            ok, img = cap.retrieve() if ok else (False, None)
             if not ok or img is None:
                 failures += 1
                 self.stats.read_failures += 1
@@ -105,6 +120,9 @@ class V4l2Camera(CameraSource):
                     self._stop.wait(0.05)
                 continue
             failures = 0
+            # on the rate's grid (a faster camera gives the rate itself), and not a burst to
+            # catch up after a stall: never due within half a period of this frame
+            next_due = max(next_due + period, host_s + 0.5 * period)
             if img.ndim == 3:
                 img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
             dev_ms = float(cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0)
