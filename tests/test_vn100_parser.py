@@ -515,3 +515,25 @@ def test_real_log_gives_the_magnetic_field_and_a_steady_levelled_direction():
     print(r)
     assert r["levelled"]["samples"] == 8895
     assert r["levelled"]["spread_deg_p50"] < 2.0 and r["levelled"]["spread_deg_p95"] < 8.0
+
+
+@pytest.mark.parametrize(("sent_hz", "warned"), [(400, True), (50, False)])
+def test_a_sensor_far_from_its_configured_rate_is_named_once(sent_hz, warned, caplog):
+    """A VN-100 that keeps its own output (``imu.configure_sensor: false``) may send at
+    another rate than ``imu.rate_hz``: after five seconds of its samples the driver says so,
+    once, with both rates (the staleness limit is judged against the configured one)."""
+    from drivers.imu.vn100 import Vn100
+
+    source = still_source(0.0)
+    mock = MockVn100("unused-link")  # not started: only its packets
+    mock.registers[75] = ["1", "8", "01", "0129"]
+    drv = Vn100("unused", rate_hz=50, configure_sensor=False)  # not started: fed directly
+    for k in range(7 * sent_hz):
+        drv.feed(mock._binary_packet(k / sent_hz, source), int(k * 1e9 / sent_hz))
+    assert drv.stats.samples >= 6 * sent_hz
+    said = [r.getMessage() for r in caplog.records if "samples a second" in r.getMessage()]
+    if warned:
+        assert len(said) == 1 and "sends 400 samples a second, imu.rate_hz says 50" in said[0]
+        assert "imu.configure_sensor false" in said[0]
+    else:
+        assert said == []

@@ -769,6 +769,8 @@ class Vn100(ThreadedDevice):
         self._loop_fd: int | None = None  # the descriptor the loop watches, while it does
         self._loop_lost = threading.Event()
         self._last_t = -math.inf
+        self._rate_since: tuple[int, int] | None = None  # (host ns, samples) at the first
+        self._rate_checked = False
 
     # -- connection -------------------------------------------------------------------------
 
@@ -905,8 +907,43 @@ class Vn100(ThreadedDevice):
                 continue
             self._last_t = sample.t
             self.stats.samples += 1
+            self._check_rate(host_ns)
             if self.on_sample is not None:
                 self.on_sample(sample)
+
+    #: how long the sensor's own rate is measured before it is compared with ``rate_hz`` (s)
+    RATE_CHECK_S = 5.0
+
+    def _check_rate(self, host_ns: int) -> None:
+        """Say once if the sensor sends far from ``rate_hz`` (half or twice): the staleness
+        limit is checked against that rate, and the estimation's CPU grows with the real one
+        (a sensor that keeps its own output, ``imu.configure_sensor: false``, at 400 Hz)."""
+        if self._rate_checked:
+            return
+        if self._rate_since is None:
+            self._rate_since = (host_ns, self.stats.samples)
+            return
+        t0, n0 = self._rate_since
+        seconds = (host_ns - t0) * 1e-9
+        if seconds < self.RATE_CHECK_S:
+            return
+        self._rate_checked = True
+        rate = (self.stats.samples - n0) / seconds
+        if 0.5 * self.rate_hz <= rate <= 2.0 * self.rate_hz:
+            return
+        kept = (
+            "was configured for it"
+            if self.configure_sensor
+            else "keeps its own output: imu.configure_sensor false"
+        )
+        log.warning(
+            "vn100: the sensor sends %.0f samples a second, imu.rate_hz says %d (it %s): the "
+            "staleness limit is judged against imu.rate_hz, the estimation's CPU grows with "
+            "the real rate; set imu.rate_hz to what the sensor sends",
+            rate,
+            self.rate_hz,
+            kept,
+        )
 
     def read_once(self) -> int:
         """Read what has arrived and deliver its samples; returns the bytes read."""
