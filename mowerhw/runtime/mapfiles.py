@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import logging
 import pickle
@@ -28,6 +29,15 @@ log = logging.getLogger("mowerhw.daemon")
 
 #: a pose saved by a previous run is resumed from if it is at most this old (s)
 RESUME_MAX_AGE_S = 120.0
+
+
+@functools.cache
+def boot_id() -> str | None:
+    """This boot's identity (Linux: a random UUID per boot), None where there is none."""
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip() or None
+    except OSError:
+        return None
 
 
 class MapFile:
@@ -160,7 +170,13 @@ def teach_to_map_file(pipe: TeachPipeline, path: Path) -> dict[str, Any]:
 
 class PoseFile:
     """The newest localized pose, for a restart (a crash, SIGKILL, power loss) to resume from
-    instead of the dock. Renamed into place (no fsync: at worst an older pose)."""
+    instead of the dock. Renamed into place (no fsync: at worst an older pose).
+
+    Its age is judged on the boot's own clock (``CLOCK_BOOTTIME``: it never steps) when the
+    pose was saved in this boot — a mower computer without a real-time clock has its wall
+    clock stepped by hours when NTP first syncs, which would refuse a pose saved seconds ago,
+    or take one from before a long power-off as fresh — and by the wall clock only across a
+    reboot, where nothing else spans the gap."""
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
@@ -169,6 +185,8 @@ class PoseFile:
     def save(self, pose: StartPose, map_checksum: str) -> None:
         doc = {
             "wall_time": time.time(),
+            "boot_id": boot_id(),
+            "boot_time": time.clock_gettime(time.CLOCK_BOOTTIME),
             "map_checksum": map_checksum,
             "position": np.asarray(pose.position).tolist(),
             "quaternion": np.asarray(pose.quaternion).tolist(),
@@ -181,17 +199,40 @@ class PoseFile:
                 log.warning("cannot save the pose for restarts: %s", exc)
 
     def load(self, lawn_map: LawnMap) -> StartPose | None:
-        """The pose saved by a previous run, if it is recent and of this map."""
+        """The pose saved by a previous run, if it is recent and of this map (else None, and
+        the log says why it was not taken)."""
         try:
             doc: Any = json.loads(self.path.read_text())
-            age = time.time() - float(doc["wall_time"])
+            this_boot = boot_id()
+            same_boot = this_boot is not None and doc.get("boot_id") == this_boot
+            if same_boot:
+                age = time.clock_gettime(time.CLOCK_BOOTTIME) - float(doc["boot_time"])
+            else:
+                age = time.time() - float(doc["wall_time"])
             pos = np.asarray(doc["position"], dtype=np.float64).reshape(3)
             quat = np.asarray(doc["quaternion"], dtype=np.float64).reshape(4)
-        except (OSError, ValueError, KeyError, TypeError):
+        except FileNotFoundError:
             return None
-        if doc.get("map_checksum") != lawn_map.checksum or not 0 <= age <= RESUME_MAX_AGE_S:
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            log.warning("not resuming from %s: unreadable (%s)", self.path, exc)
             return None
-        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))):
+        clock = "this boot's clock" if same_boot else "the wall clock (saved before a reboot)"
+        if doc.get("map_checksum") != lawn_map.checksum:
+            log.info("not resuming from %s: it was saved on another map", self.path)
             return None
-        log.info("resuming from the pose saved %.1f s ago (σ widened to 0.12 m, 6°)", age)
+        if not 0 <= age <= RESUME_MAX_AGE_S:
+            log.info(
+                "not resuming from %s: saved %.1f s ago by %s (resumed only within %.0f s)",
+                self.path,
+                age,
+                clock,
+                RESUME_MAX_AGE_S,
+            )
+            return None
+        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))) or not np.any(quat):
+            log.warning("not resuming from %s: its pose is not finite or not a rotation", self.path)
+            return None
+        log.info(
+            "resuming from the pose saved %.1f s ago by %s (σ widened to 0.12 m, 6°)", age, clock
+        )
         return StartPose(pos, quat / np.linalg.norm(quat))
