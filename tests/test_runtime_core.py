@@ -340,3 +340,29 @@ def test_an_imu_silence_is_told_apart_by_the_sensors_own_clock(
     assert "by the sensor's own clock 0.150 s passed (the sensor itself was silent)" in text
     core.imu(ImuSample(1.8, np.zeros(3)), 1.8)  # no device time: said, not guessed
     assert counts["imu_gaps_unknown"] == 1
+
+
+def test_a_held_up_imu_sample_says_whether_this_daemon_kept_deciding(
+    camera: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Samples sent on time and held up: if the daemon's loop kept deciding through the
+    silence (its deadline timer, every 40 ms), the bytes reached it late — the serial adapter
+    or the kernel's tty input (traced on the loaded bench: its worker waiting behind nice-0
+    CPU hogs) — else the daemon itself was held up."""
+    core, _ = _core(camera)
+
+    def sample(t_host: float, t_dev: float) -> None:
+        core.imu(ImuSample(t_host, np.zeros(3), None, round(t_dev * 1e9), None), t_host)
+
+    for k in range(20):
+        sample(1.0 + 0.02 * k, 0.02 * k)  # the last at 1.38 (sensor 0.38)
+    for t in (1.42, 1.46, 1.49, 1.50):  # the loop on time: deadline decisions
+        core.decide(t)
+    sample(1.51, 0.40)  # 0.13 s after the last, one period by the sensor's clock
+    assert "before the daemon could read them (it went at most 0.040 s without" in caplog.text
+    for k in range(1, 5):
+        sample(1.51 + 0.02 * k, 0.40 + 0.02 * k)  # on time again: the last at 1.59
+    caplog.clear()
+    sample(1.72, 0.50)  # 0.13 s, no decision meanwhile: the daemon's own loop was stuck
+    assert "held up on this computer, in this daemon (0.130 s without a decision)" in caplog.text
+    assert core.counts["imu_gaps_host"] == 2

@@ -112,13 +112,15 @@ def _imu_gaps(lines: list[str] | None) -> dict[str, int]:
     puts them: ``sensor`` (it was silent: the mock VN-100 sent late), ``host`` (it sent on
     time and the samples were held up on the way: the mock's own write, the kernel, the
     daemon's computer — ``mock_imu.late_writes_over_50ms_while_mowing`` says how many of
-    them the mock wrote late); empty without a log."""
+    them the mock wrote late; ``host_in_the_daemon``: those of them where the daemon itself
+    went without a decision for half the gap or more), empty without a log."""
     if lines is None:
         return {}
     gaps = [line for line in lines if "imu: a sample again" in line]
     return {
         "sensor": sum("the sensor itself was silent" in line for line in gaps),
         "host": sum("held up on this computer" in line for line in gaps),
+        "host_in_the_daemon": sum("in this daemon" in line for line in gaps),
         "unknown": sum("the sensor sends no time" in line for line in gaps),
     }
 

@@ -104,6 +104,10 @@ class RuntimeCore:
         self.is_lifted = False  # the supervisor says the mower is lifted
         self._next_mag_t = -math.inf
         self._prev_device_ns: int | None = None  # the sensor time of the previous IMU sample
+        #: when the newest decision was made, and the longest time between two decisions since
+        #: the newest IMU sample: whether this daemon kept deciding through an IMU silence
+        self._decided_at: float | None = None
+        self._longest_undecided_s = 0.0
 
     # ------------------------------------------------------------------------- journal
 
@@ -118,6 +122,7 @@ class RuntimeCore:
         buffer, the estimator fed with what is ready, and the permit decided at once."""
         self._log("imu", sample=sample, now=now)
         self._note_imu_gap(sample, now)
+        self._longest_undecided_s = 0.0
         self.last_arrival["imu"] = now
         self.t_imu_newest = sample.t
         self.counts["imu"] += 1
@@ -149,7 +154,10 @@ class RuntimeCore:
         sensor's own clock tells whether it was silent too (it sent late, or the cable or
         power failed) or sent on time and the bytes were held up on this computer (serial
         driver, kernel, a loaded machine) — counted apart (``imu_gaps_sensor``,
-        ``imu_gaps_host``) and logged, so an integrator knows which to look at."""
+        ``imu_gaps_host``) and logged, so an integrator knows which to look at; and for the
+        latter whether this daemon kept deciding meanwhile (its loop was on time: the bytes
+        reached it late, from the serial adapter or the kernel's tty input work, which other
+        CPU-bound work at nice 0 delays) or was held up itself."""
         last, dev = self.last_arrival["imu"], sample.device_time_ns
         prev_dev, self._prev_device_ns = self._prev_device_ns, dev
         if last is None or not self.gate.late("imu", now, last):  # the gate's one rule
@@ -163,7 +171,21 @@ class RuntimeCore:
         held = gap - sensor_gap
         if held > 0.5 * gap:
             self.counts["imu_gaps_host"] += 1
-            where = "it sent on time: the samples were held up on this computer"
+            undecided = self._longest_undecided_s
+            if self._decided_at is not None:
+                undecided = max(undecided, now - self._decided_at)
+            if undecided < 0.5 * gap:  # this daemon kept deciding: the bytes came late
+                where = (
+                    "it sent on time: the samples were held up on this computer before the "
+                    f"daemon could read them (it went at most {undecided:.3f} s without a "
+                    "decision meanwhile): the serial adapter, or the kernel's tty input "
+                    "behind other CPU-bound work (systemd/README.md)"
+                )
+            else:
+                where = (
+                    "it sent on time: the samples were held up on this computer, in this "
+                    f"daemon ({undecided:.3f} s without a decision)"
+                )
         else:
             self.counts["imu_gaps_sensor"] += 1
             where = "the sensor itself was silent"
@@ -304,6 +326,9 @@ class RuntimeCore:
         return d
 
     def _decide(self, now: float, revealed_at: float | None) -> Decision:
+        if self._decided_at is not None:
+            self._longest_undecided_s = max(self._longest_undecided_s, now - self._decided_at)
+        self._decided_at = now
         pipe = self.pipeline
         containment = None
         if isinstance(pipe, MowPipeline) and not self.map_problem:
