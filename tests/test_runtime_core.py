@@ -365,4 +365,11 @@ def test_a_held_up_imu_sample_says_whether_this_daemon_kept_deciding(
     caplog.clear()
     sample(1.72, 0.50)  # 0.13 s, no decision meanwhile: the daemon's own loop was stuck
     assert "held up on this computer, in this daemon (0.130 s without a decision)" in caplog.text
-    assert core.counts["imu_gaps_host"] == 2
+    for k in range(1, 5):
+        sample(1.72 + 0.02 * k, 0.50 + 0.02 * k)  # on time again: the last at 1.80
+    caplog.clear()
+    for t in (1.84, 1.88, 1.91, 1.92):
+        core.decide(t)
+    sample(1.93, 0.60)  # the stuck loop before the last gap does not count for this one
+    assert "before the daemon could read them (it went at most 0.040 s without" in caplog.text
+    assert core.counts["imu_gaps_host"] == 3

@@ -122,7 +122,6 @@ class RuntimeCore:
         buffer, the estimator fed with what is ready, and the permit decided at once."""
         self._log("imu", sample=sample, now=now)
         self._note_imu_gap(sample, now)
-        self._longest_undecided_s = 0.0
         self.last_arrival["imu"] = now
         self.t_imu_newest = sample.t
         self.counts["imu"] += 1
@@ -146,6 +145,7 @@ class RuntimeCore:
         self._consume(sample.t)
         arrival = sample.host_time_ns * 1e-9 if sample.host_time_ns is not None else now
         d = self._decide(now, arrival)
+        self._longest_undecided_s = 0.0  # the next silence is timed from this decision
         self._log("imu_out", out=decision_key(d))
         return d
 
