@@ -75,10 +75,7 @@ def main() -> None:
         t0 = time.perf_counter()
         reloc = GlobalRelocalizer(lawn_map)
         build_ms = 1e3 * (time.perf_counter() - t0)
-        grid_bytes = sum(
-            a.nbytes
-            for a in (reloc._pair_elevation, reloc._pair_azimuth_bins, reloc._pair_vote_base)
-        )
+        grid_bytes = reloc.table_bytes
         entries = lawn_map.to_document()["landmarks"]
         doc_bytes = len(json.dumps(entries, indent=1))
         pos_bytes = len(json.dumps([{**e, "descriptor": None} for e in entries], indent=1))

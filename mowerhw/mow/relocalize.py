@@ -192,6 +192,12 @@ class GlobalRelocalizer:
         elevation = np.arctan2(self.points[None, :, 2] - self.height, horizontal)
         return azimuth, elevation, in_range
 
+    @property
+    def table_bytes(self) -> int:
+        """Memory the precomputed search holds: the in-range pairs' three arrays."""
+        pairs = (self._pair_elevation, self._pair_azimuth_bins, self._pair_vote_base)
+        return sum(a.nbytes for a in pairs)
+
     # ---------------------------------------------------------------------------- search
 
     def _votes(self, azimuth: FloatArray, elevation: FloatArray) -> NDArray[np.int64]:
