@@ -5,6 +5,7 @@ on CAN by the mock mower controller; and the run's journal replayed gives the sa
 from __future__ import annotations
 
 import asyncio
+import tempfile
 import time
 import uuid
 from pathlib import Path
@@ -59,7 +60,9 @@ async def _until(pred: Any, timeout: float, what: str) -> None:
     raise AssertionError(f"timed out waiting for {what}")
 
 
-def test_daemon_in_process_on_the_virtual_bus(tmp_path: Path) -> None:
+def test_daemon_in_process_on_the_virtual_bus(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
     cfg = _config(tmp_path, channel)
     _lawn_map().save(tmp_path / "lawn.json")
@@ -128,7 +131,11 @@ def test_daemon_in_process_on_the_virtual_bus(tmp_path: Path) -> None:
     assert seen[0] == "NOT_MOWING" and "MAP_INVALID" in seen and seen[-1] == "SENSOR_STALE"
     assert mower.state.frames > 0
 
+    scratch = tmp_path / "scratch"  # where the replay writes the recorded calibration
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     replays = [replay_decisions(record) for _ in range(2)]
+    assert not list(scratch.iterdir())  # nothing left behind
     for r in replays:
         assert r["same_as_live"], r
         assert r["decisions"] > 100 and r["gaps"] == 0

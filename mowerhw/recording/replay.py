@@ -22,6 +22,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import tempfile
 import time
 from collections import Counter
 from collections.abc import Iterable
@@ -295,12 +296,11 @@ def replay_decisions(path: str | Path, config: Config | None = None) -> dict[str
             f"{rec_path}: no runtime journal in the recording (recorded before the journal "
             "existed?); replay it with --mode teach|mow instead"
         )
-    if config is None:
-        import tempfile
-
-        out = Path(tempfile.mkdtemp(prefix="mowerhw-replay-"))
-        config = _recorded_config(reader, rec_path, out)
-    camera = load_camchain(config.camera.calibration, config.camera.camchain_key)
+    with tempfile.TemporaryDirectory(prefix="mowerhw-replay-") as scratch:
+        # the recorded config's calibration is written here, read once, then removed
+        if config is None:
+            config = _recorded_config(reader, rec_path, Path(scratch))
+        camera = load_camchain(config.camera.calibration, config.camera.camchain_key)
     t0 = time.monotonic()
     result = replay_journal(config, camera, records).as_dict()
     result["wall_s"] = round(time.monotonic() - t0, 2)
