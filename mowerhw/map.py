@@ -572,7 +572,11 @@ def _from_document(doc: Any, source: str, strict: bool) -> LawnMap:
     if not isinstance(doc, dict):
         raise MapError(f"{source}: not a mowerhw map (the top level is not an object)")
     if doc.get("format") != FORMAT:
-        raise MapError(f"{source}: not a mowerhw map (format is {doc.get('format')!r})")
+        raise MapError(
+            f'{source}: not a mowerhw map (its "format" is {doc.get("format")!r}, a mowerhw '
+            f"map's is {FORMAT!r}; an OpenMower map or a GeoJSON outline is brought in with "
+            "`mowerhw map import-openmower` or `mowerhw map import-geojson`)"
+        )
     version = doc.get("version")
     if version not in SUPPORTED_VERSIONS:
         raise MapError(
