@@ -28,6 +28,8 @@ from typing import Any
 
 import yaml
 
+from mowerhw.common.yamlfile import load_yaml
+
 EX_CONFIG = 78  # sysexits.h: configuration error
 #: the mirror-up camera of the paper: camera z along body −z, image centre at nadir
 DEFAULT_Q_BC = (0.0, 1.0, 0.0, 0.0)
@@ -1152,35 +1154,8 @@ def camera_rotation(cfg: Config, t_cam_imu: Any = None) -> Quat:
     return derived
 
 
-#: a config file is at most this big (bytes) and nests at most this deep
+#: a config file is at most this big (bytes)
 MAX_CONFIG_BYTES = 1 << 20
-MAX_YAML_DEPTH = 16
-
-
-class _LimitedLoader(yaml.SafeLoader):
-    """YAML without aliases (a "billion laughs" document expands from them) and with a
-    bounded nesting depth."""
-
-    _depth = 0
-
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        if self.check_event(yaml.AliasEvent):
-            event = self.peek_event()
-            raise yaml.composer.ComposerError(
-                None, None, "aliases (*name) are not allowed in a config", event.start_mark
-            )
-        self._depth += 1
-        try:
-            if self._depth > MAX_YAML_DEPTH:
-                raise yaml.composer.ComposerError(
-                    None,
-                    None,
-                    f"nested more than {MAX_YAML_DEPTH} levels deep",
-                    self.peek_event().start_mark,
-                )
-            return super().compose_node(parent, index)
-        finally:
-            self._depth -= 1
 
 
 def load_config(path: str | Path) -> Config:
@@ -1203,10 +1178,10 @@ def load_config(path: str | Path) -> Config:
 
 
 def parse_config_yaml(text: str, source: str) -> Any:
-    """The YAML document of a config, read with limits (no aliases, bounded depth);
-    :class:`ConfigError` naming the problem."""
+    """The YAML document of a config, read with limits (no aliases, bounded depth, no key
+    twice: :mod:`mowerhw.common.yamlfile`); :class:`ConfigError` naming the problem."""
     try:
-        return yaml.load(text, Loader=_LimitedLoader)  # a SafeLoader
+        return load_yaml(text)
     except RecursionError:
         raise ConfigError(["nested too deeply"], source) from None
     except (ValueError, OverflowError) as exc:  # e.g. a number of thousands of digits

@@ -190,6 +190,15 @@ def test_missing_or_unparsable_camchain(tmp_path):
     (tmp_path / "junk.yaml").write_text("cam0: [unclosed\n")
     with pytest.raises(CameraCalibrationError, match="not valid YAML"):
         load_camchain(tmp_path / "junk.yaml")
+    # a hand edit that pastes a second distortion under the first: refused, not the later kept
+    good = (Path(__file__).parent.parent / "configs/camera/paper-table1.yaml").read_text()
+    twice = good.replace(
+        "  distortion_coeffs:", "  distortion_coeffs: [0, 0, 0, 0]\n  distortion_coeffs:", 1
+    )
+    assert twice != good
+    (tmp_path / "twice.yaml").write_text(twice)
+    with pytest.raises(CameraCalibrationError, match="the key 'distortion_coeffs' is given twice"):
+        load_camchain(tmp_path / "twice.yaml")
     (tmp_path / "other.yaml").write_text("cam1: {}\n")
     with pytest.raises(CameraCalibrationError, match="no 'cam0' entry"):
         load_camchain(tmp_path / "other.yaml")

@@ -93,6 +93,11 @@ def test_colliding_and_occupied_paths_are_refused(tmp_path: Path) -> None:
             "imu.rate_hz: [1, 1, 1, 1, 1, 1, ...] is not",
         ),
         ("{{{{", "not valid YAML"),
+        (  # PyYAML alone keeps the second silently
+            "camera:\n  fps: 4\n  fps: 30\n",
+            "at line 3, column 3: the key 'fps' is given twice (first on line 2)",
+        ),
+        ("imu: {}\ncan: {}\nimu: {rate_hz: 10}\n", "the key 'imu' is given twice"),
     ],
 )
 def test_hostile_yaml_is_refused_without_running_out_of_anything(

@@ -86,7 +86,7 @@ def test_wrong_version_format_and_missing_checksum(tmp_path):
         lawnmap.load(path)
     path.write_text(json.dumps({**doc, "format": "gpx"}))
     with pytest.raises(
-        MapError, match="not a mowerhw map .*'gpx'.*'mowerhw-map'.*import-openmower"
+        MapError, match=r"not a mowerhw map .*'gpx'.*'mowerhw-map'.*import-openmower"
     ):
         lawnmap.load(path)
     no_sum = {k: v for k, v in doc.items() if k != "checksum"}

@@ -22,6 +22,7 @@ import yaml
 
 from mowerhw.camera.model import Annulus, CameraCalibrationError, OmniRadtanCamera
 from mowerhw.common.fileio import write_atomic
+from mowerhw.common.yamlfile import load_yaml
 
 #: skew whose largest effect over the image is below this is not written (px)
 SKEW_NEGLIGIBLE_PX = 0.01
@@ -164,7 +165,7 @@ def read_camchain(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         with path.open("r", encoding="utf-8") as fh:
-            doc = yaml.safe_load(fh)
+            doc = load_yaml(fh.read())  # no key twice, no aliases (docs/design.md §8)
     except FileNotFoundError:
         raise CameraCalibrationError(f"camera calibration {path}: file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
