@@ -96,6 +96,11 @@ def test_characterize_refuses_what_it_cannot_use(tmp_path, capsys):
     np.savetxt(short, np.column_stack([np.arange(50) * 0.01, np.zeros((50, 3))]), delimiter=",")
     assert main(["imu", "characterize", str(short)]) == 1
     assert "at least 1000" in capsys.readouterr().err
+    # the sensor's raw bytes named .mcap: refused as what they are, not an internal error
+    raw = tmp_path / "raw.mcap"
+    raw.write_bytes(b"\xfa\x14\x3e\x00\x3a\x00" + bytes(range(256)) * 4)
+    assert main(["imu", "characterize", str(raw)]) == 1
+    assert "not an MCAP recording" in capsys.readouterr().err
 
 
 def test_a_yards_mower_is_configured_with_its_own_sensors():

@@ -61,21 +61,24 @@ def _load(path: Path) -> tuple:
     import numpy as np
 
     from drivers.imu.vn100 import ImuExtractor, Vn100Parser
-    from mowerhw.recording.mcap import RecordingRead
+    from mowerhw.recording.mcap import RecordingError, RecordingRead
 
     parser, extractor = Vn100Parser(), ImuExtractor()
     t, gyro = [], []
-    for topic, _, msg in RecordingRead(path).messages():
-        if topic != "/vn100/raw":
-            continue
-        host_ns = int(msg["host_time_ns"])
-        for item in parser.feed(base64.b64decode(msg["data"])):
-            s = extractor.sample(item, host_ns)
-            if s is None or not s.finite:
+    try:
+        for topic, _, msg in RecordingRead(path).messages():
+            if topic != "/vn100/raw":
                 continue
-            dev = s.device_time_ns
-            t.append(dev * 1e-9 if dev is not None else s.t)
-            gyro.append(s.gyro)
+            host_ns = int(msg["host_time_ns"])
+            for item in parser.feed(base64.b64decode(msg["data"])):
+                s = extractor.sample(item, host_ns)
+                if s is None or not s.finite:
+                    continue
+                dev = s.device_time_ns
+                t.append(dev * 1e-9 if dev is not None else s.t)
+                gyro.append(s.gyro)
+    except RecordingError as exc:  # e.g. the sensor's raw bytes: `mowerhw record` makes one
+        raise CharacterizeError(f"{exc}; record one with `mowerhw record`") from None
     if not t:
         raise CharacterizeError(f"{path}: no VN-100 gyro samples in /vn100/raw")
     return np.asarray(t), np.asarray(gyro), "MCAP /vn100/raw through the VN-100 parser"
