@@ -168,6 +168,37 @@ class CanConfig:
     channel: str = opt("can0", "python-can channel (socketcan: interface name)", nonempty=True)
     bitrate: int = opt(250000, "bit rate (ISO 11783: 250000)", choices=CAN_BITRATES)
     source_address: int = opt(0x90, "this ECU's ISO 11783 source address", ge=0, le=253)
+    address_claim: bool = opt(
+        True,
+        "claim source_address before sending, as ISO 11783-5 / J1939-81 ask (Address Claimed, "
+        "PGN 60928; 250 ms of contention; requests for it answered; yielded to a lower NAME, "
+        "and then no permit frame is sent: the controller sees silence); false: send without "
+        "claiming",
+    )
+    address_claim_retry_s: float = opt(
+        10.0, "while another ECU holds source_address: claim it again this often", gt=0.0
+    )
+    name_identity_number: int | None = opt(
+        None,
+        "this ECU's NAME: identity number, unique per unit (null: from /etc/machine-id)",
+        ge=0,
+        le=(1 << 21) - 1,
+    )
+    name_manufacturer_code: int = opt(
+        0, "NAME: the SAE-assigned manufacturer code of the integrator (0: reserved)", ge=0, le=2047
+    )
+    name_function: int = opt(
+        128, "NAME: function (128-253: specific to the industry group)", ge=0, le=255
+    )
+    name_function_instance: int = opt(0, "NAME: function instance", ge=0, le=31)
+    name_ecu_instance: int = opt(0, "NAME: ECU instance", ge=0, le=7)
+    name_device_class: int = opt(
+        0, "NAME: device class (J1939: vehicle system; 0 non-specific)", ge=0, le=127
+    )
+    name_device_class_instance: int = opt(0, "NAME: device class instance", ge=0, le=15)
+    name_industry_group: int = opt(
+        2, "NAME: industry group (2: agricultural and forestry equipment)", ge=0, le=7
+    )
     udp_port: int = opt(
         43113,
         "udp_multicast only: UDP port of the bus (Linux delivers every group on a port to "

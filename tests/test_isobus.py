@@ -14,7 +14,9 @@ from _waiting import wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers.can.address_claim import PGN_ADDRESS_CLAIMED, PGN_REQUEST, IsoName
 from drivers.can.isobus import (
+    GLOBAL_ADDRESS,
     PGN_CCVS1,
     PGN_ETC2,
     PGN_GBSD,
@@ -500,6 +502,21 @@ def test_every_frame_decodes_with_cantools_against_the_shipped_dbc():
     assert sig["Heading"] == pytest.approx(45.0)
     print(f"cantools decoded GBSD, WBSD, ISB, Heartbeat, MowerhwStatus: {sig}")
 
+    name_ = IsoName(0x1ABCDE, 1407, 5, 17, 130, 3, 9, 2, False)
+    name, sig = decode(can_id(6, PGN_ADDRESS_CLAIMED, 0x90), name_.to_bytes())
+    assert name == "AddressClaimed"
+    assert (sig["NameIdentityNumber"], sig["NameManufacturerCode"]) == (0x1ABCDE, 1407)
+    assert (sig["NameEcuInstance"], sig["NameFunctionInstance"], sig["NameFunction"]) == (
+        5,
+        17,
+        130,
+    )
+    assert (sig["NameDeviceClass"], sig["NameDeviceClassInstance"]) == (3, 9)
+    assert (sig["NameIndustryGroup"], sig["NameSelfConfigurableAddress"]) == (2, 0)
+    # the real tractor's request for every claim (ECU 0x00 to the global address)
+    request = can_id(6, PGN_REQUEST, 0x00, GLOBAL_ADDRESS), bytes.fromhex("00EE00")
+    assert decode(*request) == ("RequestForAddressClaimed", {"RequestedPgn": PGN_ADDRESS_CLAIMED})
+
 
 def test_dbc_lists_the_identifiers_the_drivers_build():
     cantools = pytest.importorskip("cantools")
@@ -510,6 +527,8 @@ def test_dbc_lists_the_identifiers_the_drivers_build():
     assert ids["ISB"] == can_id(3, PGN_ISB, 0x90)
     assert ids["Heartbeat"] == can_id(3, PGN_HEARTBEAT, 0x90)
     assert ids["MowerhwStatus"] == can_id(6, 0xFF10, 0x90)
+    assert ids["AddressClaimed"] == can_id(6, PGN_ADDRESS_CLAIMED, 0x90)
+    assert ids["RequestForAddressClaimed"] == can_id(6, PGN_REQUEST, 0x00, GLOBAL_ADDRESS)
     assert all(m.is_extended_frame for m in db.messages)
 
 

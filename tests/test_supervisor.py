@@ -239,7 +239,9 @@ def test_the_supervisors_own_speed_halt_is_timed_from_the_speeds_limit(tmp_path:
     the process that sends the frames, whatever the estimation side is doing); a stop the
     lease already made is not its own."""
     raw = config_to_dict(default_config())
+    # the frames from the first decision on (no 250 ms of address claim first)
     raw["can"].update(interface="virtual", channel=f"own-{uuid.uuid4().hex[:8]}")
+    raw["can"]["address_claim"] = False
     cfg = config_from_dict(raw, tmp_path, "test config")
     sup = Supervisor(cfg)
     limit = cfg.speed.stale_after_s
@@ -285,7 +287,8 @@ def test_the_estimation_side_reads_a_real_tractors_speed_as_a_reader_on_the_bus_
     sup = Supervisor(cfg)
     passed: list[tuple[str, Any]] = []
     sup._to_child = passed.append  # type: ignore[method-assign]
-    reads = {61445, 65265, cfg.safety.switches_pgn}  # ETC2, CCVS1, the switches
+    # ETC2, CCVS1, the switches; address claims and requests for them (ISO 11783-5)
+    reads = {61445, 65265, cfg.safety.switches_pgn, 60928, 59904}
     assert sup.port.filters == pgn_filters(reads)
     direct = SpeedReader("ccvs1", ccvs1_direction="etc2")
     want = []
@@ -403,8 +406,10 @@ def test_a_recording_gets_every_frame_the_supervisor_receives_and_sends(tmp_path
     with _receiving(sup, channel) as tx:
         switches = can_id(6, cfg.safety.switches_pgn, 0x28)
         tx.send(can.Message(arbitration_id=switches, data=encode_switches(Switches())))
-        sup._send_frames(_lease(), time.monotonic())
+        sup._send_frames(_lease(), time.monotonic())  # the address claim first
         time.sleep(0.3)
+        sup._send_frames(_lease(), time.monotonic())  # claimed: the permit frames
+        time.sleep(0.1)
     recorded: list[tuple[int, bool]] = []
 
     class Recorder:
@@ -417,3 +422,4 @@ def test_a_recording_gets_every_frame_the_supervisor_receives_and_sends(tmp_path
         child.handle(*body)
     assert (cfg.safety.switches_pgn, True) in recorded  # received
     assert {(PGN_ISB, False), (PGN_HEARTBEAT, False)} <= set(recorded)  # sent
+    assert recorded.index((60928, False)) < recorded.index((PGN_ISB, False))  # claim first

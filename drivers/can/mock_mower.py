@@ -6,7 +6,9 @@ counter is valid (the same as before, or one more — a jump by more than one is
 transition and means stop until the next valid change); ISB and heartbeat are both fresher
 than ``timeout_s`` (300 ms); and the heartbeat does not say error (254) or shutting down
 (255). It records every change of its deck state with the time and the reason, and also reads
-the status frame (containment state) so a bench can turn the mower at NEAR_EDGE.
+the status frame (containment state) so a bench can turn the mower at NEAR_EDGE. It counts
+the address claims (ISO 11783-5, PGN 60928) from that source, and its frames that came
+before the first claim (an ISO 11783 node claims before it sends).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from dataclasses import dataclass, field
 
 import can
 
+from drivers.can.address_claim import PGN_ADDRESS_CLAIMED
 from drivers.can.isobus import PGN_HEARTBEAT, PGN_ISB, can_id, parse_id
 from drivers.can.permit import HB_ERROR, HB_SHUTDOWN, ISB_PERMIT, Status, decode_isb, decode_status
 from drivers.can.switches import Switches, encode_switches
@@ -43,6 +46,8 @@ class MowerState:
     status: Status | None = None
     events: list[DeckEvent] = field(default_factory=list)
     frames: int = 0
+    address_claims: int = 0  # Address Claimed frames from the permit source
+    frames_before_claim: int = 0  # its other frames before its first claim
     #: (time, sequence) of the recent heartbeats: what a controller saw around a fault
     heartbeats: deque[tuple[float, int]] = field(default_factory=lambda: deque(maxlen=4000))
 
@@ -112,7 +117,12 @@ class MockMowerController(ThreadedDevice):
             return
         s = self.state
         with self._lock:
+            if ident.pgn == PGN_ADDRESS_CLAIMED:
+                s.address_claims += 1
+                return
             s.frames += 1
+            if s.address_claims == 0:
+                s.frames_before_claim += 1
             if ident.pgn == PGN_ISB:
                 counter, bits = decode_isb(data)
                 if s.isb_counter is not None:

@@ -583,6 +583,11 @@ class Bench:
             # stamped on time, written late: the daemon sees a silence the stamps do not show
             "late_writes_over_50ms_while_mowing": sum(while_mowing(t) for t, _ in vs.late_writes),
         }
+        cs = self.controller.state  # ISO 11783-5: the supervisor claims before it sends
+        metrics["can_address"] = {
+            "claims_seen": cs.address_claims,
+            "frames_before_first_claim": cs.frames_before_claim,
+        }
         sup = st.get("supervisor")
         if sup:  # the permit supervisor's own figures (the process that sends the frames)
             metrics["supervisor"] = {

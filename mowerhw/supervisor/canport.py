@@ -1,22 +1,52 @@
 """The supervisor's CAN bus: reopened with backoff when it fails (bus-off, interface down,
-adapter unplugged), one log line per change of state, never a line per retry."""
+adapter unplugged), one log line per change of state, never a line per retry; and this ECU's
+ISO 11783-5 NAME, from the config."""
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 import can
 
+from drivers.can.address_claim import IsoName
 from drivers.can.isobus import open_bus
-from mowerhw.config import Config
+from mowerhw.config import CanConfig, Config
 
 log = logging.getLogger("mowerhw.supervisor")
 
 #: while CAN stays down, one summary line this often (s)
 SUMMARY_PERIOD_S = 60.0
+
+
+MACHINE_ID = Path("/etc/machine-id")
+
+
+def ecu_name(c: CanConfig, machine_id: Path = MACHINE_ID) -> IsoName:
+    """This ECU's NAME from the ``can.name_*`` keys; without ``can.name_identity_number``, 21
+    bits of a hash of the computer's machine id (another mower's differs), or 0 without one."""
+    identity = c.name_identity_number
+    if identity is None:
+        try:
+            digest = hashlib.sha256(machine_id.read_bytes().strip()).digest()
+            identity = int.from_bytes(digest[:3], "little") & ((1 << 21) - 1)
+        except OSError:
+            identity = 0
+    return IsoName(
+        identity_number=identity,
+        manufacturer_code=c.name_manufacturer_code,
+        ecu_instance=c.name_ecu_instance,
+        function_instance=c.name_function_instance,
+        function=c.name_function,
+        device_class=c.name_device_class,
+        device_class_instance=c.name_device_class_instance,
+        industry_group=c.name_industry_group,
+        self_configurable=False,  # the address is the config's: it does not pick another
+    )
 
 
 class CanPort:

@@ -32,6 +32,7 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from drivers.can.address_claim import PGN_ADDRESS_CLAIMED, PGN_REQUEST, AddressClaim
 from drivers.can.isobus import parse_id, pgn_filters
 from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
@@ -41,7 +42,7 @@ from mowerhw.config import Config
 from mowerhw.estimation.safety import SafetyMonitor
 from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
-from mowerhw.supervisor.canport import CanPort
+from mowerhw.supervisor.canport import CanPort, ecu_name
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.supervisor.web_child import web_child_main
 from mowerhw.web.process import WebProcess
@@ -140,6 +141,13 @@ class Supervisor:
         #: the frames it reads (the speed's, the switches'), unless it records every frame:
         #: on SocketCAN the kernel drops the rest of a busy bus before the thread wakes
         reads = self._speed.pgns | {config.safety.switches_pgn}
+        #: its source address, claimed on every bus it opens (ISO 11783-5; None: not claimed)
+        self.claim: AddressClaim | None = None
+        if config.can.address_claim:
+            self.claim = AddressClaim(
+                ecu_name(config.can), config.can.source_address, config.can.address_claim_retry_s
+            )
+            reads |= {PGN_ADDRESS_CLAIMED, PGN_REQUEST}
         self.port = CanPort(config, None if record is not None else pgn_filters(reads))
         self.safety = SafetyMonitor(config.safety)
         self._safety_lock = threading.Lock()
@@ -221,11 +229,21 @@ class Supervisor:
                 if self.port.bus is bus:  # not the one just closed on purpose
                     self.port.failed(time.monotonic(), f"receive failed ({exc})")
                 continue
-            if msg is None or not msg.is_extended_id or (msg.arbitration_id & 0xFF) == own:
+            if msg is None or not msg.is_extended_id:
                 continue
             now = time.monotonic()
             data = bytes(msg.data)
             pgn = parse_id(msg.arbitration_id).pgn
+            # claims and requests for them (another ECU's claim of our address included)
+            if self.claim is not None and pgn in (PGN_ADDRESS_CLAIMED, PGN_REQUEST):
+                if self.record is not None:
+                    self._to_child(("can", (now, msg.arbitration_id, data, True)))
+                if self.claim.received(msg.arbitration_id, data, now):
+                    with contextlib.suppress(BlockingIOError, OSError):
+                        os.write(self._wake_w, b"!")  # an answer may be due
+                continue
+            if (msg.arbitration_id & 0xFF) == own:
+                continue  # a bus that echoes our own frames (the bench's)
             # the child decodes the ground speed (from every frame its reader reads: the
             # speed's, and the gear's that signs a CCVS1 speed), and records every frame when
             # it records (only what it needs: each frame forwarded is a wake-up of both)
@@ -266,7 +284,11 @@ class Supervisor:
             )
             if self.record is not None:  # the recording has the frames sent too
                 self.sender.on_sent = self._record_sent
+            if self.claim is not None:  # a bus (re)opened: the address is claimed first
+                self.claim.begin(now)
         sender = self.sender
+        if self.claim is not None and not self._network_management(bus, now):
+            return False  # the address is not ours (yet): no frame from it
         errors = sender.stats.send_errors
         status = Status(
             d.state, d.permit, d.reason or "NONE", d.signed_distance_m, d.x, d.y, d.heading
@@ -282,6 +304,29 @@ class Supervisor:
                 self.port.failed(now, "sending failed")
         return stopped
 
+    def _network_management(self, bus: can.BusABC, now: float) -> bool:
+        """Claims and answers due (ISO 11783-5); whether the address is held, so that the
+        permit frames may go out."""
+        import can
+
+        claim = self.claim
+        assert claim is not None
+        for frame in claim.due(now):
+            msg = can.Message(
+                arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=True
+            )
+            try:
+                bus.send(msg, timeout=0.0)
+            except (can.CanError, OSError) as exc:
+                self.counts["send_errors"] += 1
+                log.warning("CAN: the address claim was not sent (%s)", exc)
+            else:
+                if self.record is not None:
+                    self._record_sent(msg)
+        for change in claim.take_changes():
+            log.log(logging.ERROR if claim.state == "lost" else logging.WARNING, "CAN: %s", change)
+        return claim.holds(now)
+
     # --------------------------------------------------------------------------- loop
 
     def _own_halt(self, now: float) -> tuple[str, str] | None:
@@ -291,6 +336,12 @@ class Supervisor:
             unsafe = self.safety.halt(now)
         if unsafe is not None:
             return unsafe
+        if self.claim is not None and self.claim.state == "lost":
+            holder = self.claim.holder
+            return Reason.FAULT, (
+                f"CAN source address 0x{self.claim.address:02X} is held by another ECU"
+                + (f" ({holder.describe()})" if holder is not None else "")
+            )
         if self.lease_mow():
             stale = self.stream_gate.stale(now, self._arrival, self._notes)
             if stale is not None:
@@ -342,6 +393,8 @@ class Supervisor:
             due = now + TICK_MAX_S
             if self.sender is not None:
                 due = min(due, self.sender.next_due())
+            if self.claim is not None and self.port.bus is not None:
+                due = min(due, self.claim.next_due())
             expires = self.gate.lease_expires()
             if expires > now:
                 due = min(due, expires + 1e-4)
@@ -458,6 +511,7 @@ class Supervisor:
             "can_up": self.port.bus is not None,
             "can_reopens": max(0, self.port.reopens - 1),
             "can_errors": self.port.errors,
+            "can_address": self.claim.status() if self.claim is not None else None,
             "lease_to_frame_ms": _percentiles(self.lease_to_frame_ms),
             "own_halt_ms": _percentiles(self.own_halt_ms),
             "max_loop_lag_ms": round(self.max_loop_lag_ms, 2),
@@ -471,7 +525,8 @@ class Supervisor:
     def _shutdown(self, status: int) -> None:
         now = time.monotonic()
         self.notifier.stopping()
-        if self.sender is not None:
+        held = self.claim is None or self.claim.holds(now)  # else: not ours to send from
+        if self.sender is not None and held:
             if status:
                 self.sender.fault = True
                 self.sender.error(now)

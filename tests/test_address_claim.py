@@ -1,0 +1,232 @@
+"""ISO 11783-5 address claiming (drivers/can/address_claim.py): the NAME's bit layout, checked
+against a real tractor's claims; the claim, its defence, yielding, requests, retries."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import can
+import pytest
+from _tools import load_tool
+
+from drivers.can.address_claim import (
+    CONTENTION_S,
+    NULL_ADDRESS,
+    PGN_ADDRESS_CLAIMED,
+    PGN_REQUEST,
+    AddressClaim,
+    IsoName,
+    requested_pgn,
+)
+from drivers.can.isobus import GLOBAL_ADDRESS, can_id, parse_id
+from mowerhw.config import config_from_dict
+from mowerhw.supervisor.canport import ecu_name
+
+OURS = IsoName(identity_number=0x1234, manufacturer_code=0, function=128)
+LOWER = IsoName(identity_number=7, manufacturer_code=0, function=100)  # wins against OURS
+HIGHER = IsoName(identity_number=9, manufacturer_code=1, function=200)  # loses against OURS
+
+
+def claimed(name: IsoName, source: int) -> tuple[int, bytes]:
+    return can_id(6, PGN_ADDRESS_CLAIMED, source), name.to_bytes()
+
+
+def request(destination: int = GLOBAL_ADDRESS, source: int = 0x00) -> tuple[int, bytes]:
+    return can_id(6, PGN_REQUEST, source, destination), PGN_ADDRESS_CLAIMED.to_bytes(3, "little")
+
+
+def test_the_name_round_trips_and_orders_by_its_value() -> None:
+    name = IsoName(
+        identity_number=0x1ABCDE,
+        manufacturer_code=0x5A5,
+        ecu_instance=5,
+        function_instance=17,
+        function=0xC3,
+        device_class=0x55,
+        device_class_instance=9,
+        industry_group=2,
+        self_configurable=True,
+    )
+    assert IsoName.from_bytes(name.to_bytes()) == name
+    assert name.value >> 63 == 1 and (name.value >> 60) & 7 == 2
+    assert LOWER.value < OURS.value < HIGHER.value
+    with pytest.raises(ValueError, match="identity_number: 2097152 does not fit in 21 bits"):
+        IsoName(identity_number=1 << 21, manufacturer_code=0)
+
+
+def test_a_real_tractors_claims_decode_as_agricultural_equipment() -> None:
+    """The John Deere logs: every ECU claims its address on start (PGN 60928, 8-byte NAME)
+    and ECU 0x00 requests the claims (PGN 59904 for 60928). Each NAME decodes with the
+    industry group of agricultural and forestry equipment (2), and encodes back to its
+    bytes."""
+    logs = sorted(load_tool("check_real_can").LOGS.glob("*.log"))
+    if not logs:
+        pytest.skip("real tractor CAN logs not present (../shared/data/real)")
+    names: dict[int, IsoName] = {}
+    requests = 0
+    for path in logs:
+        for msg in can.CanutilsLogReader(str(path)):
+            ident = parse_id(msg.arbitration_id)
+            if ident.pgn == PGN_ADDRESS_CLAIMED and ident.source != NULL_ADDRESS:
+                name = IsoName.from_bytes(bytes(msg.data))
+                assert name.to_bytes() == bytes(msg.data)
+                names[ident.source] = name
+            elif ident.pgn == PGN_REQUEST and requested_pgn(bytes(msg.data)) == 60928:
+                requests += 1
+    assert len(names) >= 5 and requests >= 6
+    assert {n.industry_group for n in names.values()} == {2}
+    # the fields where J1939 puts them: the engine (function 0) at its preferred address
+    # 0x00, the transmission (function 3) at 0x03, both of a tractor (device class 1)
+    assert (names[0x00].function, names[0x00].device_class) == (0, 1)
+    assert (names[0x03].function, names[0x03].device_class) == (3, 1)
+    assert 0x90 not in names  # mowerhw's default address is free on that bus
+
+
+def test_the_claim_holds_after_the_contention_time_and_answers_requests() -> None:
+    ac = AddressClaim(OURS, 0x90, seed=1)
+    assert not ac.holds(0.0) and ac.due(0.0) == []  # no bus yet: nothing
+    ac.begin(10.0)
+    (frame,) = ac.due(10.0)
+    assert frame.arbitration_id == can_id(6, PGN_ADDRESS_CLAIMED, 0x90)
+    assert frame.data == OURS.to_bytes()
+    assert not ac.holds(10.0 + CONTENTION_S - 0.01)
+    assert ac.next_due() == pytest.approx(10.0 + CONTENTION_S)
+    assert ac.holds(10.0 + CONTENTION_S)
+    assert ac.received(*claimed(OURS, 0x90), 10.3)  # our own claim echoed: ignored
+    assert ac.holds(10.3) and ac.due(10.3) == []
+    assert ac.received(*request(), 11.0)  # a request to everyone: our claim again
+    assert [f.data for f in ac.due(11.0)] == [OURS.to_bytes()]
+    assert ac.received(*request(0x90), 12.0)  # ... and to us
+    assert len(ac.due(12.0)) == 1
+    assert not ac.received(*request(0x27), 13.0)  # to someone else: not ours to answer
+    other_pgn = can_id(6, PGN_REQUEST, 0x00, GLOBAL_ADDRESS), (65097).to_bytes(3, "little")
+    assert not ac.received(*other_pgn, 13.0)
+    assert ac.due(13.0) == []
+    assert ac.received(*claimed(LOWER, 0x27), 14.0)  # another address's claim: nothing
+    assert ac.holds(14.0) and ac.due(14.0) == []
+
+
+def test_a_higher_name_is_answered_and_a_lower_one_takes_the_address() -> None:
+    ac = AddressClaim(OURS, 0x90, retry_s=10.0, seed=3)
+    ac.begin(0.0)
+    ac.due(0.0)
+    assert ac.holds(1.0)
+    ac.received(*claimed(HIGHER, 0x90), 2.0)  # ours has the priority: we say so again
+    assert [f.arbitration_id & 0xFF for f in ac.due(2.0)] == [0x90]
+    assert ac.holds(2.0) and ac.contests_won == 1
+    ac.received(*claimed(LOWER, 0x90), 3.0)  # theirs has it: yield
+    assert not ac.holds(3.0) and ac.state == "lost" and ac.holder == LOWER
+    (change,) = ac.take_changes()
+    assert "another ECU claimed source address 0x90" in change and "0x" in change
+    # a Cannot Claim from the null address within 0-153 ms, nothing from 0x90
+    cannot = ac.due(3.2)
+    assert [f.arbitration_id for f in cannot] == [can_id(6, PGN_ADDRESS_CLAIMED, NULL_ADDRESS)]
+    ac.received(*request(), 4.0)  # asked: Cannot Claim again
+    assert [f.arbitration_id & 0xFF for f in ac.due(4.2)] == [NULL_ADDRESS]
+    # the retry: claimed again; the holder answers, we yield again without a new log line
+    assert ac.next_due() == pytest.approx(13.0)
+    assert [f.arbitration_id & 0xFF for f in ac.due(13.0)] == [0x90]
+    ac.received(*claimed(LOWER, 0x90), 13.01)
+    assert ac.state == "lost" and ac.take_changes() == []
+    # the next retry finds the address free: held again after the contention time
+    ac.due(23.01)
+    assert not ac.holds(23.1)
+    assert ac.holds(23.01 + CONTENTION_S)
+    (change,) = ac.take_changes()
+    assert "claimed again" in change
+    assert ac.holder is None
+
+
+def test_the_ecu_name_comes_from_the_config_and_the_machine_id(tmp_path: Path) -> None:
+    mid = tmp_path / "machine-id"
+    mid.write_text("4f1c7d2e9b8a4c6d8e0f1a2b3c4d5e6f\n")
+    cfg = config_from_dict({"can": {"name_manufacturer_code": 1407, "name_function": 130}})
+    a = ecu_name(cfg.can, mid)
+    assert a.manufacturer_code == 1407 and a.function == 130 and a.industry_group == 2
+    assert not a.self_configurable
+    assert a == ecu_name(cfg.can, mid)  # the same computer: the same NAME
+    mid.write_text("0123456789abcdef0123456789abcdef\n")
+    assert ecu_name(cfg.can, mid).identity_number != a.identity_number
+    assert ecu_name(cfg.can, tmp_path / "none").identity_number == 0
+    fixed = config_from_dict({"can": {"name_identity_number": 42}})
+    assert ecu_name(fixed.can, mid).identity_number == 42
+
+
+def test_the_supervisor_claims_first_answers_and_goes_silent_while_another_holds_it(
+    tmp_path: Path,
+) -> None:
+    """The permit supervisor on a virtual bus beside another node: its first frame is its
+    claim and its permit frames start after the contention time; it answers a request for
+    claims; another ECU's lower NAME on its address silences it (a Cannot Claim from 254,
+    then nothing from its address: the controller's silence timeout stops the deck; its own
+    decision is a FAULT naming the holder) until a retry finds the address free, when the
+    permit frames come back by themselves."""
+    import threading
+    import time
+    import uuid
+
+    from drivers.can.isobus import PGN_ISB, open_bus
+    from mowerhw.common.reasons import Reason
+    from mowerhw.config import config_to_dict, default_config
+    from mowerhw.supervisor.lease import Lease
+    from mowerhw.supervisor.process import FORCE, Supervisor
+
+    channel = f"claim-{uuid.uuid4().hex[:8]}"
+    raw = config_to_dict(default_config())
+    raw["can"].update(interface="virtual", channel=channel, address_claim_retry_s=0.6)
+    raw["can"]["name_identity_number"] = 0x1234
+    cfg = config_from_dict(raw, tmp_path, "test config")
+    sup = Supervisor(cfg)
+    ours = ecu_name(cfg.can)
+    assert sup.port.ensure(time.monotonic())
+    rx = threading.Thread(target=sup._receive, daemon=True)
+    rx.start()
+    other = open_bus("virtual", channel)
+    seen: list[tuple[float, int, int, bytes]] = []  # (time, PGN, source, data)
+
+    def run(seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while (now := time.monotonic()) < end:
+            sup.gate.renew(Lease(True, "INSIDE", "", "", 1.0, 0.0, 0.0, 0.0, now), now)
+            sup._arrival["speed"] = sup._arrival[FORCE] = now
+            sup._decide(now)
+            while (m := other.recv(0.0)) is not None:
+                ident = parse_id(m.arbitration_id)
+                seen.append((time.monotonic(), ident.pgn, ident.source, bytes(m.data)))
+            time.sleep(0.005)
+
+    def first(pgn: int, source: int, after: float = 0.0) -> float:
+        return next(t for t, p, s, _ in seen if p == pgn and s == source and t > after)
+
+    try:
+        run(0.5)
+        assert seen[0][1:] == (PGN_ADDRESS_CLAIMED, 0x90, ours.to_bytes())
+        assert first(PGN_ISB, 0x90) - seen[0][0] >= CONTENTION_S - 0.01
+        t = time.monotonic()
+        other.send(can.Message(arbitration_id=request()[0], data=request()[1]))
+        run(0.2)
+        assert first(PGN_ADDRESS_CLAIMED, 0x90, t) - t < 0.1  # answered
+        t = time.monotonic()
+        ident, data = claimed(LOWER, 0x90)
+        other.send(can.Message(arbitration_id=ident, data=data))
+        run(0.3)
+        cannot = first(PGN_ADDRESS_CLAIMED, NULL_ADDRESS, t)
+        assert cannot - t <= 0.2
+        d = sup.gate.current
+        assert not d.permit and d.reason == Reason.FAULT and "held by another ECU" in d.detail
+        silent_from = time.monotonic()
+        run(0.2)  # before the retry (0.6 s after the loss): nothing from 0x90
+        assert not [x for x in seen if x[0] > silent_from and x[2] == 0x90]
+        assert sup.status(time.monotonic())["can_address"]["state"] == "lost"
+        run(0.9)  # the retry, unanswered: the address again, then the permit frames
+        retry = first(PGN_ADDRESS_CLAIMED, 0x90, silent_from)
+        back = first(PGN_ISB, 0x90, silent_from)
+        assert back - retry >= CONTENTION_S - 0.01
+        assert sup.gate.current.permit
+        assert sup.status(time.monotonic())["can_address"]["state"] == "held"
+    finally:
+        sup.stop_requested = "test"
+        rx.join(2.0)
+        other.shutdown()
+        if sup.port.bus is not None:
+            sup.port.bus.shutdown()
