@@ -130,6 +130,8 @@ def test_daemon_in_process_on_the_virtual_bus(
         mower_bus.shutdown()
     assert seen[0] == "NOT_MOWING" and "MAP_INVALID" in seen and seen[-1] == "SENSOR_STALE"
     assert mower.state.frames > 0
+    # ISO 11783-5: the address claimed before any permit frame, also without the supervisor
+    assert mower.state.address_claims >= 1 and mower.state.frames_before_claim == 0
 
     scratch = tmp_path / "scratch"  # where the replay writes the recorded calibration
     scratch.mkdir()

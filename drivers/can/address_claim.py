@@ -13,17 +13,27 @@ and nothing else. A real tractor does this on every start (the John Deere logs i
 
 :class:`AddressClaim` is the logic only (no bus, no clock of its own): it is told the time
 and the frames received, and says which frames to send when, and whether the address is
-held. The permit supervisor drives it (``mowerhw/supervisor/process.py``); while the address
-is not held it sends no permit frame, so the mower's controller sees silence: stop.
+held; :func:`serve` sends those frames on a bus. Whatever sends the permit frames drives it
+(the permit supervisor, ``mowerhw/supervisor/process.py``, or the one-process daemon's
+``CanLink``); while the address is not held it sends no permit frame, so the mower's
+controller sees silence: stop.
 """
 
 from __future__ import annotations
 
+import logging
 import random
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from drivers.can.isobus import GLOBAL_ADDRESS, can_id, parse_id
+
+if TYPE_CHECKING:
+    import can
+
+log = logging.getLogger("mowerhw.can")
 
 PGN_ADDRESS_CLAIMED = 60928  # 0xEE00, also "Cannot Claim" when sent from NULL_ADDRESS
 PGN_REQUEST = 59904  # 0xEA00: bytes 0-2 the PGN requested (little-endian)
@@ -282,3 +292,28 @@ class AddressClaim:
                 "claims_sent": self.claims_sent,
                 "contests_won": self.contests_won,
             }
+
+
+def serve(
+    claim: AddressClaim,
+    bus: can.BusABC,
+    now: float,
+    on_sent: Callable[[can.Message], None] | None = None,
+) -> bool:
+    """Send ``claim``'s due frames on ``bus`` (each also to ``on_sent``: a recording), log
+    what changed (one line per change), and say whether the address is held, i.e. whether
+    the permit frames may go out."""
+    import can
+
+    for frame in claim.due(now):
+        msg = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=True)
+        try:
+            bus.send(msg, timeout=0.0)
+        except (can.CanError, OSError) as exc:  # the next request or retry sends it again
+            log.warning("CAN: an address claim frame was not sent (%s)", exc)
+        else:
+            if on_sent is not None:
+                on_sent(msg)
+    for change in claim.take_changes():
+        log.log(logging.ERROR if claim.state == "lost" else logging.WARNING, "CAN: %s", change)
+    return claim.holds(now)

@@ -17,6 +17,7 @@ import can
 
 from drivers.camera.base import CameraSource
 from drivers.camera.v4l2 import V4l2Camera
+from drivers.can.address_claim import AddressClaim, serve
 from drivers.can.isobus import open_bus
 from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
@@ -204,6 +205,14 @@ class CanLink(ThreadedDevice):
         self.bus: can.BusABC | None = None
         self.sender: PermitSender | None = None
         self.open_failures = 0
+        #: its source address, claimed when the bus opens (ISO 11783-5; None: not claimed)
+        self.claim: AddressClaim | None = None
+        if cfg.can.address_claim:
+            from mowerhw.supervisor.canport import ecu_name
+
+            self.claim = AddressClaim(
+                ecu_name(cfg.can), cfg.can.source_address, cfg.can.address_claim_retry_s
+            )
 
     def open(self) -> bool:
         c = self.cfg.can
@@ -218,6 +227,8 @@ class CanLink(ThreadedDevice):
         self.sender = PermitSender(
             self.bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s
         )
+        if self.claim is not None:
+            self.claim.begin(time.monotonic())
         self._start_thread()
         log.info("CAN %s %s open, sending as 0x%02X", c.interface, c.channel, c.source_address)
         return True
@@ -231,26 +242,34 @@ class CanLink(ThreadedDevice):
     ) -> bool:
         """The permit or halt of a decision, with the status frame; True if it stopped a
         permit (a halt just went out)."""
-        if self.sender is None:
+        if self.sender is None or not self._holds(now):
             return False
         status = Status(d.state, d.permit, d.reason or "NONE", d.signed_distance_m, *pose_xyh)
         return self.sender.set(d.permit, now, status) and not d.permit
 
     def tick(self, now: float) -> None:
-        if self.sender is not None:
+        if self.sender is not None and self._holds(now):
             self.sender.tick(now)
 
+    def _holds(self, now: float) -> bool:
+        """Claims due sent; whether the address is ours to send the permit frames from."""
+        if self.claim is None or self.bus is None:
+            return True
+        return serve(self.claim, self.bus, now)
+
     def next_due(self) -> float:
-        return self.sender.next_due() if self.sender is not None else math.inf
+        due = self.sender.next_due() if self.sender is not None else math.inf
+        return min(due, self.claim.next_due()) if self.claim is not None else due
 
     def shutdown(self, now: float) -> None:
-        if self.sender is not None:
+        if self.sender is not None and self._holds(now):
             self.sender.shutdown(now)
 
     def status(self) -> dict[str, Any]:
         return {
             "speed_reader": vars(self.speed_reader.stats),
             "permit_sender": vars(self.sender.stats) if self.sender else {},
+            "can_address": self.claim.status() if self.claim is not None else None,
         }
 
     def retry(self, now: float) -> None:
@@ -272,6 +291,8 @@ class CanLink(ThreadedDevice):
                 continue
             if msg is None:
                 continue
+            if self.claim is not None and msg.is_extended_id:  # claims, requests for them
+                self.claim.received(msg.arbitration_id, bytes(msg.data), time.monotonic())
             self.frames.handle(
                 time.monotonic(), msg.arbitration_id, bytes(msg.data), msg.is_extended_id
             )

@@ -32,7 +32,7 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from drivers.can.address_claim import PGN_ADDRESS_CLAIMED, PGN_REQUEST, AddressClaim
+from drivers.can.address_claim import PGN_ADDRESS_CLAIMED, PGN_REQUEST, AddressClaim, serve
 from drivers.can.isobus import parse_id, pgn_filters
 from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
@@ -287,7 +287,8 @@ class Supervisor:
             if self.claim is not None:  # a bus (re)opened: the address is claimed first
                 self.claim.begin(now)
         sender = self.sender
-        if self.claim is not None and not self._network_management(bus, now):
+        on_sent = self._record_sent if self.record is not None else None
+        if self.claim is not None and not serve(self.claim, bus, now, on_sent):
             return False  # the address is not ours (yet): no frame from it
         errors = sender.stats.send_errors
         status = Status(
@@ -303,29 +304,6 @@ class Supervisor:
             if sender.stats.send_errors - errors >= 3:
                 self.port.failed(now, "sending failed")
         return stopped
-
-    def _network_management(self, bus: can.BusABC, now: float) -> bool:
-        """Claims and answers due (ISO 11783-5); whether the address is held, so that the
-        permit frames may go out."""
-        import can
-
-        claim = self.claim
-        assert claim is not None
-        for frame in claim.due(now):
-            msg = can.Message(
-                arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=True
-            )
-            try:
-                bus.send(msg, timeout=0.0)
-            except (can.CanError, OSError) as exc:
-                self.counts["send_errors"] += 1
-                log.warning("CAN: the address claim was not sent (%s)", exc)
-            else:
-                if self.record is not None:
-                    self._record_sent(msg)
-        for change in claim.take_changes():
-            log.log(logging.ERROR if claim.state == "lost" else logging.WARNING, "CAN: %s", change)
-        return claim.holds(now)
 
     # --------------------------------------------------------------------------- loop
 
