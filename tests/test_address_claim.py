@@ -166,6 +166,7 @@ def test_the_supervisor_claims_first_answers_and_goes_silent_while_another_holds
     import uuid
 
     from drivers.can.isobus import PGN_ISB, open_bus
+    from drivers.can.permit import ISB_PERMIT, ISB_STOP, decode_isb
     from mowerhw.common.reasons import Reason
     from mowerhw.config import config_to_dict, default_config
     from mowerhw.supervisor.lease import Lease
@@ -214,6 +215,7 @@ def test_the_supervisor_claims_first_answers_and_goes_silent_while_another_holds
         assert cannot - t <= 0.2
         d = sup.gate.current
         assert not d.permit and d.reason == Reason.FAULT and "held by another ECU" in d.detail
+        assert sup.sender is None  # nothing due from it: the loop sleeps until the retry
         silent_from = time.monotonic()
         run(0.2)  # before the retry (0.6 s after the loss): nothing from 0x90
         assert not [x for x in seen if x[0] > silent_from and x[2] == 0x90]
@@ -222,6 +224,10 @@ def test_the_supervisor_claims_first_answers_and_goes_silent_while_another_holds
         retry = first(PGN_ADDRESS_CLAIMED, 0x90, silent_from)
         back = first(PGN_ISB, 0x90, silent_from)
         assert back - retry >= CONTENTION_S - 0.01
+        # a stop first (counter 0), then the permit as a change (counter 1): a controller
+        # that counted the transitions before the silence follows the new sender
+        isb = [decode_isb(x[3]) for x in seen if x[1] == PGN_ISB and x[0] >= back][:2]
+        assert isb == [(0, ISB_STOP), (1, ISB_PERMIT)]
         assert sup.gate.current.permit
         assert sup.status(time.monotonic())["can_address"]["state"] == "held"
     finally:

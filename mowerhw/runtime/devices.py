@@ -223,11 +223,7 @@ class CanLink(ThreadedDevice):
                 log.error("CAN %s %s: cannot open (%s); retrying", c.interface, c.channel, exc)
             self.open_failures += 1
             return False
-        p = self.cfg.permit
-        self.sender = PermitSender(
-            self.bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s
-        )
-        if self.claim is not None:
+        if self.claim is not None:  # the address first; the permit frames once it is ours
             self.claim.begin(time.monotonic())
         self._start_thread()
         log.info("CAN %s %s open, sending as 0x%02X", c.interface, c.channel, c.source_address)
@@ -242,27 +238,39 @@ class CanLink(ThreadedDevice):
     ) -> bool:
         """The permit or halt of a decision, with the status frame; True if it stopped a
         permit (a halt just went out)."""
-        if self.sender is None or not self._holds(now):
+        sender = self._sender(now)
+        if sender is None:
             return False
         status = Status(d.state, d.permit, d.reason or "NONE", d.signed_distance_m, *pose_xyh)
-        return self.sender.set(d.permit, now, status) and not d.permit
+        return sender.set(d.permit, now, status) and not d.permit
 
     def tick(self, now: float) -> None:
-        if self.sender is not None and self._holds(now):
-            self.sender.tick(now)
+        sender = self._sender(now)
+        if sender is not None:
+            sender.tick(now)
 
-    def _holds(self, now: float) -> bool:
-        """Claims due sent; whether the address is ours to send the permit frames from."""
-        if self.claim is None or self.bus is None:
-            return True
-        return serve(self.claim, self.bus, now)
+    def _sender(self, now: float) -> PermitSender | None:
+        """The permit frames' sender while the address is ours (claims due sent first); a
+        new one starts with a stop (counter 0), like the supervisor's."""
+        if self.bus is None:
+            return None
+        if self.claim is not None and not serve(self.claim, self.bus, now):
+            self.sender = None
+            return None
+        if self.sender is None:
+            c, p = self.cfg.can, self.cfg.permit
+            self.sender = PermitSender(
+                self.bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s
+            )
+            self.sender.tick(now)
+        return self.sender
 
     def next_due(self) -> float:
         due = self.sender.next_due() if self.sender is not None else math.inf
         return min(due, self.claim.next_due()) if self.claim is not None else due
 
     def shutdown(self, now: float) -> None:
-        if self.sender is not None and self._holds(now):
+        if self.sender is not None:  # only while the address is ours
             self.sender.shutdown(now)
 
     def status(self) -> dict[str, Any]:
@@ -274,7 +282,7 @@ class CanLink(ThreadedDevice):
 
     def retry(self, now: float) -> None:
         """Try to open a bus that failed, about once a second."""
-        if self.sender is None and self.open_failures and now % 1.0 < 0.02:
+        if self.bus is None and self.open_failures and now % 1.0 < 0.02:
             self.open()
 
     thread_name = "can-rx"

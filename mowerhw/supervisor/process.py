@@ -151,7 +151,9 @@ class Supervisor:
         self.port = CanPort(config, None if record is not None else pgn_filters(reads))
         self.safety = SafetyMonitor(config.safety)
         self._safety_lock = threading.Lock()
+        #: the permit frames' sender, while the address is ours on the bus open now
         self.sender: PermitSender | None = None
+        self._bus_claimed: can.BusABC | None = None  # the bus the address was claimed on
         self.notifier = Notifier()
         self.stop_requested = ""
         self.child: Any = None
@@ -277,19 +279,25 @@ class Supervisor:
             return False
         bus = self.port.bus
         assert bus is not None
-        if self.sender is None or self.sender.bus is not bus:
+        if bus is not self._bus_claimed:  # a bus (re)opened: the address is claimed first
+            self._bus_claimed, self.sender = bus, None
+            if self.claim is not None:
+                self.claim.begin(now)
+        on_sent = self._record_sent if self.record is not None else None
+        if self.claim is not None and not serve(self.claim, bus, now, on_sent):
+            self.sender = None  # the address is not ours (yet): no frame from it
+            return False
+        if self.sender is None:
             c, p = self.cfg.can, self.cfg.permit
             self.sender = PermitSender(
                 bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s, 0.0
             )
-            if self.record is not None:  # the recording has the frames sent too
-                self.sender.on_sent = self._record_sent
-            if self.claim is not None:  # a bus (re)opened: the address is claimed first
-                self.claim.begin(now)
+            self.sender.on_sent = on_sent  # recording: the frames sent too
+            # its first frames a stop (counter 0) and heartbeat 251: after a silence (a
+            # restart, a bus reopened, the address regained) a controller that counted
+            # another sender's transitions sees a jump, then a valid change it follows
+            self.sender.tick(now)
         sender = self.sender
-        on_sent = self._record_sent if self.record is not None else None
-        if self.claim is not None and not serve(self.claim, bus, now, on_sent):
-            return False  # the address is not ours (yet): no frame from it
         errors = sender.stats.send_errors
         status = Status(
             d.state, d.permit, d.reason or "NONE", d.signed_distance_m, d.x, d.y, d.heading
