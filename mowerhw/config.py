@@ -176,7 +176,10 @@ class CanConfig:
         "claiming",
     )
     address_claim_retry_s: float = opt(
-        10.0, "while another ECU holds source_address: claim it again this often", gt=0.0
+        10.0,
+        "while another ECU holds source_address: ask the bus this often whether it is free "
+        "(a Request for Address Claimed) and claim it once no lower NAME answers for it",
+        gt=0.0,
     )
     name_identity_number: int | None = opt(
         None,

@@ -14,6 +14,7 @@ from drivers.can.address_claim import (
     NULL_ADDRESS,
     PGN_ADDRESS_CLAIMED,
     PGN_REQUEST,
+    RESPONSE_TIMEOUT_S,
     AddressClaim,
     IsoName,
     requested_pgn,
@@ -56,7 +57,7 @@ def test_the_name_round_trips_and_orders_by_its_value() -> None:
 
 def test_a_real_tractors_claims_decode_as_agricultural_equipment() -> None:
     """The John Deere logs: every ECU claims its address on start (PGN 60928, 8-byte NAME)
-    and ECU 0x00 requests the claims (PGN 59904 for 60928). Each NAME decodes with the
+    and three of them ask for all claims (PGN 59904 for 60928). Each NAME decodes with the
     industry group of agricultural and forestry equipment (2), and encodes back to its
     bytes."""
     logs = sorted(load_tool("check_real_can").LOGS.glob("*.log"))
@@ -123,15 +124,22 @@ def test_a_higher_name_is_answered_and_a_lower_one_takes_the_address() -> None:
     assert [f.arbitration_id for f in cannot] == [can_id(6, PGN_ADDRESS_CLAIMED, NULL_ADDRESS)]
     ac.received(*request(), 4.0)  # asked: Cannot Claim again
     assert [f.arbitration_id & 0xFF for f in ac.due(4.2)] == [NULL_ADDRESS]
-    # the retry: claimed again; the holder answers, we yield again without a new log line
+    # the retry asks who holds what, from the null address; the holder answers: no claim of
+    # ours contests it, no new log line, the next question retry_s later
     assert ac.next_due() == pytest.approx(13.0)
-    assert [f.arbitration_id & 0xFF for f in ac.due(13.0)] == [0x90]
+    (ask,) = ac.due(13.0)
+    assert ask.arbitration_id == can_id(6, PGN_REQUEST, NULL_ADDRESS, GLOBAL_ADDRESS)
+    assert requested_pgn(ask.data) == PGN_ADDRESS_CLAIMED
     ac.received(*claimed(LOWER, 0x90), 13.01)
-    assert ac.state == "lost" and ac.take_changes() == []
-    # the next retry finds the address free: held again after the contention time
-    ac.due(23.01)
-    assert not ac.holds(23.1)
-    assert ac.holds(23.01 + CONTENTION_S)
+    assert ac.due(14.5) == [] and ac.state == "lost" and ac.take_changes() == []
+    assert ac.next_due() == pytest.approx(23.01)
+    # the next question goes unanswered for the response time: the address is free, claimed
+    assert [f.arbitration_id & 0xFF for f in ac.due(23.01)] == [NULL_ADDRESS]
+    assert ac.due(23.01 + RESPONSE_TIMEOUT_S - 0.01) == []
+    t = 23.01 + RESPONSE_TIMEOUT_S
+    assert [f.arbitration_id & 0xFF for f in ac.due(t)] == [0x90]
+    assert not ac.holds(t + 0.1)
+    assert ac.holds(t + CONTENTION_S)
     (change,) = ac.take_changes()
     assert "claimed again" in change
     assert ac.holder is None
@@ -159,8 +167,8 @@ def test_the_supervisor_claims_first_answers_and_goes_silent_while_another_holds
     claim and its permit frames start after the contention time; it answers a request for
     claims; another ECU's lower NAME on its address silences it (a Cannot Claim from 254,
     then nothing from its address: the controller's silence timeout stops the deck; its own
-    decision is a FAULT naming the holder) until a retry finds the address free, when the
-    permit frames come back by themselves."""
+    decision is a FAULT naming the holder) until a question to the bus finds the address
+    free, when it claims it and the permit frames come back by themselves."""
     import threading
     import time
     import uuid
@@ -220,8 +228,10 @@ def test_the_supervisor_claims_first_answers_and_goes_silent_while_another_holds
         run(0.2)  # before the retry (0.6 s after the loss): nothing from 0x90
         assert not [x for x in seen if x[0] > silent_from and x[2] == 0x90]
         assert sup.status(time.monotonic())["can_address"]["state"] == "lost"
-        run(0.9)  # the retry, unanswered: the address again, then the permit frames
+        run(0.5 + RESPONSE_TIMEOUT_S + 0.5)  # asked who holds it; no answer: claimed, permits
+        asked = first(PGN_REQUEST, NULL_ADDRESS, silent_from)
         retry = first(PGN_ADDRESS_CLAIMED, 0x90, silent_from)
+        assert retry - asked >= RESPONSE_TIMEOUT_S - 0.01
         back = first(PGN_ISB, 0x90, silent_from)
         assert back - retry >= CONTENTION_S - 0.01
         # a stop first (counter 0), then the permit as a change (counter 1): a controller

@@ -8,8 +8,8 @@ are settled by the NAMEs: the lower one keeps it. A control function answers a *
 (PGN 59904) for PGN 60928 with its claim. One that loses its address and cannot take another
 (mowerhw's address is fixed by the config: not self-configurable) sends *Cannot Claim* (an
 Address Claimed frame from the null address 254) after a pseudo-random delay of 0–153 ms,
-and nothing else. A real tractor does this on every start (the John Deere logs in
-``data/real``: each ECU claims, and ECU 0x00 requests every claim).
+and nothing else but answers. A real tractor does this on every start (the John Deere logs in
+``data/real``: each ECU claims, and three of them ask for everyone's claims).
 
 :class:`AddressClaim` is the logic only (no bus, no clock of its own): it is told the time
 and the frames received, and says which frames to send when, and whether the address is
@@ -42,6 +42,8 @@ NULL_ADDRESS = 254  # a control function without an address
 CONTENTION_S = 0.25
 #: the pseudo-random delay of a Cannot Claim: 0.6 ms × 0..255 (s)
 RANDOM_DELAY_STEP_S = 0.0006
+#: how long the answers to a request may take (J1939-21's response time Tr, s)
+RESPONSE_TIMEOUT_S = 1.25
 PRIORITY = 6
 
 
@@ -132,8 +134,10 @@ def requested_pgn(data: bytes) -> int | None:
 
 class AddressClaim:
     """Claim ``address`` with ``name``; defend it against higher NAMEs, yield it to lower
-    ones, answer requests, and claim it again every ``retry_s`` while another holds it (the
-    holder answers with its own claim and keeps it; once it is gone the claim succeeds).
+    ones, answer requests. While another holds it, ask every ``retry_s`` who holds what (a
+    Request for Address Claimed from the null address, which a node without an address may
+    send): when no lower NAME claims the address within :data:`RESPONSE_TIMEOUT_S`, claim it
+    again — it is never contested while its holder is there.
 
     Thread-safe: the receive thread calls :meth:`received`, the sending loop the rest.
     States: ``idle`` (no bus yet), ``claiming`` (claim sent, contention running),
@@ -154,6 +158,7 @@ class AddressClaim:
         self.changes: list[str] = []  # what happened, for the caller to log (then cleared)
         self._since = 0.0
         self._retry_at = 0.0
+        self._probe_until: float | None = None  # asked who holds it; answers until then
         self._pending: list[tuple[float, Frame]] = []
         self._rng = random.Random(seed)
         self._lock = threading.Lock()
@@ -164,6 +169,12 @@ class AddressClaim:
         return Frame(
             can_id(PRIORITY, PGN_ADDRESS_CLAIMED, self.address, GLOBAL_ADDRESS),
             self.name.to_bytes(),
+        )
+
+    def _request_frame(self) -> Frame:
+        return Frame(
+            can_id(PRIORITY, PGN_REQUEST, NULL_ADDRESS, GLOBAL_ADDRESS),
+            PGN_ADDRESS_CLAIMED.to_bytes(3, "little"),
         )
 
     def _cannot_claim_frame(self) -> Frame:
@@ -184,7 +195,7 @@ class AddressClaim:
             self._begin(now)
 
     def _begin(self, now: float) -> None:
-        self.state, self._since = "claiming", now
+        self.state, self._since, self._probe_until = "claiming", now, None
         self._pending = [(at, f) for at, f in self._pending if f != self._cannot_claim_frame()]
         self._queue(now, self._claim_frame())
 
@@ -211,6 +222,11 @@ class AddressClaim:
         with self._lock:
             if theirs == self.name.value:
                 return True  # our own claim back (a bus that echoes what it sends)
+            if self.state == "lost":
+                if theirs < self.name.value:  # its holder is still there: ask again later
+                    self.holder = IsoName.from_bytes(data)
+                    self._probe_until, self._retry_at = None, now + self.retry_s
+                return True
             if self.state not in ("claiming", "held"):
                 return True
             if theirs < self.name.value:  # theirs has the priority: yield
@@ -228,7 +244,7 @@ class AddressClaim:
                     f"(higher-priority) {self.holder.describe()} than ours "
                     f"(0x{self.name.value:016X}): mowerhw yields it and sends no permit frame "
                     "(the controller sees silence: stop); give can.source_address a free "
-                    f"address; claiming it again every {self.retry_s:.0f} s"
+                    f"address; asking every {self.retry_s:g} s whether it is free again"
                 )
             else:  # ours has the priority: say so again; the other must yield
                 self.contests_won += 1
@@ -255,8 +271,12 @@ class AddressClaim:
                     "claimant has gone"
                 )
                 self.holder = None
-        elif self.state == "lost" and now >= self._retry_at:
-            self._begin(now)
+        elif self.state == "lost":
+            if self._probe_until is None and now >= self._retry_at:
+                self._queue(now, self._request_frame())  # who holds what?
+                self._probe_until = now + RESPONSE_TIMEOUT_S
+            elif self._probe_until is not None and now >= self._probe_until:
+                self._begin(now)  # no lower NAME answered for it: it is free
 
     def due(self, now: float) -> list[Frame]:
         """The frames to send now (claims, cannot-claims)."""
@@ -274,7 +294,7 @@ class AddressClaim:
             if self.state == "claiming":
                 times.append(self._since + CONTENTION_S)
             elif self.state == "lost":
-                times.append(self._retry_at)
+                times.append(self._retry_at if self._probe_until is None else self._probe_until)
             return min(times, default=float("inf"))
 
     def take_changes(self) -> list[str]:
