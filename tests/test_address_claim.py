@@ -81,6 +81,22 @@ def test_a_real_tractors_claims_decode_as_agricultural_equipment() -> None:
     assert (names[0x00].function, names[0x00].device_class) == (0, 1)
     assert (names[0x03].function, names[0x03].device_class) == (3, 1)
     assert 0x90 not in names  # mowerhw's default address is free on that bus
+    # that bus as mowerhw at 0x90 would hear it: each request answered, no contest
+    ac = AddressClaim(OURS, 0x90, seed=0)
+    ac.begin(0.0)
+    ac.due(0.0)
+    answers = 0
+    for msg in can.CanutilsLogReader(str(logs[1])):
+        if msg.is_extended_id:
+            ac.received(msg.arbitration_id, bytes(msg.data), 1.0)
+            answers += len(ac.due(1.0))
+    log_requests = sum(
+        1
+        for m in can.CanutilsLogReader(str(logs[1]))
+        if parse_id(m.arbitration_id).pgn == PGN_REQUEST
+        and requested_pgn(bytes(m.data)) == PGN_ADDRESS_CLAIMED
+    )
+    assert answers == log_requests > 0 and ac.holds(1.0) and ac.contests_won == 0
 
 
 def test_the_claim_holds_after_the_contention_time_and_answers_requests() -> None:
