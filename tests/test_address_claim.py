@@ -3,10 +3,13 @@ against a real tractor's claims; the claim, its defence, yielding, requests, ret
 
 from __future__ import annotations
 
+import time
+import uuid
 from pathlib import Path
 
 import can
 import pytest
+from _supervisor import receiving
 from _tools import load_tool
 
 from drivers.can.address_claim import (
@@ -19,9 +22,13 @@ from drivers.can.address_claim import (
     IsoName,
     requested_pgn,
 )
-from drivers.can.isobus import GLOBAL_ADDRESS, can_id, parse_id
-from mowerhw.config import config_from_dict
+from drivers.can.isobus import GLOBAL_ADDRESS, PGN_ISB, can_id, parse_id
+from drivers.can.permit import ISB_PERMIT, ISB_STOP, decode_isb
+from mowerhw.common.reasons import Reason
+from mowerhw.config import config_from_dict, config_to_dict, default_config
 from mowerhw.supervisor.canport import ecu_name
+from mowerhw.supervisor.lease import Lease
+from mowerhw.supervisor.process import FORCE, Supervisor
 
 OURS = IsoName(identity_number=0x1234, manufacturer_code=0, function=128)
 LOWER = IsoName(identity_number=7, manufacturer_code=0, function=100)  # wins against OURS
@@ -185,17 +192,6 @@ def test_the_supervisor_claims_first_answers_and_goes_silent_while_another_holds
     then nothing from its address: the controller's silence timeout stops the deck; its own
     decision is a FAULT naming the holder) until a question to the bus finds the address
     free, when it claims it and the permit frames come back by themselves."""
-    import threading
-    import time
-    import uuid
-
-    from drivers.can.isobus import PGN_ISB, open_bus
-    from drivers.can.permit import ISB_PERMIT, ISB_STOP, decode_isb
-    from mowerhw.common.reasons import Reason
-    from mowerhw.config import config_to_dict, default_config
-    from mowerhw.supervisor.lease import Lease
-    from mowerhw.supervisor.process import FORCE, Supervisor
-
     channel = f"claim-{uuid.uuid4().hex[:8]}"
     raw = config_to_dict(default_config())
     raw["can"].update(interface="virtual", channel=channel, address_claim_retry_s=0.6)
@@ -203,10 +199,6 @@ def test_the_supervisor_claims_first_answers_and_goes_silent_while_another_holds
     cfg = config_from_dict(raw, tmp_path, "test config")
     sup = Supervisor(cfg)
     ours = ecu_name(cfg.can)
-    assert sup.port.ensure(time.monotonic())
-    rx = threading.Thread(target=sup._receive, daemon=True)
-    rx.start()
-    other = open_bus("virtual", channel)
     seen: list[tuple[float, int, int, bytes]] = []  # (time, PGN, source, data)
 
     def run(seconds: float) -> None:
@@ -223,7 +215,7 @@ def test_the_supervisor_claims_first_answers_and_goes_silent_while_another_holds
     def first(pgn: int, source: int, after: float = 0.0) -> float:
         return next(t for t, p, s, _ in seen if p == pgn and s == source and t > after)
 
-    try:
+    with receiving(sup, channel) as other:
         run(0.5)
         assert seen[0][1:] == (PGN_ADDRESS_CLAIMED, 0x90, ours.to_bytes())
         assert first(PGN_ISB, 0x90) - seen[0][0] >= CONTENTION_S - 0.01
@@ -256,9 +248,3 @@ def test_the_supervisor_claims_first_answers_and_goes_silent_while_another_holds
         assert isb == [(0, ISB_STOP), (1, ISB_PERMIT)]
         assert sup.gate.current.permit
         assert sup.status(time.monotonic())["can_address"]["state"] == "held"
-    finally:
-        sup.stop_requested = "test"
-        rx.join(2.0)
-        other.shutdown()
-        if sup.port.bus is not None:
-            sup.port.bus.shutdown()

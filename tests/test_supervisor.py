@@ -3,18 +3,17 @@ process on python-can's virtual bus, the mock mower controller listening."""
 
 from __future__ import annotations
 
-import contextlib
 import math
 import multiprocessing
 import threading
 import time
 import uuid
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import can
 import pytest
+from _supervisor import receiving
 from _tools import load_tool
 
 from drivers.can.isobus import open_bus, parse_id, pgn_filters
@@ -32,24 +31,6 @@ from mowerhw.supervisor.process import FORCE, Supervisor
 
 def _lease(permit: bool = True, reason: str = "") -> Lease:
     return Lease(permit, "INSIDE", reason, "", 1.0, 0.0, 0.0, 0.0, 0.0)
-
-
-@contextlib.contextmanager
-def _receiving(sup: Supervisor, channel: str) -> Iterator[can.BusABC]:
-    """The supervisor's CAN receive thread running on its bus, and another node's bus on the
-    same channel to send from; stopped and shut down after."""
-    assert sup.port.ensure(time.monotonic())
-    rx = threading.Thread(target=sup._receive, daemon=True)
-    rx.start()
-    tx = open_bus("virtual", channel)
-    try:
-        yield tx
-    finally:
-        sup.stop_requested = "test"
-        rx.join(2.0)
-        tx.shutdown()
-        if sup.port.bus is not None:
-            sup.port.bus.shutdown()
 
 
 def test_a_lease_permits_only_while_it_is_fresh() -> None:
@@ -292,7 +273,7 @@ def test_the_estimation_side_reads_a_real_tractors_speed_as_a_reader_on_the_bus_
     assert sup.port.filters == pgn_filters(reads)
     direct = SpeedReader("ccvs1", ccvs1_direction="etc2")
     want = []
-    with _receiving(sup, channel) as tx:
+    with receiving(sup, channel) as tx:
         for m in frames:
             tx.send(m)
             s = direct.handle(m.arbitration_id, bytes(m.data), time.monotonic())
@@ -377,7 +358,7 @@ def test_the_switch_frame_counts_only_from_the_controllers_address_when_set(
         raw["safety"].update(switches_address=address)
         cfg = config_from_dict(raw, tmp_path, "test config")
         sup = Supervisor(cfg)
-        with _receiving(sup, channel) as tx:
+        with receiving(sup, channel) as tx:
             frame_id = can_id(6, cfg.safety.switches_pgn, sender)
             data = encode_switches(Switches(lifted=True))
             tx.send(can.Message(arbitration_id=frame_id, data=data, is_extended_id=True))
@@ -403,7 +384,7 @@ def test_a_recording_gets_every_frame_the_supervisor_receives_and_sends(tmp_path
     sup = Supervisor(cfg, record=tmp_path / "run.mcap")
     passed: list[tuple[str, Any]] = []
     sup._to_child = passed.append  # type: ignore[method-assign]
-    with _receiving(sup, channel) as tx:
+    with receiving(sup, channel) as tx:
         switches = can_id(6, cfg.safety.switches_pgn, 0x28)
         tx.send(can.Message(arbitration_id=switches, data=encode_switches(Switches())))
         sup._send_frames(_lease(), time.monotonic())  # the address claim first
