@@ -225,6 +225,8 @@ def test_the_supervisors_own_speed_halt_is_timed_from_the_speeds_limit(tmp_path:
     raw["can"]["address_claim"] = False
     cfg = config_from_dict(raw, tmp_path, "test config")
     sup = Supervisor(cfg)
+    told: list[tuple[str, Any]] = []
+    sup._to_child = told.append  # type: ignore[method-assign]
     limit = cfg.speed.stale_after_s
     try:
         now = time.monotonic()
@@ -239,6 +241,10 @@ def test_the_supervisors_own_speed_halt_is_timed_from_the_speeds_limit(tmp_path:
             time.sleep(0.001)
         sup._decide(late)
         assert not sup.gate.current.permit and "seen by the supervisor" in sup.gate.current.detail
+        # the estimation side hears of it at once, not at the next 0.5 s status (the page)
+        statuses = [body for kind, body in told if kind == "status"]
+        assert [st["permit"] for st in statuses] == [True, False]
+        assert "seen by the supervisor" in statuses[-1]["detail"]
         assert len(sup.own_halt_ms) == 1 and 4.0 <= sup.own_halt_ms[0] < 1000.0
         assert sup.status(late)["own_halt_ms"]["n"] == 1
         sup._decide(late + 0.01)  # still halted: no second stop, no second figure

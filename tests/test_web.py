@@ -36,6 +36,8 @@ class FakeDaemon:
         self.commands: list[tuple[str, dict[str, Any]]] = []
         self.lives = 0
         self.run = "run1"
+        #: what the permit supervisor last said (None: a daemon without one)
+        self.supervisor: dict[str, Any] | None = None
 
     async def handle(self, cmd: str, args: dict[str, Any]) -> dict[str, Any]:
         if cmd != "live":
@@ -47,7 +49,9 @@ class FakeDaemon:
         since = args.get("since", 0)
         pts = [[0.2 * k, 0.1 * k, 0.0] for k in range(since, n)]
         x = 0.5 * self.t
+        extra = {} if self.supervisor is None else {"supervisor": dict(self.supervisor)}
         return {
+            **extra,
             "ok": True,
             "run": self.run,
             "epoch": 1,
@@ -292,6 +296,46 @@ def test_daemon_gone_is_said_on_the_page_and_it_comes_back(tmp_path) -> None:
     assert out["gone"]["daemon"] is not None  # the last known state stays on the page
     assert out["back"] is not None and out["back"]["session"] == "run2/1"
     assert out["back"]["trajectory"]["from"] == 0  # the new daemon's drive, from its start
+
+
+@pytest.mark.slow
+def test_the_page_shows_the_supervisors_own_halt(tmp_path) -> None:
+    """The estimation side permits, the permit supervisor halts on its own (a tilt, a bump, a
+    late estimator, its CAN address: it sends the frames): the page, in Chromium, says HALT
+    with the supervisor's reason, and MOWING PERMITTED once the supervisor permits again."""
+    from mowerhw.bench import browser
+
+    why = browser.missing()
+    if why:
+        pytest.skip(f"the page's browser test needs {why}")
+    read = """() => [document.body.dataset.permit].concat(
+        ['permit', 'reason', 'detail'].map((id) => document.getElementById(id).textContent))"""
+
+    async def body(url: str, server: WebServer, daemon: FakeDaemon) -> Any:
+        daemon.supervisor = {
+            "permit": False,
+            "reason": "TILTED",
+            "detail": "tilted 45° (limit 35°), 0.0 s ago",
+        }
+
+        def look() -> tuple[Any, Any]:
+            with browser.page(url) as pg:
+                pg.wait_for_function("document.body.dataset.permit === 'false'", timeout=20_000)
+                halted = pg.evaluate(read)
+                daemon.supervisor = {"permit": True, "reason": "", "detail": ""}
+                pg.wait_for_function("document.body.dataset.permit === 'true'", timeout=20_000)
+                return halted, pg.evaluate(read)
+
+        return await asyncio.get_running_loop().run_in_executor(None, look)
+
+    halted, permitted = asyncio.run(_with_page(tmp_path, body))
+    assert halted == [
+        "false",
+        "HALT",
+        "TILTED",
+        "permit supervisor: tilted 45° (limit 35°), 0.0 s ago",
+    ]
+    assert permitted[:3] == ["true", "MOWING PERMITTED", "–"]
 
 
 # ------------------------------------------------------------------------- Foxglove live

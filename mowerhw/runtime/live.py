@@ -135,7 +135,7 @@ class LiveView:
         if supervisor:
             out["supervisor"] = {
                 k: supervisor.get(k)
-                for k in ("permit", "reason", "lease_age_s", "can_up", "tilt_deg")
+                for k in ("permit", "reason", "detail", "lease_age_s", "can_up", "tilt_deg")
             }
         return out
 

@@ -180,6 +180,7 @@ class Supervisor:
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         self._next_status = 0.0
+        self._status_permit = False  # the permit of the last status sent down
         self._lifted_told = False  # what the estimation side was last told about a lift
         self._next_watchdog = 0.0
         self.web: WebProcess | None = (
@@ -463,8 +464,10 @@ class Supervisor:
         if lifted != self._lifted_told:  # the localizer gives its pose up while lifted
             self._lifted_told = lifted
             self._to_child(("lifted", lifted))
-        if now >= self._next_status:
-            self._next_status = now + STATUS_PERIOD_S
+        if now >= self._next_status or d.permit != self._status_permit:
+            # every STATUS_PERIOD_S, and at once when the deck's permit changes: the status
+            # page shows the supervisor's own halts (tilt, a bump, a late estimator) by it
+            self._next_status, self._status_permit = now + STATUS_PERIOD_S, d.permit
             self._to_child(("status", self.status(now)))
         self._watchdog(now)
 

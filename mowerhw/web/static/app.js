@@ -81,14 +81,19 @@ const fmt = (v, n) => (v === null || v === undefined ? "–" : Number(v).toFixed
 function showDaemon(d) {
   document.body.dataset.now = d.now;
   document.body.dataset.state = d.state;
-  document.body.dataset.permit = d.permit;
+  // the permit supervisor sends the frames: its own halt (tilt, a bump, a late estimator,
+  // its CAN address) stops the deck whatever the estimation side decided
+  const sup = d.supervisor;
+  const supHalt = Boolean(d.permit && sup && sup.permit === false);
+  const permit = Boolean(d.permit) && !supHalt;
+  document.body.dataset.permit = permit;
   $("mode").textContent = d.mode;
   const p = $("permit");
-  p.textContent = d.permit ? "MOWING PERMITTED" : "HALT";
-  p.className = "badge " + (d.permit ? "permit" : "halt");
+  p.textContent = permit ? "MOWING PERMITTED" : "HALT";
+  p.className = "badge " + (permit ? "permit" : "halt");
   $("state").textContent = d.state;
-  $("reason").textContent = d.permit ? "–" : d.reason;
-  $("detail").textContent = d.detail || "–";
+  $("reason").textContent = permit ? "–" : supHalt ? sup.reason : d.reason;
+  $("detail").textContent = supHalt ? `permit supervisor: ${sup.detail || sup.reason}` : d.detail || "–";
   $("distance").textContent = d.signed_distance_m === null ? "–" : fmt(d.signed_distance_m, 2) + " m inside";
   const pose = d.pose;
   $("pose-x").textContent = pose ? fmt(pose.x, 3) : "–";
