@@ -5,6 +5,7 @@ ISO 11783-5 NAME, from the config."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import logging
 import time
@@ -36,17 +37,14 @@ def ecu_name(c: CanConfig, machine_id: Path = MACHINE_ID) -> IsoName:
             identity = int.from_bytes(digest[:3], "little") & ((1 << 21) - 1)
         except OSError:
             identity = 0
-    return IsoName(
-        identity_number=identity,
-        manufacturer_code=c.name_manufacturer_code,
-        ecu_instance=c.name_ecu_instance,
-        function_instance=c.name_function_instance,
-        function=c.name_function,
-        device_class=c.name_device_class,
-        device_class_instance=c.name_device_class_instance,
-        industry_group=c.name_industry_group,
-        self_configurable=False,  # the address is the config's: it does not pick another
-    )
+    # every other field from the key of its name: can.name_manufacturer_code, …
+    keys = {
+        f.name: getattr(c, f"name_{f.name}")
+        for f in dataclasses.fields(IsoName)
+        if f.name not in ("identity_number", "self_configurable")
+    }
+    # the address is the config's: mowerhw does not pick another (not self-configurable)
+    return IsoName(identity_number=identity, self_configurable=False, **keys)
 
 
 class CanPort:
