@@ -6,7 +6,9 @@ Deere tractor's J1939 / ISO 11783 bus, standing still. Its GBSD (PGN 65097, sour
 always "not available"; its CCVS1 (PGN 65265) wheel-based speed is 0 km/h; ETC2 (PGN 61445)
 gives the selected gear. Each log is read with python-can's candump reader and fed, at its
 own timestamps, through :class:`drivers.can.speed.SpeedReader` and the permit gate's
-staleness decision, as the daemon does, once per ``speed.source``.
+staleness decision, as the daemon does, once per ``speed.source``. And its network management
+(ISO 11783-5): each ECU's address claim with its NAME decoded, the requests for claims, and
+what mowerhw's :class:`drivers.can.address_claim.AddressClaim` does on that bus at 0x90.
 
 Prints one JSON object per log. Run: ``.venv/bin/python tools/check_real_can.py``.
 """
@@ -21,6 +23,14 @@ from pathlib import Path
 
 import can
 
+from drivers.can.address_claim import (
+    NULL_ADDRESS,
+    PGN_ADDRESS_CLAIMED,
+    PGN_REQUEST,
+    AddressClaim,
+    IsoName,
+    requested_pgn,
+)
 from drivers.can.isobus import parse_id
 from drivers.can.speed import SpeedReader, invalid_detail
 from mowerhw.mow.gate import PermitGate
@@ -93,12 +103,57 @@ def gbsd_period_stats(path: Path) -> dict[str, float]:
     }
 
 
+def network_management(path: Path, address: int = 0x90) -> dict[str, object]:
+    """The log's address claims (the newest NAME of each address, decoded) and requests for
+    claims; then the log fed to an :class:`AddressClaim` holding ``address``: the answers it
+    sends, whether anyone contested it."""
+    names: dict[int, IsoName] = {}
+    claims = requests = 0
+    ours = IsoName(identity_number=0, manufacturer_code=0, function=128)
+    mowerhw = AddressClaim(ours, address, seed=0)
+    mowerhw.begin(0.0)
+    mowerhw.due(0.0)
+    answers = 0
+    for msg in can.CanutilsLogReader(str(path)):
+        if not msg.is_extended_id:
+            continue
+        ident, data = parse_id(msg.arbitration_id), bytes(msg.data)
+        if ident.pgn == PGN_ADDRESS_CLAIMED and ident.source != NULL_ADDRESS and len(data) >= 8:
+            claims += 1
+            names[ident.source] = IsoName.from_bytes(data)
+        elif ident.pgn == PGN_REQUEST and requested_pgn(data) == PGN_ADDRESS_CLAIMED:
+            requests += 1
+        mowerhw.received(msg.arbitration_id, data, 1.0)
+        answers += len(mowerhw.due(1.0))
+    return {
+        "claims": claims,
+        "requests_for_claims": requests,
+        "names": {
+            f"0x{sa:02X}": {
+                "name": f"0x{n.value:016X}",
+                "manufacturer_code": n.manufacturer_code,
+                "function": n.function,
+                "device_class": n.device_class,
+                "industry_group": n.industry_group,
+                "self_configurable": n.self_configurable,
+            }
+            for sa, n in sorted(names.items())
+        },
+        f"mowerhw_at_0x{address:02X}": {
+            "answers": answers,
+            "holds_it": mowerhw.holds(1.0),
+            "contested": mowerhw.contests_won > 0 or mowerhw.state == "lost",
+        },
+    }
+
+
 def check(path: Path) -> dict[str, object]:
     return {
         "log": path.name,
         **gbsd_period_stats(path),
         "ground": replay(path, "ground"),
         "ccvs1": replay(path, "ccvs1"),
+        "network_management": network_management(path),
     }
 
 
