@@ -49,7 +49,7 @@ PRIORITY = 6
 
 @dataclass(frozen=True)
 class IsoName:
-    """The 64-bit NAME (ISO 11783-5 §4.2, J1939-81 §4.1.1), its fields from bit 0 up:
+    """The 64-bit NAME of ISO 11783-5 and J1939-81, its fields from bit 0 up:
     identity number (21 bits), manufacturer code (11), ECU instance (3), function instance
     (5), function (8), a reserved bit, device class (7; J1939's vehicle system), device
     class instance (4), industry group (3; 2 = agricultural and forestry equipment) and
