@@ -408,3 +408,15 @@ def test_calibrate_the_real_mirror_camera(tmp_path):
     assert cam["xi"] == pytest.approx(0.958, abs=0.01) and cam["skew_px"] == pytest.approx(
         -0.76, abs=0.1
     )
+
+
+def test_calibrating_from_files_that_are_not_images_names_them(tmp_path):
+    from mowerhw.camera.calibrate import CalibrationError, calibrate
+
+    photos = [tmp_path / f"{k}.jpg" for k in range(5)]
+    for p in photos:
+        p.write_bytes(b"not a JPEG")
+    with pytest.raises(
+        CalibrationError, match=r"none of the 5 images could be read \(0\.jpg, 1\.jpg, 2\.jpg, …\)"
+    ):
+        calibrate(photos, (9, 6), 0.03)

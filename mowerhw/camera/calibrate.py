@@ -167,7 +167,11 @@ def calibrate(
         tell(f"{Path(path).name}: {'board found' if view.corners is not None else 'no board'}")
     found = [v for v in views if v.corners is not None]
     if size is None:
-        raise CalibrationError("none of the images could be read")
+        names = ", ".join(Path(v.path).name for v in views[:3]) + (", …" if len(views) > 3 else "")
+        raise CalibrationError(
+            f"none of the {len(views)} images could be read ({names}): not images OpenCV can "
+            "read (JPEG, PNG, TIFF, …) or not readable files"
+        )
     if len(found) < MIN_VIEWS:
         raise CalibrationError(
             f"the board was found in {len(found)} of {len(views)} photos; at least {MIN_VIEWS} "
