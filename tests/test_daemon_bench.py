@@ -23,8 +23,9 @@ def test_mows_with_faults_and_recovers(yard_map, tmp_path) -> None:
         FaultSpec("speed-stop", 16.0, 1.0),
         FaultSpec("corrupt-map", 24.0, 1.0),
         FaultSpec("exception", 32.0, 1.0),
+        FaultSpec("address-conflict", 38.0, 1.0),  # another node takes the CAN address
     ]
-    res = Bench(duration_s=42.0, seed=7, out_dir=tmp_path, faults=faults, map_path=yard_map).run()
+    res = Bench(duration_s=46.0, seed=7, out_dir=tmp_path, faults=faults, map_path=yard_map).run()
     print({k: res[k] for k in ("position_rmse_m", "missed_halts", "halt_latency_ms")})
     assert res["missed_halts"] == 0
     assert res["position_rmse_m"] is not None and res["position_rmse_m"] < 0.10
@@ -44,6 +45,13 @@ def test_mows_with_faults_and_recovers(yard_map, tmp_path) -> None:
             assert f["stop_after_ms"] is not None, f
         assert reason in f["reason"], f
         assert f["recovered"], f
+    # the CAN address taken: the supervisor yields it (silence: the controller stops the
+    # deck), names the holder, and claims it again once the other node has left the bus
+    f = by_kind["address-conflict"]
+    assert f["recovered"], f
+    assert any("held by another ECU" in n for n in f["notes"]), f
+    assert res["can_address"]["claims_seen"] == 2  # the start, the address regained
+    assert res["can_address"]["frames_before_first_claim"] == 0
     # the map file was restored, never half-written by the daemon
     assert (tmp_path / "lawn.json").read_bytes() == yard_map.read_bytes()
     log = (tmp_path / "daemon.log").read_text()

@@ -8,7 +8,10 @@ than ``timeout_s`` (300 ms); and the heartbeat does not say error (254) or shutt
 (255). It records every change of its deck state with the time and the reason, and also reads
 the status frame (containment state) so a bench can turn the mower at NEAR_EDGE. It counts
 the address claims (ISO 11783-5, PGN 60928) from that source, and its frames that came
-before the first claim (an ISO 11783 node claims before it sends).
+before the first claim (an ISO 11783 node claims before it sends). :meth:`claim_address`
+makes it a second node on the permit source's address for a while (a misconfigured unit):
+it claims that address with a NAME of higher priority and defends it, answering every
+request for claims, until it leaves the bus.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from dataclasses import dataclass, field
 
 import can
 
-from drivers.can.address_claim import PGN_ADDRESS_CLAIMED
+from drivers.can.address_claim import PGN_ADDRESS_CLAIMED, PGN_REQUEST, IsoName, requested_pgn
 from drivers.can.isobus import PGN_HEARTBEAT, PGN_ISB, can_id, parse_id
 from drivers.can.permit import HB_ERROR, HB_SHUTDOWN, ISB_PERMIT, Status, decode_isb, decode_status
 from drivers.can.switches import Switches, encode_switches
@@ -83,6 +86,8 @@ class MockMowerController(ThreadedDevice):
         self.sa = source_address
         self._sent_switches: Switches | None = None
         self._next_switches = 0.0
+        #: (NAME, until, claim due): claiming the permit source's address (claim_address)
+        self._impostor: tuple[IsoName, float, bool] | None = None
 
     def start(self) -> MockMowerController:
         self._start_thread()
@@ -97,6 +102,33 @@ class MockMowerController(ThreadedDevice):
             self.evaluate(now)
             if self.switches_pgn is not None:
                 self._send_switches(now)
+            self._send_impostor_claim(now)
+
+    #: the lowest NAME there is: it wins every contest for an address
+    IMPOSTOR_NAME = IsoName(identity_number=0, manufacturer_code=0, industry_group=0)
+
+    def claim_address(self, seconds: float) -> None:
+        """For ``seconds``, claim the permit source's address with :data:`IMPOSTOR_NAME`
+        and answer requests for claims with it; then leave the bus silently."""
+        self._impostor = (self.IMPOSTOR_NAME, time.monotonic() + seconds, True)
+
+    def _send_impostor_claim(self, now: float) -> None:
+        imp = self._impostor
+        if imp is None:
+            return
+        name, until, due = imp
+        if now >= until:
+            self._impostor = None
+            return
+        if due:
+            msg = can.Message(
+                arbitration_id=can_id(6, PGN_ADDRESS_CLAIMED, self.source),
+                data=name.to_bytes(),
+                is_extended_id=True,
+            )
+            with contextlib.suppress(can.CanError, OSError):
+                self.bus.send(msg, timeout=0.0)
+            self._impostor = (name, until, False)
 
     def _send_switches(self, now: float) -> None:
         sw = self.switches
@@ -113,8 +145,17 @@ class MockMowerController(ThreadedDevice):
 
     def handle(self, arbitration_id: int, data: bytes, now: float) -> None:
         ident = parse_id(arbitration_id)
+        imp = self._impostor
+        if imp is not None and ident.pgn == PGN_REQUEST:  # asked who holds what: we do
+            if requested_pgn(data) == PGN_ADDRESS_CLAIMED:
+                self._impostor = (imp[0], imp[1], True)
+            return
         if ident.source != self.source or len(data) < 8:
             return
+        if imp is not None and ident.pgn == PGN_ADDRESS_CLAIMED:
+            if int.from_bytes(data[:8], "little") == imp[0].value:
+                return  # our own impostor claim, echoed by the bench's bus
+            self._impostor = (imp[0], imp[1], True)  # contested: defend it
         s = self.state
         with self._lock:
             if ident.pgn == PGN_ADDRESS_CLAIMED:

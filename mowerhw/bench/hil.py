@@ -75,6 +75,7 @@ FAULT_KINDS = (
     "estimator-stall",
     "estimator-kill",
     "can-down",
+    "address-conflict",
     "lift",
     "tilt",
     "bump",
@@ -786,6 +787,14 @@ class Bench:
                 res.notes.append(f"heartbeats seen from the fault on: {seen}")
 
             self._actions.append((t0 + spec.duration_s + 2.0, heartbeats_after))
+        elif spec.kind == "address-conflict":  # another node claims the supervisor's address
+            ctl.claim_address(spec.duration_s)
+
+            def supervisor_says() -> None:
+                sup = (self._status(timeout=1.0) or {}).get("supervisor") or {}
+                res.notes.append(f"supervisor: {sup.get('reason')}: {sup.get('detail')}")
+
+            self._actions.append((t0 + min(1.0, spec.duration_s * 0.5), supervisor_says))
         elif spec.kind == "corrupt-map":
             path = Path(self.cfg_path.parent / "lawn.json")
             with open(path, "r+b") as fh:  # damaged in place, as a bad disk or editor would
