@@ -15,6 +15,7 @@ from _tools import load_tool
 from drivers.can.address_claim import (
     CONTENTION_S,
     NULL_ADDRESS,
+    PGN_ACKNOWLEDGMENT,
     PGN_ADDRESS_CLAIMED,
     PGN_REQUEST,
     RESPONSE_TIMEOUT_S,
@@ -119,6 +120,31 @@ def test_the_claim_holds_after_the_contention_time_and_answers_requests() -> Non
     assert ac.due(13.0) == []
     assert ac.received(*claimed(LOWER, 0x27), 14.0)  # another address's claim: nothing
     assert ac.holds(14.0) and ac.due(14.0) == []
+
+
+def test_a_request_to_it_for_a_pgn_it_does_not_send_gets_a_nack() -> None:
+    """J1939-21: a request addressed to the node for a PGN it does not send is answered with
+    a NACK (Acknowledgment, PGN 59392: control 1, the requester, the PGN), to everyone; a
+    request to everyone, or for a PGN it sends anyway, gets none; nor one before the address
+    is ours. The request is the real tractor's: its cluster (0x17) asks each ECU by address
+    for proprietary PGN 0xFF09 (the logs: 0x17 → 0x00, 0x03, 0x06, 0x47)."""
+    ac = AddressClaim(OURS, 0x90, seed=0, sent_pgns=frozenset({PGN_ISB}))
+    ff09 = (0xFF09).to_bytes(3, "little")
+    ac.received(can_id(6, PGN_REQUEST, 0x17, 0x90), ff09, 0.0)
+    assert ac.due(0.0) == []  # no address yet: no answer from it
+    ac.begin(0.0)
+    ac.due(0.0)
+    assert ac.holds(1.0)
+    assert ac.received(can_id(6, PGN_REQUEST, 0x17, 0x90), ff09, 1.0)
+    (nack,) = ac.due(1.0)
+    assert nack.arbitration_id == can_id(6, PGN_ACKNOWLEDGMENT, 0x90, GLOBAL_ADDRESS)
+    assert nack.data == bytes([1, 0xFF, 0xFF, 0xFF, 0x17, 0x09, 0xFF, 0x00])
+    assert not ac.received(can_id(6, PGN_REQUEST, 0x17, GLOBAL_ADDRESS), ff09, 2.0)
+    assert not ac.received(can_id(6, PGN_REQUEST, 0x17, 0x00), ff09, 2.0)  # another's
+    isb = PGN_ISB.to_bytes(3, "little")
+    assert not ac.received(can_id(6, PGN_REQUEST, 0x17, 0x90), isb, 2.0)  # comes anyway
+    assert ac.due(2.0) == [] and ac.status()["nacks_sent"] == 1
+    assert ac.claims_sent == 1  # the NACK is not a claim
 
 
 def test_a_higher_name_is_answered_and_a_lower_one_takes_the_address() -> None:

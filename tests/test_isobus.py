@@ -14,7 +14,13 @@ from _waiting import wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.can.address_claim import PGN_ADDRESS_CLAIMED, PGN_REQUEST, IsoName
+from drivers.can.address_claim import (
+    PGN_ACKNOWLEDGMENT,
+    PGN_ADDRESS_CLAIMED,
+    PGN_REQUEST,
+    AddressClaim,
+    IsoName,
+)
 from drivers.can.isobus import (
     GLOBAL_ADDRESS,
     PGN_CCVS1,
@@ -516,6 +522,16 @@ def test_every_frame_decodes_with_cantools_against_the_shipped_dbc():
     # the real tractor's request for every claim (ECU 0x00 to the global address)
     request = can_id(6, PGN_REQUEST, 0x00, GLOBAL_ADDRESS), bytes.fromhex("00EE00")
     assert decode(*request) == ("RequestForAddressClaimed", {"RequestedPgn": PGN_ADDRESS_CLAIMED})
+    # mowerhw's NACK of the tractor cluster's request for 0xFF09 (addressed to it)
+    ac = AddressClaim(name_, 0x90, seed=0)
+    ac.begin(0.0)
+    ac.due(0.0)
+    assert ac.holds(1.0)
+    ac.received(can_id(6, PGN_REQUEST, 0x17, 0x90), (0xFF09).to_bytes(3, "little"), 1.0)
+    (nack,) = ac.due(1.0)
+    name, sig = decode(nack.arbitration_id, nack.data)
+    assert name == "Acknowledgment" and sig["AckControlByte"] == "NACK"
+    assert (sig["AckAddress"], sig["AckPgn"]) == (0x17, 0xFF09)
 
 
 def test_dbc_lists_the_identifiers_the_drivers_build():
@@ -529,6 +545,7 @@ def test_dbc_lists_the_identifiers_the_drivers_build():
     assert ids["MowerhwStatus"] == can_id(6, 0xFF10, 0x90)
     assert ids["AddressClaimed"] == can_id(6, PGN_ADDRESS_CLAIMED, 0x90)
     assert ids["RequestForAddressClaimed"] == can_id(6, PGN_REQUEST, 0x00, GLOBAL_ADDRESS)
+    assert ids["Acknowledgment"] == can_id(6, PGN_ACKNOWLEDGMENT, 0x90, GLOBAL_ADDRESS)
     assert all(m.is_extended_frame for m in db.messages)
 
 

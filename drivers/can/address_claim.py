@@ -11,6 +11,12 @@ Address Claimed frame from the null address 254) after a pseudo-random delay of 
 and nothing else but answers. A real tractor does this on every start (the John Deere logs in
 ``data/real``: each ECU claims, and three of them ask for everyone's claims).
 
+A request addressed to this node for a PGN it does not send is answered with a negative
+acknowledgement (J1939-21: Acknowledgment, PGN 59392, control byte 1, the requester's address
+and the PGN), so the asker need not wait out its timeout; a request to everyone for such a
+PGN gets no answer. The tractor's cluster (0x17 in the logs) asks each ECU that claimed an
+address for a proprietary PGN by address.
+
 :class:`AddressClaim` is the logic only (no bus, no clock of its own): it is told the time
 and the frames received, and says which frames to send when, and whether the address is
 held; :func:`serve` sends those frames on a bus. Whatever sends the permit frames drives it
@@ -37,6 +43,8 @@ log = logging.getLogger("mowerhw.can")
 
 PGN_ADDRESS_CLAIMED = 60928  # 0xEE00, also "Cannot Claim" when sent from NULL_ADDRESS
 PGN_REQUEST = 59904  # 0xEA00: bytes 0-2 the PGN requested (little-endian)
+PGN_ACKNOWLEDGMENT = 59392  # 0xE800: byte 0 control (1 = NACK), byte 4 requester, 5-7 PGN
+ACK_NACK = 1
 NULL_ADDRESS = 254  # a control function without an address
 #: ISO 11783-5: no other message until this long after the claim (s)
 CONTENTION_S = 0.25
@@ -144,8 +152,15 @@ class AddressClaim:
     ``held``, ``lost``."""
 
     def __init__(
-        self, name: IsoName, address: int, retry_s: float = 10.0, seed: int | None = None
+        self,
+        name: IsoName,
+        address: int,
+        retry_s: float = 10.0,
+        seed: int | None = None,
+        sent_pgns: frozenset[int] = frozenset(),
     ) -> None:
+        """``sent_pgns``: the PGNs the node sends on its own (the permit frames, every 100
+        ms): a request for one of them gets no NACK, it comes anyway."""
         if not 0 <= address <= 253:
             raise ValueError(f"source address {address}: must be 0..253")
         self.name = name
@@ -153,8 +168,10 @@ class AddressClaim:
         self.retry_s = retry_s
         self.state = "idle"
         self.holder: IsoName | None = None  # who took the address from us
+        self.sent_pgns = sent_pgns
         self.claims_sent = 0
         self.contests_won = 0
+        self.nacks_sent = 0
         self.changes: list[str] = []  # what happened, for the caller to log (then cleared)
         self._since = 0.0
         self._retry_at = 0.0
@@ -176,6 +193,10 @@ class AddressClaim:
             can_id(PRIORITY, PGN_REQUEST, NULL_ADDRESS, GLOBAL_ADDRESS),
             PGN_ADDRESS_CLAIMED.to_bytes(3, "little"),
         )
+
+    def _nack_frame(self, requester: int, pgn: int) -> Frame:
+        data = bytes([ACK_NACK, 0xFF, 0xFF, 0xFF, requester]) + pgn.to_bytes(3, "little")
+        return Frame(can_id(PRIORITY, PGN_ACKNOWLEDGMENT, self.address, GLOBAL_ADDRESS), data)
 
     def _cannot_claim_frame(self) -> Frame:
         return Frame(
@@ -206,8 +227,17 @@ class AddressClaim:
         if ident.pgn == PGN_REQUEST:
             if ident.destination not in (GLOBAL_ADDRESS, self.address):
                 return False
-            if requested_pgn(data) != PGN_ADDRESS_CLAIMED:
+            asked = requested_pgn(data)
+            if asked is None:
                 return False
+            if asked != PGN_ADDRESS_CLAIMED:
+                if ident.destination != self.address or asked in self.sent_pgns:
+                    return False  # to everyone, or one that comes anyway: no answer
+                with self._lock:
+                    if self.state == "held":  # from an address that is ours only
+                        self.nacks_sent += 1
+                        self._queue(now, self._nack_frame(ident.source, asked))
+                return True
             with self._lock:
                 if self.state in ("claiming", "held"):
                     self._queue(now, self._claim_frame())
@@ -284,7 +314,7 @@ class AddressClaim:
             self._advance(now)
             out = [f for at, f in self._pending if at <= now]
             self._pending = [(at, f) for at, f in self._pending if at > now]
-            self.claims_sent += sum(1 for f in out if f.arbitration_id & 0xFF == self.address)
+            self.claims_sent += sum(1 for f in out if f == self._claim_frame())
             return out
 
     def next_due(self) -> float:
@@ -311,6 +341,7 @@ class AddressClaim:
                 "holder": None if self.holder is None else f"0x{self.holder.value:016X}",
                 "claims_sent": self.claims_sent,
                 "contests_won": self.contests_won,
+                "nacks_sent": self.nacks_sent,
             }
 
 

@@ -206,13 +206,9 @@ class CanLink(ThreadedDevice):
         self.sender: PermitSender | None = None
         self.open_failures = 0
         #: its source address, claimed when the bus opens (ISO 11783-5; None: not claimed)
-        self.claim: AddressClaim | None = None
-        if cfg.can.address_claim:
-            from mowerhw.supervisor.canport import ecu_name
+        from mowerhw.supervisor.canport import address_claim
 
-            self.claim = AddressClaim(
-                ecu_name(cfg.can), cfg.can.source_address, cfg.can.address_claim_retry_s
-            )
+        self.claim: AddressClaim | None = address_claim(cfg)
 
     def open(self) -> bool:
         c = self.cfg.can

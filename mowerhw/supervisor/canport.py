@@ -14,8 +14,8 @@ from typing import Any
 
 import can
 
-from drivers.can.address_claim import IsoName
-from drivers.can.isobus import open_bus
+from drivers.can.address_claim import AddressClaim, IsoName
+from drivers.can.isobus import PGN_HEARTBEAT, PGN_ISB, open_bus
 from mowerhw.config import CanConfig, Config
 
 log = logging.getLogger("mowerhw.supervisor")
@@ -45,6 +45,17 @@ def ecu_name(c: CanConfig, machine_id: Path = MACHINE_ID) -> IsoName:
     }
     # the address is the config's: mowerhw does not pick another (not self-configurable)
     return IsoName(identity_number=identity, self_configurable=False, **keys)
+
+
+def address_claim(cfg: Config) -> AddressClaim | None:
+    """The claim of ``can.source_address`` (ISO 11783-5) for whatever sends the permit
+    frames, or None with ``can.address_claim: false``. Requests for the permit frames'
+    PGNs get no NACK: they come every 100 ms anyway."""
+    c = cfg.can
+    if not c.address_claim:
+        return None
+    sent = frozenset({PGN_ISB, PGN_HEARTBEAT, cfg.permit.status_pgn})
+    return AddressClaim(ecu_name(c), c.source_address, c.address_claim_retry_s, sent_pgns=sent)
 
 
 class CanPort:

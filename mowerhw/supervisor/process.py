@@ -42,7 +42,7 @@ from mowerhw.config import Config
 from mowerhw.estimation.safety import SafetyMonitor
 from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
-from mowerhw.supervisor.canport import CanPort, ecu_name
+from mowerhw.supervisor.canport import CanPort, address_claim
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.supervisor.web_child import web_child_main
 from mowerhw.web.process import WebProcess
@@ -142,11 +142,8 @@ class Supervisor:
         #: on SocketCAN the kernel drops the rest of a busy bus before the thread wakes
         reads = self._speed.pgns | {config.safety.switches_pgn}
         #: its source address, claimed on every bus it opens (ISO 11783-5; None: not claimed)
-        self.claim: AddressClaim | None = None
-        if config.can.address_claim:
-            self.claim = AddressClaim(
-                ecu_name(config.can), config.can.source_address, config.can.address_claim_retry_s
-            )
+        self.claim: AddressClaim | None = address_claim(config)
+        if self.claim is not None:
             reads |= {PGN_ADDRESS_CLAIMED, PGN_REQUEST}
         self.port = CanPort(config, None if record is not None else pgn_filters(reads))
         self.safety = SafetyMonitor(config.safety)
