@@ -221,8 +221,9 @@ class AddressClaim:
         self._queue(now, self._claim_frame())
 
     def received(self, arbitration_id: int, data: bytes, now: float) -> bool:
-        """A frame from the bus; True when it was one of network management's (claims and
-        requests for claims), which may have queued frames to send."""
+        """A frame from the bus; True when it was one of network management's (a claim, a
+        request for claims, a request addressed to this node), which may have queued frames
+        to send."""
         ident = parse_id(arbitration_id)
         if ident.pgn == PGN_REQUEST:
             if ident.destination not in (GLOBAL_ADDRESS, self.address):
