@@ -789,12 +789,6 @@ class Bench:
             self._actions.append((t0 + spec.duration_s + 2.0, heartbeats_after))
         elif spec.kind == "address-conflict":  # another node claims the supervisor's address
             ctl.claim_address(spec.duration_s)
-
-            def supervisor_says() -> None:
-                sup = (self._status(timeout=1.0) or {}).get("supervisor") or {}
-                res.notes.append(f"supervisor: {sup.get('reason')}: {sup.get('detail')}")
-
-            self._actions.append((t0 + min(1.0, spec.duration_s * 0.5), supervisor_says))
         elif spec.kind == "corrupt-map":
             path = Path(self.cfg_path.parent / "lawn.json")
             with open(path, "r+b") as fh:  # damaged in place, as a bad disk or editor would
@@ -838,10 +832,18 @@ class Bench:
 
         def note_reason() -> None:
             """The daemon's first halt reason while the fault lasts (asked a few times: a
-            map fault is seen after the next map check and the loader's start)."""
+            map fault is seen after the next map check and the loader's start): the
+            estimation side's, or the permit supervisor's own (tilt, a bump, its CAN
+            address taken) while the estimation side permits."""
             st = self._status(timeout=1.0)
-            if st and not res.daemon_reason and not st.get("permit") and st.get("reason"):
+            if not st or res.daemon_reason:
+                return
+            sup = st.get("supervisor") or {}
+            if not st.get("permit") and st.get("reason"):
                 res.daemon_reason = f"{st.get('reason', '')}: {st.get('detail', '')}".strip(": ")
+            elif sup.get("permit") is False and sup.get("reason"):
+                said = f"{sup.get('reason', '')}: {sup.get('detail', '')}".strip(": ")
+                res.daemon_reason = f"supervisor: {said}"
 
         def cleared() -> None:
             res.t_clear = time.monotonic()
