@@ -1,5 +1,6 @@
 """Shared test settings: hypothesis profiles (CI runs the 'ci' profile, deterministic)."""
 
+import importlib.util
 import os
 
 import pytest
@@ -81,3 +82,35 @@ def yard_map(tmp_path_factory, multicast):
     path = tmp_path_factory.mktemp("map") / "lawn.json"
     LawnMap.from_teach_result(out.result).save(path)
     return path
+
+
+#: the files whose tests run the daemon in real time against the bench's mock hardware
+REALTIME_BENCH_FILES = ("test_daemon_bench.py", "test_web_page.py")
+
+
+def _is_realtime_bench(nodeid: str) -> bool:
+    return nodeid.split("::", 1)[0].rsplit("/", 1)[-1] in REALTIME_BENCH_FILES
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The real-time bench tests first: under two workers the longest share starts at once."""
+    items.sort(key=lambda item: not _is_realtime_bench(item.nodeid))  # stable
+
+
+if importlib.util.find_spec("xdist") is not None:
+    from xdist.scheduler import LoadScopeScheduling
+
+    class _ByFileScheduling(LoadScopeScheduling):
+        """pytest-xdist's workers (`./dev test` runs two) get whole test files, so a file's
+        module fixtures are made once; the real-time bench files share one worker, one after
+        another, so the yard's map is taught once and two real-time daemons never compete for
+        the machine's cores."""
+
+        def _split_scope(self, nodeid: str) -> str:
+            return "realtime-bench" if _is_realtime_bench(nodeid) else nodeid.split("::", 1)[0]
+
+    def pytest_xdist_make_scheduler(
+        config: pytest.Config, log: object
+    ) -> LoadScopeScheduling | None:
+        """``-n N`` (pytest-xdist's ``--dist load``) schedules by file as above."""
+        return _ByFileScheduling(config, log) if config.getvalue("dist") == "load" else None
