@@ -60,3 +60,27 @@ def test_camera_info_bad_calibration_exits_78(tmp_path):
     res = run("camera", "info", "--calibration", str(bad))
     assert res.returncode == 78
     assert "cam0.camera_model: 'pinhole' is not supported" in res.stdout + res.stderr
+
+
+def test_ctl_says_why_it_got_no_reply(tmp_path, capsys):
+    """`mowerhw ctl` with no daemon, a daemon gone, and a daemon that does not answer (its
+    estimation process stalled): each says which it is, not only the socket's errno."""
+    import socket
+
+    missing = tmp_path / "none.sock"
+    assert main(["ctl", "--socket", str(missing), "status"]) == 1
+    assert "no such socket: the daemon is not running" in capsys.readouterr().err
+
+    gone = tmp_path / "gone.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.bind(str(gone))  # the file stays, nobody listens: a daemon that died
+    assert main(["ctl", "--socket", str(gone), "status"]) == 1
+    assert "nothing listens on it: the daemon is not running" in capsys.readouterr().err
+
+    stalled = tmp_path / "stalled.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.bind(str(stalled))
+        s.listen(1)  # accepted by the kernel, never answered
+        assert main(["ctl", "--socket", str(stalled), "--timeout", "0.3", "status"]) == 1
+    err = capsys.readouterr().err
+    assert "no reply within 0.3 s: the daemon's estimation process is busy or stalled" in err

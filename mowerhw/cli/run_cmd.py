@@ -163,7 +163,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:
-    from mowerhw.runtime.control_protocol import request
+    from mowerhw.runtime.control_protocol import request, unreachable
 
     sock = args.socket
     if sock is None:
@@ -177,7 +177,8 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     try:
         reply = request(sock, args.command, timeout=args.timeout, **extra)
     except (OSError, ConnectionError) as exc:
-        print(f"mowerhw ctl: cannot reach the daemon at {sock}: {exc}", file=sys.stderr)
+        why = unreachable(exc, args.timeout)
+        print(f"mowerhw ctl: cannot reach the daemon at {sock}: {why}", file=sys.stderr)
         return 1
     if args.json or args.command == "status":
         print(strict_json(reply, indent=2))

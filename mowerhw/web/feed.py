@@ -26,6 +26,7 @@ from typing import Any
 from mowerhw.common.fileio import FileStamp, file_stamp
 from mowerhw.map import MapError
 from mowerhw.map import load as load_map
+from mowerhw.runtime.control_protocol import unreachable
 from mowerhw.web.plan import map_plan
 
 log = logging.getLogger("mowerhw.web")
@@ -153,7 +154,7 @@ class DaemonFeed:
         except (OSError, ConnectionError, TimeoutError, ValueError) as exc:
             self.poll_errors += 1
             self._close()
-            error = f"the daemon does not answer on {self.socket_path} ({_why(exc)})"
+            error = f"the daemon does not answer on {self.socket_path} ({unreachable(exc)})"
             if error != self.error:
                 log.warning("web: %s", error)
             self.error = error
@@ -279,12 +280,6 @@ async def _exchange(conn: Connection, req: dict[str, Any], timeout: float) -> di
 
 def _load_plan(path: Path) -> dict[str, Any]:
     return map_plan(load_map(path))
-
-
-def _why(exc: BaseException) -> str:
-    if isinstance(exc, TimeoutError):
-        return "no reply in time"
-    return str(exc) or type(exc).__name__
 
 
 def _null(constant: str) -> None:

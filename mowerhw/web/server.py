@@ -31,6 +31,7 @@ from typing import Any
 from aiohttp import WSMsgType, web
 
 from mowerhw.config import EX_CONFIG, Config, WebConfig
+from mowerhw.runtime.control_protocol import unreachable
 from mowerhw.web.commands import CONTROLS, MAX_BODY_BYTES, CommandError, parse_command
 from mowerhw.web.feed import DaemonFeed
 from mowerhw.web.token import TokenError, load_or_create_token, token_matches
@@ -299,7 +300,7 @@ class WebServer:
         try:
             reply = await self.feed.request(req)
         except (OSError, ConnectionError, TimeoutError, ValueError) as exc:
-            return self._refuse(503, f"the daemon does not answer ({exc or type(exc).__name__})")
+            return self._refuse(503, f"the daemon does not answer ({unreachable(exc)})")
         log.info(
             "web: %s from %s: %s",
             req["cmd"],
