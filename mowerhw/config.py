@@ -682,6 +682,15 @@ class SupervisorConfig:
     child_start_timeout_s: float = opt(
         60.0, "the estimation process must say it is running within this", gt=0.0, le=600.0
     )
+    child_hang_s: float = opt(
+        15.0,
+        "the estimation process, once it has sent its first lease, sends nothing this long "
+        "(it renews the lease at least every 0.1 s): it is hung; the supervisor kills it and "
+        "ends the service with exit status 1, for systemd to restart it (the deck halted long "
+        "before, when the lease ran out)",
+        ge=1.0,
+        le=600.0,
+    )
     nice: int = opt(
         -10,
         "scheduling priority of the supervisor (lower runs first: a loaded computer must not "

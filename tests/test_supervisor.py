@@ -99,6 +99,47 @@ def test_the_supervisor_halts_a_quiet_estimator_and_ends_when_it_dies(tmp_path: 
     assert not mower.deck_running
 
 
+#: the mock estimation process: permits for a second, then alive but silent (hung)
+HANG_SCRIPT = ((1.0, "permit"), (60.0, "quiet"), (0.0, "exit"))
+
+
+def test_a_hung_estimation_process_is_killed_and_the_service_ends(
+    tmp_path: Path, caplog: Any
+) -> None:
+    """Alive but silent (a deadlock, a blocked read): the lease halts the deck at once, and
+    after ``supervisor.child_hang_s`` the supervisor kills it and ends with exit status 1,
+    for systemd to restart the service (before, it halted forever and fed the watchdog)."""
+    import functools
+
+    channel = f"hang-{uuid.uuid4().hex[:8]}"
+    raw = config_to_dict(default_config())
+    raw["can"].update(interface="virtual", channel=channel)
+    raw["supervisor"]["child_hang_s"] = 1.5
+    cfg = config_from_dict(raw, tmp_path, "test config")
+    bus, speed_bus = open_bus("virtual", channel), open_bus("virtual", channel)
+    mower = MockMowerController(bus, permit_source=cfg.can.source_address).start()
+    speed = MockSpeedSensor(speed_bus, lambda t: 0.3).start()
+    sup = Supervisor(cfg, child_target=functools.partial(scripted_estimator, script=HANG_SCRIPT))
+    t0 = time.monotonic()
+    try:
+        with caplog.at_level("ERROR", logger="mowerhw.supervisor"):
+            status = sup.run()
+        took = time.monotonic() - t0
+        mower.evaluate(time.monotonic())
+    finally:
+        mower.stop()
+        speed.stop()
+        bus.shutdown()
+        speed_bus.shutdown()
+    assert status == 1
+    assert "the estimation process has sent nothing for 1." in caplog.text
+    assert "(limit 1.5 s, supervisor.child_hang_s): it is hung; killing it" in caplog.text
+    assert "did not stop" not in caplog.text  # killed at once, not after 3 s
+    assert took < 10.0  # not the script's 60 s: it was killed, not waited for
+    assert not sup.child.is_alive() and sup.gate.expired >= 1
+    assert not mower.deck_running
+
+
 def test_the_switch_frame_round_trips_and_decodes_with_the_shipped_dbc() -> None:
     from drivers.can.isobus import can_id
     from drivers.can.switches import PGN_SWITCHES, Switches, decode_switches, encode_switches

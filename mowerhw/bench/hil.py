@@ -803,7 +803,18 @@ class Bench:
             pid = int((self._status(timeout=1.0) or {}).get("pid") or 0)
             if pid and pid != self.proc.pid:  # type: ignore[union-attr]
                 os.kill(pid, signal.SIGSTOP)
-                clear = lambda: os.kill(pid, signal.SIGCONT)  # noqa: E731
+
+                def clear() -> None:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(pid, signal.SIGCONT)
+                    proc = self.proc
+                    if proc is not None and proc.poll() is not None:
+                        # stopped longer than supervisor.child_hang_s: the supervisor took
+                        # it for hung, killed it and ended the service; systemd restarts it
+                        res.notes.append(f"daemon exit status {proc.returncode}")
+                        res.how = "restarted (the supervisor ended the service: estimator hung)"
+                        self.restarts += 1
+                        self._spawn("mow")
             else:
                 res.notes.append("no separate estimation process (supervisor disabled)")
         elif spec.kind in ("sigterm", "sigkill", "estimator-kill"):

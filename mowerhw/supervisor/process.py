@@ -10,7 +10,8 @@ ground speed or the specific force it watches would go stale, when a switch fram
 mower's controller changes a safety latch (the CAN receive thread says so through a pipe),
 and at least every 0.1 s.
 
-Crash-only: the estimation process dying (or not starting) halts the deck, announces the
+Crash-only: the estimation process dying (or not starting, or hanging: silent for
+``supervisor.child_hang_s`` once it has leased, then killed) halts the deck, announces the
 fault (heartbeat 254), names it in the log and ends the service with exit status 1, for
 systemd to restart it. A CAN bus that fails is reopened with backoff; if it stays unusable
 for ``supervisor.can_down_restart_s`` the watchdog is no longer fed.
@@ -156,6 +157,8 @@ class Supervisor:
         self.child: Any = None
         self.conn: Connection | None = None
         self.child_ready = False
+        self._child_heard = -math.inf  # when the estimation process last sent anything
+        self._child_hung = False
         self.counts = {
             "leases": 0,
             "frames_forwarded": 0,
@@ -385,7 +388,11 @@ class Supervisor:
             if self.lease_mow():
                 due = min(due, self.stream_gate.next_stale_deadline(now, self._arrival) + 1e-4)
             ready = wait([self.conn, self.child.sentinel, self._wake_r], max(0.0005, due - now))
-            now = time.monotonic()
+            before, now = now, time.monotonic()
+            if now - before > 1.0:
+                # this process itself did not run for a second (the computer paused): the
+                # estimation process's silence is not its own; it gets a new window
+                self._child_heard = max(self._child_heard, now)
             if self._wake_r in ready:
                 with contextlib.suppress(BlockingIOError, OSError):
                     os.read(self._wake_r, 4096)
@@ -419,6 +426,21 @@ class Supervisor:
                 self.request_stop("estimation start-up timed out")
                 status = 1
                 break
+            silent = now - self._child_heard
+            if self.counts["leases"] and silent > self.cfg.supervisor.child_hang_s:
+                # alive but hung (a deadlock, a blocked read): the lease halted the deck
+                # long ago; only a restart brings it back
+                log.error(
+                    "the estimation process has sent nothing for %.1f s (limit %g s, "
+                    "supervisor.child_hang_s): it is hung; killing it, halting the deck and "
+                    "ending the service",
+                    silent,
+                    self.cfg.supervisor.child_hang_s,
+                )
+                self._child_hung = True
+                self.request_stop("the estimation process hung")
+                status = 1
+                break
             self._decide(now)
             if self.web is not None:
                 self.web.check(now)
@@ -430,6 +452,7 @@ class Supervisor:
         try:
             while self.conn.poll():
                 kind, body = self.conn.recv()
+                self._child_heard = now
                 if kind == "lease":
                     lease = Lease.from_wire(body)
                     self.gate.renew(lease, now)
@@ -522,6 +545,8 @@ class Supervisor:
         if self.web is not None:
             self.web.stop()
         if self.child is not None:
+            if self._child_hung:  # it would not stop: no time lost on it (logged above)
+                self.child.kill()
             self.child.join(timeout=3.0)  # within systemd's TimeoutStopSec (5 s)
             if self.child.is_alive():  # stalled: it cannot even handle a SIGTERM
                 log.error("the estimation process did not stop: killing it")
