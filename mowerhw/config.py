@@ -577,6 +577,15 @@ class RuntimeConfig:
         "track camera frames in a process of its own (off the GIL of the loop that reads the "
         "IMU and decides); false: on a thread of the estimation process",
     )
+    frontend_hang_s: float = opt(
+        300.0,
+        "the front-end process answers no frame this long (tracking takes milliseconds, a "
+        "search for the pose seconds, tens of seconds on a large map and a slow computer): "
+        "it is hung; it is killed and the daemon ends with exit status 1, for systemd to "
+        "restart it (without its tracks the localizer halts the deck long before)",
+        ge=10.0,
+        le=3600.0,
+    )
     map_check_period_s: float = opt(
         0.1, "how often mow mode checks the map file for changes", gt=0.0, le=10.0
     )

@@ -39,6 +39,31 @@ def test_the_worker_process_tracks_as_the_thread_does():
         worker.close()
 
 
+def test_a_hung_worker_is_killed_after_its_deadline() -> None:
+    """A worker that answers no frame within ``runtime.frontend_hang_s`` is taken for hung
+    (stopped here with SIGSTOP): killed, and FrontendWorkerDied ends the daemon (crash-only),
+    where before the frame task waited for it forever and the deck stayed halted."""
+    import signal
+    import time
+
+    world = make_world("paper", 3)
+    image = OmniRenderer(world, 3).render(0.0, 0.0, 0.0)
+    args = (world.camera, tuple(float(v) for v in world.q_bc), FrontendConfig(), 0)
+    worker = FrontendWorker(hang_s=60.0)  # the first frame includes the worker's start
+    try:
+        assert worker.track("chain-1", (args, None), 0.0, image, None).ids.size > 20
+        worker.hang_s = 1.0
+        proc = worker._proc
+        assert proc is not None
+        os.kill(proc.pid, signal.SIGSTOP)
+        t0 = time.monotonic()
+        with pytest.raises(FrontendWorkerDied, match=r"answered no frame for 1 s .*hung, killed"):
+            worker.track("chain-1", (args, None), 0.25, image, None)
+        assert time.monotonic() - t0 < 5.0 and proc.poll() == -signal.SIGKILL
+    finally:
+        worker.close()
+
+
 def test_the_worker_relocalizes_a_frame_when_asked() -> None:
     """A mow chain's search runs where the tracking runs: the worker builds the relocalizer
     from the map it is given and answers for the frames that ask (issue 18)."""

@@ -100,7 +100,8 @@ class Daemon:
         self._frames: asyncio.Queue[FrameSample] | None = None
         self._stop_event: asyncio.Event | None = None
         self._frontend_pool = ThreadPoolExecutor(1, thread_name_prefix="frontend")
-        self._worker = FrontendWorker() if config.runtime.frontend_process else None
+        rt = config.runtime
+        self._worker = FrontendWorker(rt.frontend_hang_s) if rt.frontend_process else None
         self._work_pool = ThreadPoolExecutor(1, thread_name_prefix="build")
         self._pose_pool = ThreadPoolExecutor(1, thread_name_prefix="pose-writer")
         self._pose_future: Future[None] | None = None

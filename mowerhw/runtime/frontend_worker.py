@@ -21,6 +21,7 @@ from __future__ import annotations
 import mmap
 import os
 import pickle
+import select
 import struct
 import subprocess
 import sys
@@ -45,7 +46,10 @@ def _write(out: IO[bytes], obj: Any) -> None:
     out.flush()
 
 
-def _read(inp: IO[bytes]) -> Any:
+def _read(inp: IO[bytes], timeout_s: float | None = None) -> Any:
+    """One message; TimeoutError if none begins within ``timeout_s`` (None: wait)."""
+    if timeout_s is not None and not select.select([inp], [], [], timeout_s)[0]:
+        raise TimeoutError(f"no answer in {timeout_s:g} s")
     head = inp.read(_LEN.size)
     if len(head) < _LEN.size:
         raise EOFError("the front-end worker's pipe closed")
@@ -104,7 +108,9 @@ class FrontendWorker:
     chain, one global relocalizer) per ``key`` (the chain's serial: a new chain starts a new
     front end, as it does on a thread)."""
 
-    def __init__(self) -> None:
+    def __init__(self, hang_s: float = 300.0) -> None:
+        #: a frame not answered within this is a hung worker (``runtime.frontend_hang_s``)
+        self.hang_s = hang_s
         self._proc: subprocess.Popen[bytes] | None = None
         self._key: Any = None
         self._lock = threading.Lock()
@@ -146,7 +152,14 @@ class FrontendWorker:
                     self._key = key
                 shape, dtype = self._slot.put(image)
                 _write(proc.stdin, ("frame", t, shape, dtype, r_prev_cur, search))
-                kind, body = _read(proc.stdout)
+                kind, body = _read(proc.stdout, self.hang_s)
+            except TimeoutError:
+                proc.kill()
+                proc.wait()
+                raise FrontendWorkerDied(
+                    f"the front-end worker process answered no frame for {self.hang_s:g} s "
+                    "(runtime.frontend_hang_s): hung, killed"
+                ) from None
             except (OSError, EOFError, pickle.PickleError) as exc:
                 proc.kill()
                 proc.wait()
