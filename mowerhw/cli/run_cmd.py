@@ -163,7 +163,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:
-    from mowerhw.runtime.control_protocol import request, unreachable
+    from mowerhw.common.unreachable import unreachable
+    from mowerhw.runtime.control_protocol import request
 
     sock = args.socket
     if sock is None:

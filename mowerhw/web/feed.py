@@ -24,9 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from mowerhw.common.fileio import FileStamp, file_stamp
+from mowerhw.common.unreachable import unreachable
 from mowerhw.map import MapError
 from mowerhw.map import load as load_map
-from mowerhw.runtime.control_protocol import unreachable
 from mowerhw.web.plan import map_plan
 
 log = logging.getLogger("mowerhw.web")

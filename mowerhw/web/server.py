@@ -30,8 +30,8 @@ from typing import Any
 
 from aiohttp import WSMsgType, web
 
+from mowerhw.common.unreachable import unreachable
 from mowerhw.config import EX_CONFIG, Config, WebConfig
-from mowerhw.runtime.control_protocol import unreachable
 from mowerhw.web.commands import CONTROLS, MAX_BODY_BYTES, CommandError, parse_command
 from mowerhw.web.feed import DaemonFeed
 from mowerhw.web.token import TokenError, load_or_create_token, token_matches
