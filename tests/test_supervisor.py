@@ -140,6 +140,41 @@ def test_a_hung_estimation_process_is_killed_and_the_service_ends(
     assert not mower.deck_running
 
 
+def test_the_supervisor_ends_when_its_can_receive_thread_dies(tmp_path: Path, caplog: Any) -> None:
+    """Crash-only for the supervisor's own thread too: a CAN receive thread that dies (a bug
+    on some frame) ends the service with exit status 1 and a line naming it, instead of a
+    supervisor that goes on blind to the speed, the switches and address claims."""
+    import functools
+
+    channel = f"rx-{uuid.uuid4().hex[:8]}"
+    raw = config_to_dict(default_config())
+    raw["can"].update(interface="virtual", channel=channel)
+    cfg = config_from_dict(raw, tmp_path, "test config")
+    bus, speed_bus = open_bus("virtual", channel), open_bus("virtual", channel)
+    mower = MockMowerController(bus, permit_source=cfg.can.source_address).start()
+    speed = MockSpeedSensor(speed_bus, lambda t: 0.3).start()
+    script = ((30.0, "permit"), (0.0, "exit"))
+    sup = Supervisor(cfg, child_target=functools.partial(scripted_estimator, script=script))
+
+    def bad_frame(*_: Any) -> None:
+        raise RuntimeError("a bug on this frame")
+
+    sup._speed.handle = bad_frame  # type: ignore[method-assign]
+    t0 = time.monotonic()
+    try:
+        with caplog.at_level("ERROR", logger="mowerhw.supervisor"):
+            status = sup.run()
+        took = time.monotonic() - t0
+    finally:
+        mower.stop()
+        speed.stop()
+        bus.shutdown()
+        speed_bus.shutdown()
+    assert status == 1 and took < 15.0  # not the script's 30 s
+    assert "the CAN receive thread died (RuntimeError('a bug on this frame'))" in caplog.text
+    assert not mower.deck_running
+
+
 def test_the_switch_frame_round_trips_and_decodes_with_the_shipped_dbc() -> None:
     from drivers.can.isobus import can_id
     from drivers.can.switches import PGN_SWITCHES, Switches, decode_switches, encode_switches

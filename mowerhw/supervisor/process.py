@@ -11,10 +11,11 @@ mower's controller changes a safety latch (the CAN receive thread says so throug
 and at least every 0.1 s.
 
 Crash-only: the estimation process dying (or not starting, or hanging: silent for
-``supervisor.child_hang_s`` once it has leased, then killed) halts the deck, announces the
-fault (heartbeat 254), names it in the log and ends the service with exit status 1, for
-systemd to restart it. A CAN bus that fails is reopened with backoff; if it stays unusable
-for ``supervisor.can_down_restart_s`` the watchdog is no longer fed.
+``supervisor.child_hang_s`` once it has leased, then killed), or its own CAN receive thread
+dying, halts the deck, announces the fault (heartbeat 254), names it in the log and ends the
+service with exit status 1, for systemd to restart it. A CAN bus that fails is reopened with
+backoff; if it stays unusable for ``supervisor.can_down_restart_s`` the watchdog is no longer
+fed.
 """
 
 from __future__ import annotations
@@ -175,6 +176,7 @@ class Supervisor:
         self._own_stale = "speed"  # the stream of its newest own halt
         self._send_lock = threading.Lock()
         self._rx: threading.Thread | None = None
+        self._rx_died = ""  # why the CAN receive thread ended, if it did
         # the CAN receive thread wakes the loop when a switch frame changes a safety latch
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
@@ -216,8 +218,23 @@ class Supervisor:
 
     # ----------------------------------------------------------------------------- CAN
 
+    def _receive_crash_only(self) -> None:
+        """The CAN receive thread. Crash-only: if it dies, the supervisor ends the service
+        (exit 1) rather than go on blind to the ground speed, the switches and the claims."""
+        try:
+            self._receive()
+        except BaseException as exc:
+            log.error(
+                "the CAN receive thread died (%r): halting the deck and ending the service",
+                exc,
+                exc_info=exc,
+            )
+            self._rx_died = f"the CAN receive thread died ({exc!r})"
+            with contextlib.suppress(BlockingIOError, OSError):
+                os.write(self._wake_w, b"!")
+
     def _receive(self) -> None:
-        """CAN receive thread: the frames the child reads (every frame while it records) down
+        """CAN receive loop: the frames the child reads (every frame while it records) down
         to the child; the speed's freshness and the switches here."""
         own = self.cfg.can.source_address
         switches_from = self.cfg.safety.switches_address
@@ -367,7 +384,7 @@ class Supervisor:
         set_session_priority(self.cfg.supervisor.nice)
         set_realtime(self.cfg.supervisor.realtime_priority)
         self.port.ensure(time.monotonic())
-        self._rx = threading.Thread(target=self._receive, name="can-rx", daemon=True)
+        self._rx = threading.Thread(target=self._receive_crash_only, name="can-rx", daemon=True)
         self._rx.start()
         self._start_child()
         if self.web is not None:
@@ -413,6 +430,10 @@ class Supervisor:
                     )
                     status = 1
                 self.request_stop("the estimation process ended")
+                break
+            if self._rx_died:
+                self.request_stop(self._rx_died)
+                status = 1
                 break
             if self.duration_s is not None and now - started > self.duration_s:
                 self.request_stop("duration")
