@@ -3,11 +3,14 @@ process on python-can's virtual bus, the mock mower controller listening."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing
 import threading
 import time
 import uuid
+from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -55,38 +58,52 @@ def test_a_lease_permits_only_while_it_is_fresh() -> None:
     assert not own.permit and own.reason == Reason.SENSOR_STALE  # its own checks come first
 
 
-def test_the_supervisor_halts_a_quiet_estimator_and_ends_when_it_dies(tmp_path: Path) -> None:
+@contextlib.contextmanager
+def _supervised(
+    tmp_path: Path, script: tuple[tuple[float, str], ...] | None = None, **supervisor: Any
+) -> Iterator[tuple[Supervisor, MockMowerController]]:
+    """A supervisor (its ``supervisor.*`` keys as given) with the scripted estimation
+    process (its default script, or ``script``) on a virtual bus of its own, the mock mower
+    controller and a speed sensor (which the supervisor sees too) beside it."""
     channel = f"sup-{uuid.uuid4().hex[:8]}"
     raw = config_to_dict(default_config())
     raw["can"].update(interface="virtual", channel=channel)
+    raw["supervisor"].update(supervisor)
     cfg = config_from_dict(raw, tmp_path, "test config")
     bus, speed_bus = open_bus("virtual", channel), open_bus("virtual", channel)
     mower = MockMowerController(bus, permit_source=cfg.can.source_address).start()
-    speed = MockSpeedSensor(speed_bus, lambda t: 0.3).start()  # the supervisor sees it too
-    sup = Supervisor(cfg, child_target=scripted_estimator)
-    out: dict[str, Any] = {}
-    heartbeats: list[int] = []
-
-    def watch() -> None:
-        while "status" not in out:
-            hb = mower.state.hb_sequence
-            if hb is not None and (not heartbeats or heartbeats[-1] != hb):
-                heartbeats.append(hb)
-            mower.evaluate(time.monotonic())
-            time.sleep(0.005)
-
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
+    speed = MockSpeedSensor(speed_bus, lambda t: 0.3).start()
+    target = scripted_estimator if script is None else partial(scripted_estimator, script=script)
     try:
-        out["status"] = sup.run()
-        time.sleep(0.1)
+        yield Supervisor(cfg, child_target=target), mower
     finally:
-        out.setdefault("status", None)
-        watcher.join(2.0)
         mower.stop()
         speed.stop()
         bus.shutdown()
         speed_bus.shutdown()
+
+
+def test_the_supervisor_halts_a_quiet_estimator_and_ends_when_it_dies(tmp_path: Path) -> None:
+    out: dict[str, Any] = {}
+    heartbeats: list[int] = []
+    with _supervised(tmp_path) as (sup, mower):
+
+        def watch() -> None:
+            while "status" not in out:
+                hb = mower.state.hb_sequence
+                if hb is not None and (not heartbeats or heartbeats[-1] != hb):
+                    heartbeats.append(hb)
+                mower.evaluate(time.monotonic())
+                time.sleep(0.005)
+
+        watcher = threading.Thread(target=watch, daemon=True)
+        watcher.start()
+        try:
+            out["status"] = sup.run()
+            time.sleep(0.1)
+        finally:
+            out.setdefault("status", None)
+            watcher.join(2.0)
     events = mower.state.events
     runs = [e for e in events if e.running]
     stops = [e for e in events if not e.running]
@@ -109,28 +126,12 @@ def test_a_hung_estimation_process_is_killed_and_the_service_ends(
     """Alive but silent (a deadlock, a blocked read): the lease halts the deck at once, and
     after ``supervisor.child_hang_s`` the supervisor kills it and ends with exit status 1,
     for systemd to restart the service (before, it halted forever and fed the watchdog)."""
-    import functools
-
-    channel = f"hang-{uuid.uuid4().hex[:8]}"
-    raw = config_to_dict(default_config())
-    raw["can"].update(interface="virtual", channel=channel)
-    raw["supervisor"]["child_hang_s"] = 1.5
-    cfg = config_from_dict(raw, tmp_path, "test config")
-    bus, speed_bus = open_bus("virtual", channel), open_bus("virtual", channel)
-    mower = MockMowerController(bus, permit_source=cfg.can.source_address).start()
-    speed = MockSpeedSensor(speed_bus, lambda t: 0.3).start()
-    sup = Supervisor(cfg, child_target=functools.partial(scripted_estimator, script=HANG_SCRIPT))
-    t0 = time.monotonic()
-    try:
+    with _supervised(tmp_path, HANG_SCRIPT, child_hang_s=1.5) as (sup, mower):
+        t0 = time.monotonic()
         with caplog.at_level("ERROR", logger="mowerhw.supervisor"):
             status = sup.run()
         took = time.monotonic() - t0
         mower.evaluate(time.monotonic())
-    finally:
-        mower.stop()
-        speed.stop()
-        bus.shutdown()
-        speed_bus.shutdown()
     assert status == 1
     assert "the estimation process has sent nothing for 1." in caplog.text
     assert "(limit 1.5 s, supervisor.child_hang_s): it is hung; killing it" in caplog.text
@@ -144,32 +145,16 @@ def test_the_supervisor_ends_when_its_can_receive_thread_dies(tmp_path: Path, ca
     """Crash-only for the supervisor's own thread too: a CAN receive thread that dies (a bug
     on some frame) ends the service with exit status 1 and a line naming it, instead of a
     supervisor that goes on blind to the speed, the switches and address claims."""
-    import functools
-
-    channel = f"rx-{uuid.uuid4().hex[:8]}"
-    raw = config_to_dict(default_config())
-    raw["can"].update(interface="virtual", channel=channel)
-    cfg = config_from_dict(raw, tmp_path, "test config")
-    bus, speed_bus = open_bus("virtual", channel), open_bus("virtual", channel)
-    mower = MockMowerController(bus, permit_source=cfg.can.source_address).start()
-    speed = MockSpeedSensor(speed_bus, lambda t: 0.3).start()
-    script = ((30.0, "permit"), (0.0, "exit"))
-    sup = Supervisor(cfg, child_target=functools.partial(scripted_estimator, script=script))
 
     def bad_frame(*_: Any) -> None:
         raise RuntimeError("a bug on this frame")
 
-    sup._speed.handle = bad_frame  # type: ignore[method-assign]
-    t0 = time.monotonic()
-    try:
+    with _supervised(tmp_path, ((30.0, "permit"), (0.0, "exit"))) as (sup, mower):
+        sup._speed.handle = bad_frame  # type: ignore[method-assign]
+        t0 = time.monotonic()
         with caplog.at_level("ERROR", logger="mowerhw.supervisor"):
             status = sup.run()
         took = time.monotonic() - t0
-    finally:
-        mower.stop()
-        speed.stop()
-        bus.shutdown()
-        speed_bus.shutdown()
     assert status == 1 and took < 15.0  # not the script's 30 s
     assert "the CAN receive thread died (RuntimeError('a bug on this frame'))" in caplog.text
     assert not mower.deck_running
