@@ -29,8 +29,13 @@ from mowerhw.mow.gate import Decision
 from mowerhw.recording.mcap import Recorder
 from mowerhw.runtime.core import RuntimeCore
 from mowerhw.runtime.pipelines import MowPipeline
+from mowerhw.supervisor.canport import address_claim, permit_sender
 
 log = logging.getLogger("mowerhw.daemon")
+
+#: how long the one-process daemon's permit frames may wait for room on the bus (s; the
+#: permit supervisor's never wait)
+SEND_TIMEOUT_S = 0.01
 
 
 def open_imu(
@@ -206,8 +211,6 @@ class CanLink(ThreadedDevice):
         self.sender: PermitSender | None = None
         self.open_failures = 0
         #: its source address, claimed when the bus opens (ISO 11783-5; None: not claimed)
-        from mowerhw.supervisor.canport import address_claim
-
         self.claim: AddressClaim | None = address_claim(cfg)
 
     def open(self) -> bool:
@@ -246,19 +249,14 @@ class CanLink(ThreadedDevice):
             sender.tick(now)
 
     def _sender(self, now: float) -> PermitSender | None:
-        """The permit frames' sender while the address is ours (claims due sent first); a
-        new one starts with a stop (counter 0), like the supervisor's."""
+        """The permit frames' sender while the address is ours (claims due sent first)."""
         if self.bus is None:
             return None
         if self.claim is not None and not serve(self.claim, self.bus, now):
             self.sender = None
             return None
         if self.sender is None:
-            c, p = self.cfg.can, self.cfg.permit
-            self.sender = PermitSender(
-                self.bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s
-            )
-            self.sender.tick(now)
+            self.sender = permit_sender(self.cfg, self.bus, now, SEND_TIMEOUT_S)
         return self.sender
 
     def next_due(self) -> float:

@@ -9,6 +9,7 @@ import dataclasses
 import hashlib
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,7 @@ import can
 
 from drivers.can.address_claim import AddressClaim, IsoName
 from drivers.can.isobus import PGN_HEARTBEAT, PGN_ISB, open_bus
+from drivers.can.permit import PermitSender
 from mowerhw.config import CanConfig, Config
 
 log = logging.getLogger("mowerhw.supervisor")
@@ -56,6 +58,27 @@ def address_claim(cfg: Config) -> AddressClaim | None:
         return None
     sent = frozenset({PGN_ISB, PGN_HEARTBEAT, cfg.permit.status_pgn})
     return AddressClaim(ecu_name(c), c.source_address, c.address_claim_retry_s, sent_pgns=sent)
+
+
+def permit_sender(
+    cfg: Config,
+    bus: can.BusABC,
+    now: float,
+    send_timeout_s: float,
+    on_sent: Callable[[can.Message], None] | None = None,
+) -> PermitSender:
+    """A new sender of the permit frames on ``bus`` (each frame also to ``on_sent``: a
+    recording), for both senders (the supervisor and the one-process daemon's ``CanLink``).
+    Its first frames go out now: a stop (counter 0) and heartbeat 251. After any silence of
+    ours (a start, a bus reopened, the address regained) a controller that counted another
+    sender's transitions sees a jump, then a valid change it follows."""
+    c, p = cfg.can, cfg.permit
+    sender = PermitSender(
+        bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s, send_timeout_s
+    )
+    sender.on_sent = on_sent
+    sender.tick(now)
+    return sender
 
 
 class CanPort:

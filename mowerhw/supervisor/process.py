@@ -44,7 +44,7 @@ from mowerhw.config import Config
 from mowerhw.estimation.safety import SafetyMonitor
 from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
-from mowerhw.supervisor.canport import CanPort, address_claim
+from mowerhw.supervisor.canport import CanPort, address_claim, permit_sender
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.supervisor.web_child import web_child_main
 from mowerhw.web.process import WebProcess
@@ -305,16 +305,8 @@ class Supervisor:
         if self.claim is not None and not serve(self.claim, bus, now, on_sent):
             self.sender = None  # the address is not ours (yet): no frame from it
             return False
-        if self.sender is None:
-            c, p = self.cfg.can, self.cfg.permit
-            self.sender = PermitSender(
-                bus, c.source_address, p.status_pgn, p.period_s, p.heartbeat_period_s, 0.0
-            )
-            self.sender.on_sent = on_sent  # recording: the frames sent too
-            # its first frames a stop (counter 0) and heartbeat 251: after a silence (a
-            # restart, a bus reopened, the address regained) a controller that counted
-            # another sender's transitions sees a jump, then a valid change it follows
-            self.sender.tick(now)
+        if self.sender is None:  # never waits for room on the bus: the loop must not block
+            self.sender = permit_sender(self.cfg, bus, now, 0.0, on_sent)
         sender = self.sender
         errors = sender.stats.send_errors
         status = Status(
