@@ -28,6 +28,7 @@ from typing import Any
 
 import yaml
 
+from mowerhw.common.supervisor_socket import supervisor_socket
 from mowerhw.common.yamlfile import load_yaml
 
 EX_CONFIG = 78  # sysexits.h: configuration error
@@ -1079,6 +1080,9 @@ def _runtime_checks(cfg: Config) -> list[str]:
             str(rt.control_socket) + ".lock"
         ),
         "runtime.pose_file": rt.pose_file,
+        "the permit supervisor's status socket (runtime.control_socket + .supervisor)": (
+            supervisor_socket(rt.control_socket)
+        ),
     }
     seen: dict[Path, str] = {}
     for name, path in paths.items():

@@ -4,8 +4,12 @@ process on python-can's virtual bus, the mock mower controller listening."""
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import multiprocessing
+import socket
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -24,12 +28,15 @@ from drivers.can.mock_mower import MockMowerController
 from drivers.can.mock_speed import MockSpeedSensor
 from drivers.can.permit import HB_ERROR
 from drivers.can.speed import SpeedReader
+from mowerhw.common.strictjson import no_constant
+from mowerhw.common.supervisor_socket import supervisor_socket
 from mowerhw.config import config_from_dict, config_to_dict, default_config
 from mowerhw.mow.containment import Reason, State
 from mowerhw.runtime.devices import CanFrames
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.supervisor.mock_estimator import scripted_estimator
 from mowerhw.supervisor.process import FORCE, Supervisor
+from mowerhw.supervisor.status_socket import StatusSocket, ask_supervisor
 
 
 def _lease(permit: bool = True, reason: str = "") -> Lease:
@@ -69,6 +76,7 @@ def _supervised(
     raw = config_to_dict(default_config())
     raw["can"].update(interface="virtual", channel=channel)
     raw["supervisor"].update(supervisor)
+    raw["runtime"]["control_socket"] = str(tmp_path / "control.sock")  # its status socket's too
     cfg = config_from_dict(raw, tmp_path, "test config")
     bus, speed_bus = open_bus("virtual", channel), open_bus("virtual", channel)
     mower = MockMowerController(bus, permit_source=cfg.can.source_address).start()
@@ -471,3 +479,98 @@ def test_a_recording_gets_every_frame_the_supervisor_receives_and_sends(tmp_path
     assert (cfg.safety.switches_pgn, True) in recorded  # received
     assert {(PGN_ISB, False), (PGN_HEARTBEAT, False)} <= set(recorded)  # sent
     assert recorded.index((60928, False)) < recorded.index((PGN_ISB, False))  # claim first
+
+
+def test_the_supervisor_answers_on_its_own_socket_while_the_estimation_process_is_silent(
+    tmp_path: Path,
+) -> None:
+    """The control socket is the estimation process's: while that process is hung, `mowerhw
+    ctl status` gets no reply there, and asks the supervisor's status socket, which says the
+    deck is halted, why (the lease ran out) and for how long the process has been silent."""
+    replies: list[dict[str, Any]] = []
+    ctl: list[subprocess.CompletedProcess[str]] = []
+    done = threading.Event()
+    with _supervised(tmp_path, HANG_SCRIPT, child_hang_s=4.0) as (sup, _mower):
+        sock = sup.cfg.runtime.control_socket
+
+        def ask() -> None:
+            while not done.is_set():
+                with contextlib.suppress(OSError, ConnectionError, ValueError):
+                    replies.append(ask_supervisor(sock, 0.5))
+                    est = replies[-1]["estimation"]
+                    if not ctl and est["alive"] and (est["silent_s"] or 0.0) > 1.0:
+                        ctl.append(
+                            subprocess.run(
+                                [sys.executable, "-m", "mowerhw", "ctl", "--socket", str(sock)]
+                                + ["--timeout", "0.5", "status"],
+                                capture_output=True,
+                                text=True,
+                                timeout=30,
+                            )
+                        )
+                time.sleep(0.05)
+
+        asker = threading.Thread(target=ask, daemon=True)
+        asker.start()
+        try:
+            assert sup.run() == 1
+        finally:
+            done.set()
+            asker.join(35.0)
+        left = supervisor_socket(sock).exists()
+    assert any(r["permit"] for r in replies)  # permitted while the leases came
+    silent = [
+        r for r in replies if r["estimation"]["alive"] and (r["estimation"]["silent_s"] or 0) > 0.5
+    ]
+    assert silent, replies[-3:]
+    assert all(not r["permit"] and r["reason"] == Reason.ESTIMATOR_LATE for r in silent)
+    assert "no permit lease for" in silent[-1]["detail"]
+    assert silent[-1]["estimation"]["hang_limit_s"] == 4.0 and silent[-1]["who"] == "supervisor"
+    assert ctl, "the estimation process was never silent for a second"
+    out = ctl[0]
+    assert out.returncode == 1
+    assert "mowerhw ctl: cannot reach the daemon at" in out.stderr  # the control socket
+    assert "the permit supervisor holds the deck halted (ESTIMATOR_LATE: no permit lease for" in (
+        out.stderr
+    )
+    assert "has sent nothing for" in out.stderr
+    reply = json.loads(out.stdout, parse_constant=no_constant)  # strict JSON on stdout
+    assert reply["ok"] is False and reply["supervisor"]["reason"] == Reason.ESTIMATOR_LATE
+    assert not left  # removed when the supervisor stopped
+
+
+def test_the_status_socket_never_waits_for_a_client(tmp_path: Path) -> None:
+    """A client that connects and never reads, many at once, or one that sends garbage: the
+    supervisor's loop answers or drops each at once and keeps serving."""
+    sock_path = tmp_path / "control.sock"
+    server = StatusSocket(sock_path, 0o660)
+    assert server.open()
+    big = {"ok": True, "pad": "x" * 400_000}  # more than a socket's buffer holds
+    try:
+        hogs = [socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) for _ in range(3)]
+        for h in hogs:
+            h.connect(str(server.path))
+            h.sendall(b"\x00garbage{\n")
+        t0 = time.monotonic()
+        for _ in range(3):
+            server.serve(lambda: big)
+        assert time.monotonic() - t0 < 1.0
+        assert server.dropped == 3 and server.answered == 0
+        got: dict[str, Any] = {}
+
+        def read() -> None:
+            got.update(ask_supervisor(sock_path, 2.0))
+
+        reader = threading.Thread(target=read)
+        reader.start()
+        deadline = time.monotonic() + 3.0
+        while reader.is_alive() and time.monotonic() < deadline:
+            server.serve(lambda: {"ok": True, "permit": False, "x": math.nan})
+            time.sleep(0.01)
+        reader.join()
+        assert got == {"ok": True, "permit": False, "x": None}  # strict JSON: NaN is null
+        for h in hogs:
+            h.close()
+    finally:
+        server.close()
+    assert not server.path.exists()

@@ -20,6 +20,7 @@ import pytest
 
 from mowerhw.config import Config
 from mowerhw.runtime.control import ControlServer
+from mowerhw.supervisor.status_socket import StatusSocket
 from mowerhw.web.commands import CommandError, parse_command
 from mowerhw.web.server import WebServer
 from mowerhw.web.token import TokenError, load_or_create_token
@@ -268,6 +269,16 @@ def test_a_browser_that_does_not_read_does_not_hold_up_another(tmp_path) -> None
     assert out["n"] >= 10
 
 
+#: what the permit supervisor's status socket says in the test of a daemon gone silent
+SUPERVISOR_SAYS = {
+    "ok": True,
+    "permit": False,
+    "reason": "ESTIMATOR_LATE",
+    "detail": "no permit lease for 2.000 s",
+    "estimation": {"pid": 7, "alive": True, "ready": True, "silent_s": 2.0},
+}
+
+
 def test_daemon_gone_is_said_on_the_page_and_it_comes_back(tmp_path) -> None:
     async def next_where(ws: Any, pred: Any) -> dict[str, Any] | None:
         for _ in range(60):
@@ -278,21 +289,43 @@ def test_daemon_gone_is_said_on_the_page_and_it_comes_back(tmp_path) -> None:
 
     async def body(url: str, server: WebServer, daemon: FakeDaemon) -> dict[str, Any]:
         path = server.feed.socket_path
+        # the permit supervisor's status socket, which the page asks when the daemon is silent
+        supervisor = StatusSocket(path, 0o660)
+        assert supervisor.open()
+
+        async def serve() -> None:
+            while True:
+                supervisor.serve(lambda: SUPERVISOR_SAYS)
+                await asyncio.sleep(0.01)
+
+        serving = asyncio.create_task(serve())
         async with aiohttp.ClientSession() as s, s.ws_connect(url + "ws") as ws:
             first = await next_where(ws, lambda m: m["ok"])
             os.unlink(path)  # the daemon goes away (its socket with it)
             server.feed._close()
             gone = await next_where(ws, lambda m: m["error"])
+            serving.cancel()
+            supervisor.close()
+            both_gone = await next_where(ws, lambda m: "either" in m["error"])
             daemon.run = "run2"  # a new daemon on the same socket
             again = ControlServer(path, daemon.handle)
             await again.start()
             back = await next_where(ws, lambda m: m["ok"])
             await again.close()
-            return {"first": first, "gone": gone, "back": back}
+            return {"first": first, "gone": gone, "back": back, "both_gone": both_gone}
 
     out = asyncio.run(_with_page(tmp_path, body))
     assert out["first"]["daemon"]["mode"] == "mow"
     assert out["gone"] is not None and "does not answer" in out["gone"]["error"]
+    assert (  # and why the deck stopped, in the supervisor's words
+        "; the permit supervisor holds the deck halted (ESTIMATOR_LATE: no permit lease for "
+        "2.000 s); the estimation process (pid 7) has sent nothing for 2.0 s"
+    ) in out["gone"]["error"]
+    assert out["both_gone"] is not None
+    assert (
+        "the permit supervisor does not answer either (no such socket"
+        in (out["both_gone"]["error"])
+    )
     assert out["gone"]["daemon"] is not None  # the last known state stays on the page
     assert out["back"] is not None and out["back"]["session"] == "run2/1"
     assert out["back"]["trajectory"]["from"] == 0  # the new daemon's drive, from its start

@@ -55,6 +55,7 @@ from mowerhw.bench.notify import NotifyListener
 from mowerhw.evaluation.recovery import WRONG_M
 from mowerhw.evaluation.scoring import score_halts
 from mowerhw.runtime.control_protocol import request
+from mowerhw.supervisor.status_socket import ask_supervisor
 
 log = logging.getLogger("mowerhw.bench")
 
@@ -846,8 +847,13 @@ class Bench:
             map fault is seen after the next map check and the loader's start): the
             estimation side's, or the permit supervisor's own (tilt, a bump, its CAN
             address taken) while the estimation side permits."""
+            if res.daemon_reason:
+                return
             st = self._status(timeout=1.0)
-            if not st or res.daemon_reason:
+            if not st:  # the estimation process is silent: its supervisor says why
+                with contextlib.suppress(OSError, ConnectionError, ValueError):
+                    st = {"permit": True, "supervisor": ask_supervisor(self.sock)}
+            if not st:
                 return
             sup = st.get("supervisor") or {}
             if not st.get("permit") and st.get("reason"):

@@ -162,6 +162,29 @@ def cmd_record(args: argparse.Namespace) -> int:
     return run_daemon(cfg, "idle", record=args.out, duration_s=args.duration)
 
 
+#: how long ``ctl`` waits for the permit supervisor's status socket (it answers at once)
+SUPERVISOR_TIMEOUT_S = 2.0
+
+
+def _supervisor_says(sock: str | Path) -> tuple[dict[str, Any] | None, str]:
+    """What the permit supervisor says when the control socket is silent (its own status
+    socket, :mod:`mowerhw.common.supervisor_socket`) and in words, or why it says nothing."""
+    from mowerhw.common.supervisor_socket import (
+        describe,
+        supervisor_socket,
+        supervisor_unreachable,
+    )
+    from mowerhw.supervisor.status_socket import ask_supervisor
+
+    try:
+        status = ask_supervisor(sock, timeout=SUPERVISOR_TIMEOUT_S)
+    except (OSError, ConnectionError, ValueError) as exc:
+        path = supervisor_socket(sock)
+        why = supervisor_unreachable(exc)
+        return None, f"the permit supervisor does not answer on {path} either: {why}"
+    return status, describe(status)
+
+
 def cmd_ctl(args: argparse.Namespace) -> int:
     from mowerhw.common.unreachable import unreachable
     from mowerhw.runtime.control_protocol import request
@@ -178,8 +201,18 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     try:
         reply = request(sock, args.command, timeout=args.timeout, **extra)
     except (OSError, ConnectionError) as exc:
-        why = unreachable(exc, args.timeout)
-        print(f"mowerhw ctl: cannot reach the daemon at {sock}: {why}", file=sys.stderr)
+        error = f"cannot reach the daemon at {sock}: {unreachable(exc, args.timeout)}"
+        supervisor, says = _supervisor_says(sock)
+        if supervisor is not None and isinstance(exc, FileNotFoundError | ConnectionRefusedError):
+            # the daemon runs (its supervisor answered): its estimation process serves no socket
+            error = (
+                f"cannot reach the daemon at {sock}: its estimation process does not serve it "
+                "(starting, restarting or ended)"
+            )
+        print(f"mowerhw ctl: {error}", file=sys.stderr)
+        print(f"mowerhw ctl: {says}", file=sys.stderr)
+        if args.json or args.command == "status":  # strict JSON still: the error, the supervisor
+            print(strict_json({"ok": False, "error": error, "supervisor": supervisor}, indent=2))
         return 1
     if args.json or args.command == "status":
         print(strict_json(reply, indent=2))

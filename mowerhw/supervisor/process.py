@@ -46,6 +46,7 @@ from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
 from mowerhw.supervisor.canport import CanPort, address_claim, permit_sender
 from mowerhw.supervisor.lease import Lease, SupervisorGate
+from mowerhw.supervisor.status_socket import StatusSocket
 from mowerhw.supervisor.web_child import web_child_main
 from mowerhw.web.process import WebProcess
 
@@ -188,6 +189,8 @@ class Supervisor:
         self.web: WebProcess | None = (
             WebProcess(config, web_child_main) if config.web.enabled else None
         )
+        #: what it says when the estimation process (the control socket's server) cannot
+        self.status_socket = StatusSocket(config.runtime.control_socket, config.runtime.socket_mode)
 
     # -------------------------------------------------------------------------- child
 
@@ -340,6 +343,8 @@ class Supervisor:
             )
         if self.lease_mow():
             stale = self.stream_gate.stale(now, self._arrival, self._notes)
+            if stale is not None and stale[0] == FORCE and now > self.gate.lease_expires():
+                stale = None  # the force comes with the leases: the lease's halt says why
             if stale is not None:
                 self._own_stale = stale[0]
                 return Reason.SENSOR_STALE, f"{stale[1]} (seen by the supervisor)"
@@ -378,6 +383,7 @@ class Supervisor:
         self.port.ensure(time.monotonic())
         self._rx = threading.Thread(target=self._receive_crash_only, name="can-rx", daemon=True)
         self._rx.start()
+        self.status_socket.open()
         self._start_child()
         if self.web is not None:
             self.web.start()
@@ -396,7 +402,11 @@ class Supervisor:
                 due = min(due, expires + 1e-4)
             if self.lease_mow():
                 due = min(due, self.stream_gate.next_stale_deadline(now, self._arrival) + 1e-4)
-            ready = wait([self.conn, self.child.sentinel, self._wake_r], max(0.0005, due - now))
+            listener = self.status_socket.listener
+            waits: list[Any] = [self.conn, self.child.sentinel, self._wake_r]
+            if listener is not None:
+                waits.append(listener)
+            ready = wait(waits, max(0.0005, due - now))
             before, now = now, time.monotonic()
             if now - before > 1.0:
                 # this process itself did not run for a second (the computer paused): the
@@ -455,6 +465,8 @@ class Supervisor:
                 status = 1
                 break
             self._decide(now)
+            if listener is not None and listener in ready:  # after the decision: it says it
+                self.status_socket.serve(lambda: self.socket_status(time.monotonic()))
             if self.web is not None:
                 self.web.check(now)
         self._shutdown(status)
@@ -541,7 +553,31 @@ class Supervisor:
             "lease_expired": self.gate.expired,
             "permit_sender": vars(self.sender.stats) if self.sender else {},
             "web": self.web.status() if self.web is not None else None,
+            "status_socket": {
+                "answered": self.status_socket.answered,
+                "dropped": self.status_socket.dropped,
+            },
             **self.counts,
+        }
+
+    def socket_status(self, now: float) -> dict[str, Any]:
+        """What its status socket answers: its status, and the estimation process's state
+        (the control socket is that process's: this is heard when it is silent)."""
+        child = self.child
+        alive = child is not None and child.is_alive()
+        heard = self._child_heard
+        return {
+            "ok": True,
+            "who": "supervisor",
+            "pid": os.getpid(),
+            **self.status(now),
+            "estimation": {
+                "pid": child.pid if alive else None,
+                "alive": alive,
+                "ready": self.child_ready,
+                "silent_s": round(now - heard, 3) if math.isfinite(heard) else None,
+                "hang_limit_s": self.cfg.supervisor.child_hang_s,
+            },
         }
 
     def _shutdown(self, status: int) -> None:
@@ -555,6 +591,7 @@ class Supervisor:
             else:
                 self.sender.shutdown(now)
         self._to_child(("stop", None))
+        self.status_socket.close()
         if self.web is not None:
             self.web.stop()
         if self.child is not None:

@@ -24,6 +24,15 @@ from pathlib import Path
 from typing import Any
 
 from mowerhw.common.fileio import FileStamp, file_stamp
+from mowerhw.common.supervisor_socket import (
+    MAX_REPLY_BYTES as MAX_SUPERVISOR_REPLY_BYTES,
+)
+from mowerhw.common.supervisor_socket import (
+    describe,
+    parse_reply,
+    supervisor_socket,
+    supervisor_unreachable,
+)
 from mowerhw.common.unreachable import unreachable
 from mowerhw.map import MapError
 from mowerhw.map import load as load_map
@@ -39,6 +48,8 @@ MAP_CHECK_S = 1.0
 MAX_REPLY_BYTES = 4 << 20
 #: a reply that does not come within this long: the daemon is busy or gone
 REPLY_TIMEOUT_S = 2.0
+#: the permit supervisor's status socket answers at once, or not at all
+SUPERVISOR_TIMEOUT_S = 0.5
 
 Point = tuple[float, float, float]
 Connection = tuple[asyncio.StreamReader, asyncio.StreamWriter]
@@ -61,6 +72,7 @@ class DaemonFeed:
         self.executor = executor
         self.latest: dict[str, Any] | None = None
         self.error = "not connected to the daemon yet"
+        self._unreachable = ""  # why the daemon's control socket was silent, as logged
         self.version = 0  # updates so far
         self.session = ""  # run and epoch of the daemon's drawing
         self.points: deque[Point] = deque(maxlen=max_points)
@@ -155,9 +167,10 @@ class DaemonFeed:
             self.poll_errors += 1
             self._close()
             error = f"the daemon does not answer on {self.socket_path} ({unreachable(exc)})"
-            if error != self.error:
+            if error != self._unreachable:
                 log.warning("web: %s", error)
-            self.error = error
+            self._unreachable = error
+            self.error = f"{error}; {await self._supervisor_says()}"
             await self._publish()
             return False
         self.polls += 1
@@ -167,7 +180,7 @@ class DaemonFeed:
             return True
         if self.error:
             log.info("web: reading the daemon on %s", self.socket_path)
-        self.error = ""
+        self.error = self._unreachable = ""
         if want_landmarks:
             self._next_landmarks = now + LANDMARKS_PERIOD_S
         if self._take(reply, since):
@@ -220,6 +233,30 @@ class DaemonFeed:
             return await _exchange(conn, req, timeout)
         finally:
             conn[1].close()
+
+    async def _supervisor_says(self) -> str:
+        """The permit supervisor's word when the control socket is silent (its own status
+        socket), or why it says nothing either."""
+        try:
+            status = await asyncio.wait_for(self._ask_supervisor(), SUPERVISOR_TIMEOUT_S)
+        except (OSError, ConnectionError, TimeoutError, ValueError) as exc:
+            return f"the permit supervisor does not answer either ({supervisor_unreachable(exc)})"
+        return describe(status)
+
+    async def _ask_supervisor(self) -> dict[str, Any]:
+        """Read the supervisor's status socket (it writes one line and closes)."""
+        path = supervisor_socket(self.socket_path)
+        reader, writer = await asyncio.open_unix_connection(str(path))
+        buf = bytearray()
+        try:
+            while len(buf) <= MAX_SUPERVISOR_REPLY_BYTES:
+                chunk = await reader.read(MAX_SUPERVISOR_REPLY_BYTES + 1 - len(buf))
+                if not chunk:
+                    break
+                buf += chunk
+        finally:
+            writer.close()
+        return parse_reply(bytes(buf), path)
 
     async def _request(self, req: dict[str, Any]) -> dict[str, Any]:
         """One ``live`` request on the polling connection (opened when needed)."""
