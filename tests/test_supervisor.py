@@ -36,7 +36,7 @@ from mowerhw.runtime.devices import CanFrames
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.supervisor.mock_estimator import scripted_estimator
 from mowerhw.supervisor.process import FORCE, Supervisor
-from mowerhw.supervisor.status_socket import StatusSocket, ask_supervisor
+from mowerhw.supervisor.status_socket import CLIENTS_PER_S, StatusSocket, ask_supervisor
 
 
 def _lease(permit: bool = True, reason: str = "") -> Lease:
@@ -553,6 +553,7 @@ def test_the_status_socket_never_waits_for_a_client(tmp_path: Path) -> None:
             h.sendall(b"\x00garbage{\n")
         t0 = time.monotonic()
         for _ in range(3):
+            assert server.listener(t0) is not None
             server.serve(lambda: big)
         assert time.monotonic() - t0 < 1.0
         assert server.dropped == 3 and server.answered == 0
@@ -565,7 +566,8 @@ def test_the_status_socket_never_waits_for_a_client(tmp_path: Path) -> None:
         reader.start()
         deadline = time.monotonic() + 3.0
         while reader.is_alive() and time.monotonic() < deadline:
-            server.serve(lambda: {"ok": True, "permit": False, "x": math.nan})
+            if server.listener(time.monotonic()) is not None:
+                server.serve(lambda: {"ok": True, "permit": False, "x": math.nan})
             time.sleep(0.01)
         reader.join()
         assert got == {"ok": True, "permit": False, "x": None}  # strict JSON: NaN is null
@@ -574,3 +576,28 @@ def test_the_status_socket_never_waits_for_a_client(tmp_path: Path) -> None:
     finally:
         server.close()
     assert not server.path.exists()
+
+
+def test_the_status_socket_answers_a_flood_at_a_bounded_rate(tmp_path: Path) -> None:
+    """The supervisor runs at real-time priority: a flood of clients gets at most
+    CLIENTS_PER_S answers a second, then the socket is not listened to until the next
+    second (the rest wait in the kernel's backlog)."""
+    server = StatusSocket(tmp_path / "control.sock", 0o660)
+    assert server.open()
+    flood = [socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) for _ in range(CLIENTS_PER_S + 5)]
+    try:
+        for f in flood:
+            f.connect(str(server.path))
+        turns = 0
+        while server.listener(100.0) is not None and turns < 100:
+            server.serve(lambda: {"ok": True})
+            turns += 1
+        assert server.answered == CLIENTS_PER_S and turns == -(-CLIENTS_PER_S // 4)
+        assert server.listener(100.9) is None  # this second's share is taken
+        assert server.listener(101.0) is not None  # the next second's
+        server.serve(lambda: {"ok": True})
+        assert server.answered == CLIENTS_PER_S + 4
+    finally:
+        for f in flood:
+            f.close()
+        server.close()

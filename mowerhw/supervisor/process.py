@@ -402,7 +402,7 @@ class Supervisor:
                 due = min(due, expires + 1e-4)
             if self.lease_mow():
                 due = min(due, self.stream_gate.next_stale_deadline(now, self._arrival) + 1e-4)
-            listener = self.status_socket.listener
+            listener = self.status_socket.listener(now)
             waits: list[Any] = [self.conn, self.child.sentinel, self._wake_r]
             if listener is not None:
                 waits.append(listener)

@@ -6,8 +6,10 @@ or restarting, ``mowerhw ctl status`` and the status page hear nothing, at the m
 operator most needs to know why the deck stopped. The supervisor knows (its lease ran out,
 its own checks), so it says so here. It never waits on a client: the listening socket and
 every connection are non-blocking, a reply that does not fit the socket's buffer at once is
-dropped, and at most :data:`ACCEPTS_PER_WAKE` clients are answered per turn of its loop.
-"""
+dropped, and at most :data:`ACCEPTS_PER_WAKE` clients are answered per turn of its loop
+and :data:`CLIENTS_PER_S` a second: beyond that, the socket is not listened to until the next
+second (the supervisor runs at real-time priority, so a flood of clients must not keep it
+busy; clients wait in the kernel's backlog meanwhile)."""
 
 from __future__ import annotations
 
@@ -28,6 +30,8 @@ log = logging.getLogger("mowerhw.supervisor")
 
 #: clients answered per turn of the supervisor's loop (the rest wait for the next turn)
 ACCEPTS_PER_WAKE = 4
+#: clients answered a second at most (``ctl`` and the page ask about once a second)
+CLIENTS_PER_S = 20
 
 
 class StatusSocket:
@@ -39,6 +43,8 @@ class StatusSocket:
         self.answered = 0
         self.dropped = 0
         self._sock: socket.socket | None = None
+        self._second = 0.0  # the start of the second being counted
+        self._in_second = 0  # clients taken in it
 
     def open(self) -> bool:
         """Listen; False (said once in the log) when it cannot: mowing does not need it."""
@@ -52,7 +58,7 @@ class StatusSocket:
             try:
                 sock.bind(str(self.path))
                 os.chmod(self.path, self.mode)
-                sock.listen(16)
+                sock.listen(64)
                 sock.setblocking(False)
             except OSError:
                 sock.close()
@@ -68,10 +74,12 @@ class StatusSocket:
         self._sock = sock
         return True
 
-    @property
-    def listener(self) -> socket.socket | None:
-        """For the loop's ``wait``: readable when a client waits (None: not open)."""
-        return self._sock
+    def listener(self, now: float) -> socket.socket | None:
+        """For the loop's ``wait``: readable when a client waits (None: not open, or this
+        second's :data:`CLIENTS_PER_S` taken)."""
+        if now - self._second >= 1.0:
+            self._second, self._in_second = now, 0
+        return self._sock if self._in_second < CLIENTS_PER_S else None
 
     def serve(self, status: Callable[[], dict[str, Any]]) -> None:
         """Answer the clients waiting now (at most :data:`ACCEPTS_PER_WAKE`): one line of
@@ -79,7 +87,7 @@ class StatusSocket:
         if self._sock is None:
             return
         reply = b""
-        for _ in range(ACCEPTS_PER_WAKE):
+        for _ in range(min(ACCEPTS_PER_WAKE, CLIENTS_PER_S - self._in_second)):
             try:
                 conn, _ = self._sock.accept()
             except (BlockingIOError, InterruptedError):
@@ -87,6 +95,7 @@ class StatusSocket:
             except OSError as exc:  # out of descriptors: the next turn tries again
                 log.debug("status socket: accept failed (%s)", exc)
                 return
+            self._in_second += 1
             with conn:
                 conn.setblocking(False)
                 if not reply:
