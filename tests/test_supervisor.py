@@ -29,7 +29,7 @@ from drivers.can.mock_speed import MockSpeedSensor
 from drivers.can.permit import HB_ERROR
 from drivers.can.speed import SpeedReader
 from mowerhw.common.strictjson import no_constant
-from mowerhw.common.supervisor_socket import supervisor_socket
+from mowerhw.common.supervisor_socket import parse_reply, supervisor_socket
 from mowerhw.config import config_from_dict, config_to_dict, default_config
 from mowerhw.mow.containment import Reason, State
 from mowerhw.runtime.devices import CanFrames
@@ -601,3 +601,24 @@ def test_the_status_socket_answers_a_flood_at_a_bounded_rate(tmp_path: Path) -> 
         for f in flood:
             f.close()
         server.close()
+
+
+@pytest.mark.parametrize(
+    ("raw", "message"),
+    [
+        (b"", "closed the connection without a reply"),
+        (b'{"permit": NaN}\n', "NaN is not an allowed number"),
+        (b'{"permit": true, "permit": false}\n', "appears twice"),
+        (b"[1, 2]\n", "not a JSON object"),
+        (b"[" * 50_000, "nested too deep"),
+        (b"\xff\xfe{}", "Expecting value|decode"),
+        (b"{" + b" " * 70_000 + b"}", "a reply over 65536 bytes"),
+    ],
+)
+def test_a_status_reply_that_is_not_the_supervisors_is_refused_by_name(
+    tmp_path: Path, raw: bytes, message: str
+) -> None:
+    """Whatever answers on the status socket's path, a client gets the reply's fault named
+    (ConnectionError or ValueError), never a crash or a reply it should not trust."""
+    with pytest.raises((ValueError, ConnectionError), match=message):
+        parse_reply(raw, tmp_path / "control.sock.supervisor")

@@ -40,7 +40,10 @@ def parse_reply(raw: bytes, path: Path) -> dict[str, Any]:
     if len(raw) > MAX_REPLY_BYTES:
         raise ValueError(f"{path}: a reply over {MAX_REPLY_BYTES} bytes")
     # strict: the supervisor writes strict JSON, so anything else is not its reply
-    reply = json.loads(raw, parse_constant=no_constant, object_pairs_hook=unique_keys)
+    try:
+        reply = json.loads(raw, parse_constant=no_constant, object_pairs_hook=unique_keys)
+    except RecursionError:
+        raise ValueError(f"{path}: the reply is nested too deep") from None
     if not isinstance(reply, dict):
         raise ValueError(f"{path}: the reply is not a JSON object")
     return reply
