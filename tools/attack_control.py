@@ -11,7 +11,10 @@ waits until it mows, then runs one phase after another, ``--phase-s`` each:
   lines, unknown words), two of which never read a reply;
 * ``idle``: 1,100 connections opened and held open;
 * ``nested``: clients sending deeply nested and oversized JSON, over and over;
-* ``all``: the three at once.
+* ``all``: the three at once;
+* ``supervisor``: the permit supervisor's status socket (``control.sock.supervisor``, served
+  by its own loop at real-time priority) flooded: 4 clients connecting as fast as they can,
+  two of which never read.
 
 A well-behaved client asks for the status every 0.25 s throughout: its answer times, and
 the halt latencies and event-loop lags the daemon reports, are sorted into the phases. The
@@ -38,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-PHASES = ("baseline", "pipelining", "idle", "nested", "all")
+PHASES = ("baseline", "pipelining", "idle", "nested", "all", "supervisor")
 
 
 def _percentiles(values: list[float]) -> dict[str, float | int | None]:
@@ -65,6 +68,7 @@ class Attack:
 
     def __init__(self, path: Path) -> None:
         self.path = path
+        self.connections = 0
         self.stop_event = threading.Event()
         self.threads: list[threading.Thread] = []
         self.held: list[socket.socket] = []
@@ -80,6 +84,9 @@ class Attack:
         if kind in ("nested", "all"):
             for _ in range(2):
                 self._thread(self._nested)
+        if kind == "supervisor":
+            for k in range(4):
+                self._thread(self._flood_supervisor, reads=k < 2)
 
     def _thread(self, fn: Any, **kw: Any) -> None:
         t = threading.Thread(target=fn, kwargs=kw, daemon=True)
@@ -135,6 +142,18 @@ class Attack:
                 self.errors += 1
                 time.sleep(0.01)
 
+    def _flood_supervisor(self, reads: bool) -> None:
+        path = Path(str(self.path) + ".supervisor")
+        while not self.stop_event.is_set():
+            try:
+                with _connect(path, timeout=1.0) as s:
+                    self.connections += 1
+                    s.sendall(b"status\n" * 100)  # it reads nothing: ignored
+                    if reads:
+                        s.recv(65536)
+            except OSError:
+                self.errors += 1
+
     def stop(self) -> dict[str, int]:
         self.stop_event.set()
         for t in self.threads:
@@ -145,6 +164,7 @@ class Attack:
         return {
             "sent_bytes": self.sent_bytes,
             "held_connections": len(self.held),
+            "connections": self.connections,
             "errors": self.errors,
         }
 
@@ -260,8 +280,15 @@ def main() -> None:
     for phase, (a, b) in spans.items():
         answers = [(ms, r) for t0, ms, r in good.answers if a <= t0 <= b]
         in_phase = [ms for (_, t), ms in halts.items() if a <= t <= b]
+        sup = [r.get("supervisor") or {} for _, r in answers if r and r.get("ok")]
         result["phases"][phase] = {
             "halt_latency_ms": _percentiles(in_phase),
+            # the supervisor's own figures (counted since it started) at the phase's end
+            "supervisor_at_end": {
+                k: (sup[-1] if sup else {}).get(k)
+                for k in ("max_loop_lag_ms", "loop_stalls_over_20ms", "lease_expired")
+            }
+            | {"status_socket": (sup[-1] if sup else {}).get("status_socket")},
             "status_answer_ms": _percentiles([ms for ms, r in answers if r and r.get("ok")]),
             "status_refused_or_failed": sum(1 for _, r in answers if not (r and r.get("ok"))),
             "daemon_loop_lag_over_5ms_max": max(
