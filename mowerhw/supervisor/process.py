@@ -67,12 +67,17 @@ NO_FORCE = (
 
 
 def set_priority(nice: int, who: str) -> None:
-    """Run this process at ``nice`` (Linux); say so once if that is not allowed."""
+    """Run this process at ``nice`` (Linux); say so once if that is not allowed. Nothing is
+    asked when it runs at ``nice`` already (systemd's ``Nice=`` for the supervisor)."""
+    if os.getpriority(os.PRIO_PROCESS, 0) == nice:
+        return
     try:
         os.setpriority(os.PRIO_PROCESS, 0, nice)
     except (PermissionError, OSError) as exc:
         log.warning(
-            "%s: cannot run at nice %d (%s); it keeps nice %d",
+            "%s: cannot run at nice %d (%s); it keeps nice %d (a lower nice needs "
+            "CAP_SYS_NICE or RLIMIT_NICE: systemd's LimitNICE=; under a system-call filter, "
+            "setpriority allowed: systemd/mowerhw@.service)",
             who,
             nice,
             exc,
