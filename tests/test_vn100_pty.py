@@ -270,3 +270,39 @@ def test_the_mocks_integrated_fields_span_the_time_since_its_previous_output(lin
     s = moving_source(1.05)
     assert np.allclose(np.asarray(deltas[2][1:4]) / 0.03, s.gyro, atol=1e-6)
     assert np.allclose(np.asarray(deltas[2][4:7]) / 0.03, s.accel, atol=1e-6)
+
+
+def test_a_port_it_may_not_open_says_what_to_change(tmp_path) -> None:
+    """EPERM (a device policy: the systemd unit's DevicePolicy=closed, which allows USB serial
+    adapters only) and EACCES (the port's group) each name what to change; a missing port
+    says only that."""
+    import errno
+
+    import serial
+
+    from drivers.imu.vn100 import Vn100Error
+
+    def refused(code: int, text: str):
+        def factory(port: str, **_kw):  # what pyserial raises for the OS's refusal
+            raise serial.SerialException(
+                code, f"could not open port {port}: [Errno {code}] {text}: {port!r}"
+            )
+
+        return factory
+
+    said = {}
+    for code, text in (
+        (errno.EPERM, "Operation not permitted"),
+        (errno.EACCES, "Permission denied"),
+    ):
+        drv = Vn100("/dev/ttyAMA0", serial_factory=refused(code, text))
+        with pytest.raises(Vn100Error) as err:
+            drv.open()
+        said[code] = str(err.value)
+    assert "DeviceAllow=char-ttyAMA rw" in said[errno.EPERM]
+    assert "only USB serial adapters" in said[errno.EPERM]
+    assert "needs the port's group, usually dialout" in said[errno.EACCES]
+    missing = Vn100(str(tmp_path / "ttyNOPE0"))
+    with pytest.raises(Vn100Error) as err:
+        missing.open()
+    assert "No such file or directory" in str(err.value) and "DeviceAllow" not in str(err.value)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import logging
 import math
 import os
@@ -720,6 +721,25 @@ def imu_sample_from(item: Any, host_ns: int, clock: ClockSync | None = None) -> 
     return ImuSample(t, sample.gyro, sample.accel, sample.device_time_ns, host_ns, sample.mag)
 
 
+def _why_denied(exc: OSError) -> str:
+    """What to change when the port may not be opened: the port's group (EACCES), or a
+    device policy (EPERM: the systemd unit's ``DevicePolicy=closed`` allows USB serial
+    adapters only, not a computer's own UART)."""
+    if exc.errno == errno.EACCES:
+        return (
+            " (the service's user needs the port's group, usually dialout: "
+            "SupplementaryGroups= in the systemd unit)"
+        )
+    if exc.errno == errno.EPERM:
+        return (
+            " (a device policy forbids it: the systemd unit allows only USB serial adapters, "
+            "char-ttyUSB and char-ttyACM; for a UART such as /dev/ttyAMA0 or /dev/ttyS0 add "
+            "DeviceAllow=char-ttyAMA rw or DeviceAllow=char-ttyS rw in a drop-in: "
+            "systemd/README.md)"
+        )
+    return ""
+
+
 class Vn100(ThreadedDevice):
     """The VN-100 on a serial port: configure, read in a thread, reconnect (see the module doc)."""
 
@@ -797,7 +817,7 @@ class Vn100(ThreadedDevice):
             try:
                 self._serial = self._open_port(baud)
             except OSError as exc:
-                raise Vn100Error(f"cannot open {self.port}: {exc}") from exc
+                raise Vn100Error(f"cannot open {self.port}: {exc}{_why_denied(exc)}") from exc
             self.parser = Vn100Parser()
             try:
                 self.command("VNASY,0", timeout=0.3, retries=1)
