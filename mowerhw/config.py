@@ -583,7 +583,9 @@ class RuntimeConfig:
         "the front-end process answers no frame this long (tracking takes milliseconds, a "
         "search for the pose seconds, tens of seconds on a large map and a slow computer): "
         "it is hung; it is killed and the daemon ends with exit status 1, for systemd to "
-        "restart it (without its tracks the localizer halts the deck long before)",
+        "restart it (without its tracks the localizer halts the deck long before). One that "
+        "computes nothing for 10 s with a frame in hand (blocked, stopped, deadlocked) is "
+        "hung at once",
         ge=10.0,
         le=3600.0,
     )

@@ -9,7 +9,7 @@ import pytest
 
 from mowerhw.config import FrontendConfig
 from mowerhw.frontend import FrontEnd
-from mowerhw.runtime.frontend_worker import FrontendWorker, FrontendWorkerDied
+from mowerhw.runtime.frontend_worker import FrontendWorker, FrontendWorkerDied, HangWatch
 from mowerhw.sim import make_world
 from mowerhw.sim.render import OmniRenderer
 
@@ -62,6 +62,44 @@ def test_a_hung_worker_is_killed_after_its_deadline() -> None:
         assert time.monotonic() - t0 < 5.0 and proc.poll() == -signal.SIGKILL
     finally:
         worker.close()
+
+
+def test_a_worker_that_computes_nothing_is_taken_for_hung_long_before_the_limit() -> None:
+    """``runtime.frontend_hang_s`` (300 s) is long because a search for the pose may take
+    tens of seconds; but a worker whose CPU time does not grow with a frame in hand (stopped
+    here) is not searching: it is killed after ``idle_hang_s``, not after the long limit."""
+    import signal
+    import time
+
+    world = make_world("paper", 3)
+    image = OmniRenderer(world, 3).render(0.0, 0.0, 0.0)
+    args = (world.camera, tuple(float(v) for v in world.q_bc), FrontendConfig(), 0)
+    worker = FrontendWorker(hang_s=300.0, idle_hang_s=1.5)
+    try:
+        assert worker.track("chain-1", (args, None), 0.0, image, None).ids.size > 20
+        proc = worker._proc
+        assert proc is not None
+        os.kill(proc.pid, signal.SIGSTOP)
+        t0 = time.monotonic()
+        with pytest.raises(FrontendWorkerDied, match=r"computed nothing for 1.5 s .*hung, killed"):
+            worker.track("chain-1", (args, None), 0.25, image, None)
+        assert 1.5 <= time.monotonic() - t0 < 6.0 and proc.poll() == -signal.SIGKILL
+    finally:
+        worker.close()
+
+
+def test_the_hang_watch_tells_a_slow_worker_from_a_stuck_one() -> None:
+    """Computing (CPU time growing) it may take up to the long limit; idle, the short one."""
+    busy = HangWatch(0.0, 1.0, hang_s=300.0, idle_s=10.0)
+    for k in range(1, 600):  # a search that computes for 299.5 s
+        assert busy.hung(0.5 * k, 1.0 + 0.4 * k) == ""
+    assert "answered no frame for 300 s" in busy.hung(300.5, 300.0)
+    stuck = HangWatch(0.0, 1.0, hang_s=300.0, idle_s=10.0)
+    assert stuck.hung(5.0, 3.0) == ""  # computed until 5 s
+    assert stuck.hung(15.0, 3.0) == ""  # idle for 10 s: not yet over
+    assert "computed nothing for 10 s" in stuck.hung(15.5, 3.0)
+    blind = HangWatch(0.0, None, hang_s=300.0, idle_s=10.0)  # no /proc: only the long limit
+    assert blind.hung(200.0, None) == "" and blind.hung(301.0, None)
 
 
 def test_the_worker_relocalizes_a_frame_when_asked() -> None:

@@ -26,6 +26,8 @@ import struct
 import subprocess
 import sys
 import threading
+import time
+from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
@@ -38,6 +40,47 @@ from mowerhw.runtime.process import die_with_parent
 from mowerhw.vision.base import VisionBase
 
 _LEN = struct.Struct("<I")
+#: a worker that computes nothing (its CPU time does not grow) this long with a frame in hand
+#: is hung — blocked, stopped or deadlocked — however long ``runtime.frontend_hang_s`` is
+IDLE_HANG_S = 10.0
+#: how often the wait for an answer looks at the worker's CPU time (s)
+CHECK_S = 0.5
+_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 0.01
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """CPU time (user + system) process ``pid`` has used, from ``/proc`` (None where it
+    cannot be read)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) * _TICK_S  # utime, stime (fields 14, 15)
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+class HangWatch:
+    """Whether a worker with a frame in hand is hung: it answered nothing for ``hang_s``
+    (an endless loop), or its CPU time has not grown for ``idle_s`` (blocked, stopped,
+    deadlocked: a slow search for the pose keeps computing, so only the long limit ends it)."""
+
+    def __init__(self, now: float, cpu: float | None, hang_s: float, idle_s: float) -> None:
+        self.start = self.progress_at = now
+        self.cpu = cpu
+        self.hang_s = hang_s
+        self.idle_s = idle_s
+
+    def hung(self, now: float, cpu: float | None) -> str:
+        """Why the worker is taken for hung at ``now`` (its CPU time ``cpu``), or ""."""
+        if now - self.start > self.hang_s:
+            return f"answered no frame for {self.hang_s:g} s (runtime.frontend_hang_s)"
+        if cpu is None or self.cpu is None or cpu > self.cpu:
+            self.progress_at, self.cpu = now, cpu  # computing (or it cannot be told)
+        elif now - self.progress_at > self.idle_s:
+            return (
+                f"computed nothing for {self.idle_s:g} s with a frame in hand (blocked, "
+                "stopped or deadlocked)"
+            )
+        return ""
 
 
 def _write(out: IO[bytes], obj: Any) -> None:
@@ -108,9 +151,11 @@ class FrontendWorker:
     chain, one global relocalizer) per ``key`` (the chain's serial: a new chain starts a new
     front end, as it does on a thread)."""
 
-    def __init__(self, hang_s: float = 300.0) -> None:
+    def __init__(self, hang_s: float = 300.0, idle_hang_s: float = IDLE_HANG_S) -> None:
         #: a frame not answered within this is a hung worker (``runtime.frontend_hang_s``)
         self.hang_s = hang_s
+        #: nor one it computes nothing on for this long (:class:`HangWatch`)
+        self.idle_hang_s = idle_hang_s
         self._proc: subprocess.Popen[bytes] | None = None
         self._key: Any = None
         self._lock = threading.Lock()
@@ -152,13 +197,13 @@ class FrontendWorker:
                     self._key = key
                 shape, dtype = self._slot.put(image)
                 _write(proc.stdin, ("frame", t, shape, dtype, r_prev_cur, search))
-                kind, body = _read(proc.stdout, self.hang_s)
-            except TimeoutError:
+                self._wait_for_answer(proc)
+                kind, body = _read(proc.stdout)
+            except TimeoutError as exc:
                 proc.kill()
                 proc.wait()
                 raise FrontendWorkerDied(
-                    f"the front-end worker process answered no frame for {self.hang_s:g} s "
-                    "(runtime.frontend_hang_s): hung, killed"
+                    f"the front-end worker process {exc}: hung, killed"
                 ) from None
             except (OSError, EOFError, pickle.PickleError) as exc:
                 proc.kill()
@@ -168,6 +213,15 @@ class FrontendWorker:
             raise RuntimeError(f"front end: {body}")
         tracks: FrameTracks = body
         return tracks
+
+    def _wait_for_answer(self, proc: subprocess.Popen[bytes]) -> None:
+        """Until the worker's answer begins; TimeoutError saying why it is taken for hung."""
+        assert proc.stdout is not None
+        watch = HangWatch(time.monotonic(), cpu_seconds(proc.pid), self.hang_s, self.idle_hang_s)
+        while not select.select([proc.stdout], [], [], CHECK_S)[0]:
+            why = watch.hung(time.monotonic(), cpu_seconds(proc.pid))
+            if why:
+                raise TimeoutError(why)
 
     def close(self) -> None:
         if self._proc is not None and self._proc.poll() is None:
