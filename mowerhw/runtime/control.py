@@ -20,9 +20,7 @@ import asyncio
 import contextlib
 import json
 import logging
-import os
 import socket
-import stat
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -30,7 +28,7 @@ from typing import Any
 
 from mowerhw.common.strictjson import finite
 from mowerhw.config import Config
-from mowerhw.runtime.control_access import ControlPolicy, Peer
+from mowerhw.runtime.control_access import ControlPolicy, Peer, listen_unix
 from mowerhw.runtime.control_protocol import MAX_REQUEST_BYTES, READ_ONLY, parse_request
 
 log = logging.getLogger("mowerhw.control")
@@ -81,21 +79,7 @@ class ControlServer:
     async def start(self) -> asyncio.Task[None]:
         """Bind and listen; the task accepting connections (it ends only when the server
         closes: the daemon watches it like its other tasks)."""
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        with contextlib.suppress(FileNotFoundError):
-            if not stat.S_ISSOCK(self.path.lstat().st_mode):
-                raise OSError(f"{self.path} exists and is not a socket: refusing to replace it")
-            self.path.unlink()
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            sock.bind(str(self.path))
-            os.chmod(self.path, self.mode)
-            sock.listen(64)
-            sock.setblocking(False)
-        except OSError:
-            sock.close()
-            raise
-        self._sock = sock
+        self._sock = listen_unix(self.path, self.mode)
         self._accepting = asyncio.create_task(self._accept_loop(), name="control-accept")
         return self._accepting
 

@@ -8,11 +8,13 @@ root, or members of ``runtime.control_group``. Only one daemon serves a control 
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import grp
 import os
 import pwd
 import socket
+import stat
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,6 +68,27 @@ class ControlPolicy:
             f" or members of group {self.group!r}" if self.group else ""
         )
         return f"{cmd}: not allowed for {who}; commands that change the mower need {allowed}"
+
+
+def listen_unix(path: Path, mode: int, backlog: int = 64) -> socket.socket:
+    """A non-blocking Unix stream socket listening at ``path`` with file mode ``mode``. A
+    socket left there by a dead daemon is replaced (the caller holds the control socket's
+    lock: no live daemon serves it); anything else there is refused (OSError)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with contextlib.suppress(FileNotFoundError):
+        if not stat.S_ISSOCK(path.lstat().st_mode):
+            raise OSError(f"{path} exists and is not a socket: refusing to replace it")
+        path.unlink()
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        sock.bind(str(path))
+        os.chmod(path, mode)
+        sock.listen(backlog)
+        sock.setblocking(False)
+    except OSError:
+        sock.close()
+        raise
+    return sock
 
 
 def claim_control_socket(path: str | Path) -> int:

@@ -16,15 +16,14 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import os
 import socket
-import stat
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from mowerhw.common.strictjson import finite
 from mowerhw.common.supervisor_socket import MAX_REPLY_BYTES, parse_reply, supervisor_socket
+from mowerhw.runtime.control_access import listen_unix
 
 log = logging.getLogger("mowerhw.supervisor")
 
@@ -49,20 +48,7 @@ class StatusSocket:
     def open(self) -> bool:
         """Listen; False (said once in the log) when it cannot: mowing does not need it."""
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            with contextlib.suppress(FileNotFoundError):
-                if not stat.S_ISSOCK(self.path.lstat().st_mode):
-                    raise OSError(f"{self.path} exists and is not a socket: not replacing it")
-                self.path.unlink()  # a dead daemon's: the control socket's lock is ours
-            sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            try:
-                sock.bind(str(self.path))
-                os.chmod(self.path, self.mode)
-                sock.listen(64)
-                sock.setblocking(False)
-            except OSError:
-                sock.close()
-                raise
+            sock = listen_unix(self.path, self.mode)
         except OSError as exc:
             log.warning(
                 "the permit supervisor's status socket %s cannot be opened (%s): `mowerhw "
