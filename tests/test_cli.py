@@ -70,6 +70,10 @@ def test_ctl_says_why_it_got_no_reply(tmp_path, capsys):
     missing = tmp_path / "none.sock"
     assert main(["ctl", "--socket", str(missing), "status"]) == 1
     assert "no such socket: the daemon is not running" in capsys.readouterr().err
+    assert main(["ctl", "--socket", str(missing), "supervisor"]) == 1
+    out = capsys.readouterr()
+    assert "the permit supervisor does not answer on" in out.err and "no such socket" in out.err
+    assert json.loads(out.out)["ok"] is False  # strict JSON on stdout all the same
 
     gone = tmp_path / "gone.sock"
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:

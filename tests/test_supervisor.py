@@ -499,15 +499,16 @@ def test_the_supervisor_answers_on_its_own_socket_while_the_estimation_process_i
                     replies.append(ask_supervisor(sock, 0.5))
                     est = replies[-1]["estimation"]
                     if not ctl and est["alive"] and (est["silent_s"] or 0.0) > 1.0:
-                        ctl.append(
-                            subprocess.run(
-                                [sys.executable, "-m", "mowerhw", "ctl", "--socket", str(sock)]
-                                + ["--timeout", "0.5", "status"],
-                                capture_output=True,
-                                text=True,
-                                timeout=30,
+                        for cmd in ("status", "supervisor"):
+                            ctl.append(
+                                subprocess.run(
+                                    [sys.executable, "-m", "mowerhw", "ctl", "--socket"]
+                                    + [str(sock), "--timeout", "0.5", cmd],
+                                    capture_output=True,
+                                    text=True,
+                                    timeout=30,
+                                )
                             )
-                        )
                 time.sleep(0.05)
 
         asker = threading.Thread(target=ask, daemon=True)
@@ -536,6 +537,11 @@ def test_the_supervisor_answers_on_its_own_socket_while_the_estimation_process_i
     assert "has sent nothing for" in out.stderr
     reply = json.loads(out.stdout, parse_constant=no_constant)  # strict JSON on stdout
     assert reply["ok"] is False and reply["supervisor"]["reason"] == Reason.ESTIMATOR_LATE
+    # `ctl supervisor` asks the supervisor alone: at once, exit 0, its status as JSON
+    asked = ctl[1]
+    assert asked.returncode == 0 and "holds the deck halted (ESTIMATOR_LATE" in asked.stderr
+    status = json.loads(asked.stdout, parse_constant=no_constant)
+    assert status["who"] == "supervisor" and status["estimation"]["alive"] is True
     assert not left  # removed when the supervisor stopped
 
 

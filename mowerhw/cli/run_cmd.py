@@ -75,11 +75,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     c = sub.add_parser(
         "ctl",
-        help="control a running daemon: status|teach|mow|idle|finish-teach|save-map",
-        description="Send one command to the daemon's control socket and print its reply.",
+        help="control a running daemon: status|teach|mow|idle|finish-teach|save-map|supervisor",
+        description=(
+            "Send one command to the daemon's control socket and print its reply. "
+            "`supervisor` reads the permit supervisor's own status socket instead "
+            "(<control socket>.supervisor): it answers at once, also while the estimation "
+            "process, which serves the control socket, is stalled or restarting."
+        ),
     )
     add_config_argument(c)
-    c.add_argument("command", choices=[x for x in COMMANDS if x != "fault"] + ["fault"])
+    c.add_argument("command", choices=[x for x in COMMANDS if x != "fault"] + ["fault", SUPERVISOR])
     c.add_argument(
         "args",
         nargs="*",
@@ -162,6 +167,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     return run_daemon(cfg, "idle", record=args.out, duration_s=args.duration)
 
 
+#: ``mowerhw ctl supervisor``: the permit supervisor's status socket, not the control socket
+SUPERVISOR = "supervisor"
 #: how long ``ctl`` waits for the permit supervisor's status socket (it answers at once)
 SUPERVISOR_TIMEOUT_S = 2.0
 
@@ -192,6 +199,11 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     sock = args.socket
     if sock is None:
         sock = load_config_or_exit(args.config).runtime.control_socket
+    if args.command == SUPERVISOR:
+        status, says = _supervisor_says(sock)
+        print(f"mowerhw ctl: {says}", file=sys.stderr)
+        print(strict_json(status if status is not None else {"ok": False, "error": says}, indent=2))
+        return 0 if status is not None else 1
     extra: dict[str, Any] = {"args": args.args} if args.args else {}
     if args.area:
         if args.command != "mow":
