@@ -143,7 +143,9 @@ class Attack:
                 time.sleep(0.01)
 
     def _flood_supervisor(self, reads: bool) -> None:
-        path = Path(str(self.path) + ".supervisor")
+        from mowerhw.common.supervisor_socket import supervisor_socket
+
+        path = supervisor_socket(self.path)
         while not self.stop_event.is_set():
             try:
                 with _connect(path, timeout=1.0) as s:
@@ -280,15 +282,21 @@ def main() -> None:
     for phase, (a, b) in spans.items():
         answers = [(ms, r) for t0, ms, r in good.answers if a <= t0 <= b]
         in_phase = [ms for (_, t), ms in halts.items() if a <= t <= b]
-        sup = [r.get("supervisor") or {} for _, r in answers if r and r.get("ok")]
+        # the supervisor's own figures (counted since it started) at the phase's end
+        sup = next(
+            (r.get("supervisor") or {} for _, r in reversed(answers) if r and r.get("ok")), {}
+        )
         result["phases"][phase] = {
             "halt_latency_ms": _percentiles(in_phase),
-            # the supervisor's own figures (counted since it started) at the phase's end
             "supervisor_at_end": {
-                k: (sup[-1] if sup else {}).get(k)
-                for k in ("max_loop_lag_ms", "loop_stalls_over_20ms", "lease_expired")
-            }
-            | {"status_socket": (sup[-1] if sup else {}).get("status_socket")},
+                k: sup.get(k)
+                for k in (
+                    "max_loop_lag_ms",
+                    "loop_stalls_over_20ms",
+                    "lease_expired",
+                    "status_socket",
+                )
+            },
             "status_answer_ms": _percentiles([ms for ms, r in answers if r and r.get("ok")]),
             "status_refused_or_failed": sum(1 for _, r in answers if not (r and r.get("ok"))),
             "daemon_loop_lag_over_5ms_max": max(

@@ -852,7 +852,7 @@ class Bench:
             st = self._status(timeout=1.0)
             if not st:  # the estimation process is silent: its supervisor says why
                 with contextlib.suppress(OSError, ConnectionError, ValueError):
-                    st = {"permit": True, "supervisor": ask_supervisor(self.sock)}
+                    st = {"supervisor": ask_supervisor(self.sock)}
             if not st:
                 return
             sup = st.get("supervisor") or {}

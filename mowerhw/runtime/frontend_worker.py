@@ -89,10 +89,8 @@ def _write(out: IO[bytes], obj: Any) -> None:
     out.flush()
 
 
-def _read(inp: IO[bytes], timeout_s: float | None = None) -> Any:
-    """One message; TimeoutError if none begins within ``timeout_s`` (None: wait)."""
-    if timeout_s is not None and not select.select([inp], [], [], timeout_s)[0]:
-        raise TimeoutError(f"no answer in {timeout_s:g} s")
+def _read(inp: IO[bytes]) -> Any:
+    """One message, waited for (the sender's deadline: ``FrontendWorker._wait_for_answer``)."""
     head = inp.read(_LEN.size)
     if len(head) < _LEN.size:
         raise EOFError("the front-end worker's pipe closed")
