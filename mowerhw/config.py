@@ -28,6 +28,7 @@ from typing import Any
 
 import yaml
 
+from mowerhw.common.clocksync import FRAME_CLOCKS
 from mowerhw.common.supervisor_socket import supervisor_socket
 from mowerhw.common.yamlfile import load_yaml
 
@@ -273,6 +274,14 @@ class CameraConfig:
         "camera (Mei) frame in the body frame, (w, x, y, z); null: from the calibration's "
         f"T_cam_imu, else {DEFAULT_Q_BC} (mirror up, image centre at nadir)",
         unit_norm=True,
+    )
+    timestamps: str = opt(
+        "auto",
+        "where a frame's time comes from (v4l2): monotonic (the driver's buffer time, on this "
+        "computer's monotonic clock as V4L2 stamps it, as it is), device (buffer times on a "
+        "clock of their own, mapped onto the host's), arrival (when the frame was read: "
+        "late by the transfer), or auto (monotonic when the first buffer time is, else device)",
+        choices=FRAME_CLOCKS,
     )
     stale_after_s: float = opt(1.0, "halt when no frame for this long", gt=0.0, le=30.0)
     pixel_sigma: float = opt(1.0, "feature position noise (px, 1σ)", gt=0.0, le=20.0)

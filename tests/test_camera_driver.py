@@ -183,3 +183,96 @@ def test_v4l2_driver_decodes_no_more_frames_than_its_rate():
     finally:
         cam.stop()
     assert cam.stats.skipped <= 0.1 * dev.grabbed, (cam.stats.skipped, dev.grabbed)
+
+
+class StampedCapture:
+    """``cv2.VideoCapture`` on a camera whose driver stamps each buffer (``CAP_PROP_POS_MSEC``)
+    ``latency_s`` before ``grab`` returns it — a UVC camera stamps the start of the exposure,
+    and the frame arrives after its exposure and its transfer — on the host's monotonic clock,
+    or (``epoch``) on the wall clock as old drivers did."""
+
+    def __init__(self, latency_s: float, epoch: bool = False, every_s: float = 0.02) -> None:
+        self.latency_s, self.epoch, self.every_s = latency_s, epoch, every_s
+        self.stamps: list[float] = []  # the buffer times, s on the host's monotonic clock
+        self._stamp_ms = 0.0
+
+    def isOpened(self) -> bool:
+        return True
+
+    def set(self, prop: int, value: float) -> bool:
+        return True
+
+    def get(self, prop: int) -> float:
+        import cv2
+
+        return self._stamp_ms if prop == cv2.CAP_PROP_POS_MSEC else 0.0
+
+    def grab(self) -> bool:
+        time.sleep(self.every_s)
+        stamp = time.monotonic() - self.latency_s
+        self.stamps.append(stamp)
+        shift = time.time() - time.monotonic() if self.epoch else 0.0
+        self._stamp_ms = 1000.0 * (stamp + shift)
+        return True
+
+    def retrieve(self):
+        return True, np.zeros((48, 64), np.uint8)
+
+    def release(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("mode", ["auto", "monotonic"])
+def test_v4l2_buffer_times_on_the_host_clock_are_the_frame_times(mode):
+    """V4L2 stamps buffers on the host's monotonic clock: a frame's time is its buffer time
+    as it is, not moved late by the 70 ms the frame took to arrive (mapped like a device's
+    clock, every frame would be: the smallest delivery latency cannot be seen from arrivals)."""
+    from mowerhw.common.clocksync import FrameClock
+
+    cap = StampedCapture(latency_s=0.07)
+    cam = V4l2Camera("x", width=64, height=48, fps=50, capture_factory=lambda _: cap)
+    cam.clock = FrameClock(mode)
+    frames = collect(cam, 0.5)
+    assert len(frames) >= 5
+    stamps = {round(s, 6) for s in cap.stamps}
+    assert all(round(f.t, 6) in stamps for f in frames)  # the buffer times themselves
+    status = cam.status()["clock"]
+    assert status["source"] == "monotonic" and status["future_stamps"] == 0
+    assert 0.07 <= status["min_latency_s"] < 0.5  # what the transfer took, seen
+
+
+def test_v4l2_buffer_times_on_another_clock_are_mapped_and_the_default_says_which():
+    """A driver that stamps on the wall clock (or a camera's own clock): mapped onto the host
+    clock (the smallest latency then cannot be seen: the mapped times are the arrivals')."""
+    cap = StampedCapture(latency_s=0.07, epoch=True)
+    cam = V4l2Camera("x", width=64, height=48, fps=50, capture_factory=lambda _: cap)
+    frames = collect(cam, 0.5)
+    assert len(frames) >= 5 and cam.status()["clock"]["source"] == "device"
+    arrivals = np.array(cap.stamps[: len(frames)]) + 0.07
+    t = np.array([f.t for f in frames])
+    assert np.all(np.abs(t - arrivals) < 0.05)  # host clock, mapped: not the wall clock
+
+
+def test_frame_clock_modes_and_a_stamp_after_its_arrival():
+    from mowerhw.common.clocksync import FrameClock
+
+    # auto: host-clock stamps, then one after its own arrival (impossible on that clock):
+    # buffer times are mapped from then on, and it says so
+    clock = FrameClock()
+    assert clock.time(99.93, 100.0) == 99.93 and clock.stats.source == "monotonic"
+    assert clock.time(None, 100.5) == 100.5 and clock.stats.unstamped == 1
+    later = clock.time(101.1, 101.0)
+    assert clock.stats.source == "device" and clock.stats.future_stamps == 1
+    assert later <= 101.0  # never after the frame arrived
+    # monotonic given by the user: such a stamp is not believed, the arrival is used
+    clock = FrameClock("monotonic")
+    assert clock.time(50.0, 49.9) == 49.9 and clock.stats.source == "monotonic"
+    assert clock.time(49.95, 50.0) == 49.95
+    # arrival: the stamps are not used
+    clock = FrameClock("arrival")
+    assert clock.time(10.0, 12.0) == 12.0 and clock.stats.unstamped == 0
+    # device: mapped even when it looks like the host's clock
+    clock = FrameClock("device")
+    assert clock.time(99.93, 100.0) == 100.0 and clock.stats.min_latency_s == 0.0
+    with pytest.raises(ValueError, match="frame clock 'gps' is not one of auto, monotonic"):
+        FrameClock("gps")

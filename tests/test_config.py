@@ -118,6 +118,10 @@ BAD_VALUES = [
         "camera.width/height: 640x1540 does not match the calibration's resolution 1540x1540",
     ),
     ({"camera": {"fps": 0}}, "camera.fps: 0 is out of range: must be greater than 0"),
+    (
+        {"camera": {"timestamps": "gps"}},
+        "camera.timestamps: 'gps' is not one of auto, monotonic, device, arrival",
+    ),
     ({"permit": {"period_s": 1.0}}, "permit.period_s: 1 is out of range: must be at most 0.1"),
     ({"permit": {"status_pgn": 0xFE49}}, "permit.status_pgn: 65097 is out of range"),
     ({"teach": {"gamma1": 0.5}}, "teach.gamma1: 0.5 is out of range: must be less than 0"),

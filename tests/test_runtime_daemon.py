@@ -83,6 +83,7 @@ def test_daemon_in_process_on_the_virtual_bus(
         await _until(lambda: daemon.core.last_arrival["imu"] is not None, 20, "IMU data")
         await _until(lambda: reason() == "NOT_MOWING", 5, "NOT_MOWING on CAN")
         seen.append(reason())
+        await _until(lambda: daemon.status()["camera"]["frames"] > 0, 5, "camera counters")
         reply = await daemon.handle_command("mow", {})
         assert reply["ok"] and reply["map_problem"] == "", reply
         # synthetic camera frames show no landmark: never localized, so never permitted

@@ -47,6 +47,10 @@ class CameraSource(ThreadedDevice, ABC):
     @abstractmethod
     def _run(self) -> None: ...
 
+    def status(self) -> dict[str, Any]:
+        """The counters, for the status command."""
+        return dict(vars(self.stats))
+
     def _emit(self, frame: FrameSample) -> None:
         self.stats.frames += 1
         if self.on_frame is not None:

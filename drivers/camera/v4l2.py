@@ -2,9 +2,10 @@
 
 :class:`V4l2Camera` opens ``cv2.VideoCapture(device, cv2.CAP_V4L2)`` with the
 configured size, pixel format and rate, reads frames in its own thread (at most at that rate:
-a camera that delivers faster has the extra frames dropped undecoded), maps the driver's
-buffer timestamp (``CAP_PROP_POS_MSEC``) onto the host clock with a
-:class:`mowerhw.common.clocksync.ClockSync`, and when the device disappears (USB unplugged, driver
+a camera that delivers faster has the extra frames dropped undecoded), times each frame by the
+driver's buffer timestamp (``CAP_PROP_POS_MSEC``) through a
+:class:`mowerhw.common.clocksync.FrameClock` (on the host's monotonic clock as V4L2 stamps it:
+as it is; on another clock: mapped), and when the device disappears (USB unplugged, driver
 reset) releases it and reopens it with backoff.
 """
 
@@ -17,7 +18,7 @@ from collections.abc import Callable
 from typing import Any
 
 from drivers.camera.base import CameraSource
-from mowerhw.common.clocksync import ClockSync
+from mowerhw.common.clocksync import FrameClock
 from mowerhw.common.samples import FrameSample
 
 log = logging.getLogger(__name__)
@@ -42,7 +43,7 @@ class V4l2Camera(CameraSource):
         pixel_format: str = "GREY",
         reconnect_max_backoff_s: float = 5.0,
         failures_before_reconnect: int = 5,
-        clock: ClockSync | None = None,
+        clock: FrameClock | None = None,
         capture_factory: Callable[[str], Any] | None = None,
     ) -> None:
         super().__init__()
@@ -51,9 +52,13 @@ class V4l2Camera(CameraSource):
         self.pixel_format = pixel_format
         self.reconnect_max_backoff_s = reconnect_max_backoff_s
         self.failures_before_reconnect = failures_before_reconnect
-        self.clock = clock or ClockSync(device_unit_s=1e-3, reset_threshold_s=2.0)
+        self.clock = clock or FrameClock()
         self._factory = capture_factory
         self._seq = 0
+
+    def status(self) -> dict[str, Any]:
+        """The counters, and where the frame times come from (:class:`FrameClock`)."""
+        return {**super().status(), "clock": dict(vars(self.clock.stats))}
 
     def _open(self) -> Any:
         import cv2
@@ -126,7 +131,7 @@ class V4l2Camera(CameraSource):
             if img.ndim == 3:
                 img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
             dev_ms = float(cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0)
-            t = self.clock.update(dev_ms, host_s) if dev_ms > 0 else host_s
+            t = self.clock.time(dev_ms / 1000.0 if dev_ms > 0 else None, host_s)
             self._seq += 1
             self._emit(
                 FrameSample(

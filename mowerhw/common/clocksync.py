@@ -21,10 +21,13 @@ A device clock that jumps (reboot, counter reset) is detected and starts a fresh
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -170,3 +173,95 @@ def _lower_hull(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         hull.append(i)
     idx = np.asarray(hull)
     return x[idx], y[idx]
+
+
+#: where a camera's frame times come from (``camera.timestamps``)
+FRAME_CLOCKS = ("auto", "monotonic", "device", "arrival")
+
+
+@dataclass
+class FrameClockStats:
+    #: the clock the frame times come from now: monotonic (the buffer times as they are),
+    #: device (buffer times mapped by :class:`ClockSync`) or arrival (the host's reading)
+    source: str = ""
+    frames: int = 0
+    unstamped: int = 0  # frames without a buffer time: their arrival used
+    future_stamps: int = 0  # host-clock buffer times after their frame's arrival
+    #: arrival − frame time of the newest frame, and its smallest (the delivery latency)
+    latency_s: float = 0.0
+    min_latency_s: float = 0.0
+
+
+class FrameClock:
+    """A camera frame's host time from its buffer time and its arrival (docs/design.md §3).
+
+    V4L2 drivers stamp buffers on the host's own ``CLOCK_MONOTONIC``, the clock
+    ``time.monotonic()`` reads (``V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC``; uvcvideo at the start
+    of the exposure): such a stamp *is* the frame's time. Mapped like a device clock
+    (:class:`ClockSync`), every frame would be moved late by the smallest delivery latency —
+    the exposure's end and the frame's transfer, tens of ms for a large frame — which no
+    one-way scheme can see. Older drivers stamp on the wall clock, and a camera may count
+    its own: those are mapped by :class:`ClockSync`.
+
+    ``mode`` (``camera.timestamps``): ``monotonic`` takes buffer times as host times;
+    ``device`` maps them; ``arrival`` ignores them; ``auto`` decides on the first stamped
+    frame — a buffer time at most :attr:`SAME_CLOCK_S` before its arrival, and not after
+    it, is on the host's clock — and maps from the first one that comes after its arrival
+    (which a host-clock stamp never does), saying so once. In every mode a frame without a
+    buffer time has its arrival, and a host-clock stamp after its arrival is clamped to it.
+    """
+
+    #: a buffer time this close before its arrival is on the host's monotonic clock (the
+    #: other clocks a driver uses are the wall clock, decades away, or a device's own)
+    SAME_CLOCK_S = 10.0
+    #: a host-clock buffer time may be this far after its arrival (the two read at
+    #: different moments, in ms with µs digits): more means it is not on the host's clock
+    FUTURE_TOLERANCE_S = 0.002
+
+    def __init__(self, mode: str = "auto", sync: ClockSync | None = None) -> None:
+        if mode not in FRAME_CLOCKS:
+            raise ValueError(f"frame clock {mode!r} is not one of {', '.join(FRAME_CLOCKS)}")
+        self.mode = mode
+        self.sync = sync or ClockSync(device_unit_s=1.0, reset_threshold_s=2.0)
+        self.stats = FrameClockStats(source="" if mode == "auto" else mode)
+
+    def time(self, stamp_s: float | None, arrival_s: float) -> float:
+        """The host time (s) of a frame stamped ``stamp_s`` (None or ≤ 0: no stamp) that
+        arrived at ``arrival_s`` (host monotonic s)."""
+        self.stats.frames += 1
+        if stamp_s is None or not stamp_s > 0.0 or self.mode == "arrival":
+            if self.mode != "arrival":
+                self.stats.unstamped += 1
+            return self._seen(arrival_s, arrival_s)
+        ahead = stamp_s - arrival_s
+        if self.stats.source == "":  # auto, first stamp
+            same = -self.SAME_CLOCK_S <= ahead <= self.FUTURE_TOLERANCE_S
+            self.stats.source = "monotonic" if same else "device"
+            log.info(
+                "camera: buffer times %s (the first %.3f s %s its arrival): %s",
+                "on this computer's monotonic clock" if same else "on a clock of their own",
+                abs(ahead),
+                "after" if ahead > 0 else "before",
+                "used as they are" if same else "mapped onto the host clock",
+            )
+        if self.stats.source == "monotonic":
+            if ahead > self.FUTURE_TOLERANCE_S:
+                self.stats.future_stamps += 1
+                if self.mode == "auto":
+                    self.stats.source = "device"
+                    log.warning(
+                        "camera: a buffer time %.3f s after its frame arrived: not this "
+                        "computer's clock after all; mapping buffer times from now on",
+                        ahead,
+                    )
+                    return self._seen(self.sync.update(stamp_s, arrival_s), arrival_s)
+                return self._seen(arrival_s, arrival_s)
+            return self._seen(stamp_s, arrival_s)
+        return self._seen(self.sync.update(stamp_s, arrival_s), arrival_s)
+
+    def _seen(self, t: float, arrival_s: float) -> float:
+        latency = arrival_s - t
+        st = self.stats
+        st.min_latency_s = latency if st.frames == 1 else min(st.min_latency_s, latency)
+        st.latency_s = latency
+        return t

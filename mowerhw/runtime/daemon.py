@@ -473,7 +473,7 @@ class Daemon:
             "loop_lag_ms_over_5": self.loop_lag.lags_ms[-50:],
             "loop_lag_times": self.loop_lag.lag_times[-50:],
             "control": self.control.status() if self.control else {},
-            **device_status(self.imu_dev, self.can, self.recorder),
+            **device_status(self.imu_dev, self.camera, self.can, self.recorder),
         }
         out["counts"]["can_open_failures"] = self.can.open_failures if self.can else 0
         out["counts"]["pose_save_errors"] = self.pose_file.errors

@@ -23,6 +23,7 @@ from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
 from drivers.imu.vn100 import Vn100
 from drivers.threaded import ThreadedDevice
+from mowerhw.common.clocksync import FrameClock
 from mowerhw.common.samples import FrameSample, ImuSample, SpeedSample
 from mowerhw.config import Config
 from mowerhw.mow.gate import Decision
@@ -78,7 +79,12 @@ def open_camera(cfg: Config, on_frame: Callable[[FrameSample], None]) -> CameraS
         camera = MockCamera(fps=c.fps, width=c.width, height=c.height)
     else:
         camera = V4l2Camera(
-            c.device, width=c.width, height=c.height, fps=c.fps, pixel_format=c.pixel_format
+            c.device,
+            width=c.width,
+            height=c.height,
+            fps=c.fps,
+            pixel_format=c.pixel_format,
+            clock=FrameClock(c.timestamps),
         )
     camera.start(on_frame)
     return camera
@@ -327,11 +333,15 @@ def record_estimate(rec: Recorder | None, core: RuntimeCore, now: float) -> None
 
 
 def device_status(
-    imu: Vn100 | None, output: DecisionOutput | None, rec: Recorder | None
+    imu: Vn100 | None,
+    camera: CameraSource | None,
+    output: DecisionOutput | None,
+    rec: Recorder | None,
 ) -> dict[str, Any]:
     """The devices' counters, for the status command."""
     return {
         "imu_driver": vars(imu.stats) if imu else {},
+        "camera": camera.status() if camera else {},
         "imu_parser": imu.parser.stats.as_dict() if imu else {},
         "imu_messages": vars(imu.extractor.stats) if imu else {},
         **(output.status() if output is not None else {}),
