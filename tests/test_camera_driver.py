@@ -276,3 +276,97 @@ def test_frame_clock_modes_and_a_stamp_after_its_arrival():
     assert clock.time(99.93, 100.0) == 100.0 and clock.stats.min_latency_s == 0.0
     with pytest.raises(ValueError, match="frame clock 'gps' is not one of auto, monotonic"):
         FrameClock("gps")
+
+
+def _grey_pattern(h: int, w: int) -> np.ndarray:
+    y, x = np.mgrid[0:h, 0:w]
+    return ((x * 7 + y * 13) % 256).astype(np.uint8)
+
+
+def test_grey_from_the_buffers_opencv_hands_over_undecoded():
+    """With ``CAP_PROP_CONVERT_RGB`` off OpenCV hands over the V4L2 buffer's bytes as one row
+    (rows padded to a stride on some drivers): GREY is the image, YUYV's luma is, MJPG is
+    decoded to grey only, BGR3 converted; a buffer of another mode is no frame (None)."""
+    import cv2
+
+    from drivers.camera.v4l2 import grey_from_buffer
+
+    h, w = 48, 64
+    grey = _grey_pattern(h, w)
+    row = grey.reshape(1, -1)
+    assert np.array_equal(grey_from_buffer(row, "GREY", w, h), grey)
+    padded = np.zeros((h, w + 16), np.uint8)  # a stride of 80 bytes
+    padded[:, :w] = grey
+    assert np.array_equal(grey_from_buffer(padded.reshape(1, -1), "GREY", w, h), grey)
+    yuyv = np.empty((h, w, 2), np.uint8)
+    yuyv[..., 0], yuyv[..., 1] = grey, 77  # Y, then U/V alternating
+    assert np.array_equal(grey_from_buffer(yuyv.reshape(1, -1), "YUYV", w, h), grey)
+    bgr = np.dstack([grey, grey, grey])
+    assert np.array_equal(grey_from_buffer(bgr.reshape(1, -1), "BGR3", w, h), grey)
+    ok, jpg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    assert ok
+    decoded = grey_from_buffer(jpg.reshape(1, -1), "MJPG", w, h)
+    assert decoded is not None and decoded.shape == (h, w)
+    assert np.array_equal(decoded, cv2.imdecode(jpg, cv2.IMREAD_GRAYSCALE))
+    assert np.abs(decoded.astype(int) - grey).mean() < 3.0
+    # an image OpenCV decoded after all (it kept CONVERT_RGB on): BGR, or grey as it is
+    assert np.array_equal(grey_from_buffer(bgr, "GREY", w, h), grey)
+    assert grey_from_buffer(grey, "YUYV", w, h) is grey
+    # another mode's buffer, a JPEG that is none
+    assert grey_from_buffer(_grey_pattern(30, 40).reshape(1, -1), "GREY", w, h) is None
+    assert grey_from_buffer(row, "YUYV", w, h) is None  # half the bytes YUYV needs
+    assert grey_from_buffer(jpg[:200].reshape(1, -1) * 0, "MJPG", w, h) is None
+
+
+class RawCapture:
+    """``cv2.VideoCapture`` on a GREY camera as OpenCV's V4L2 backend behaves: with
+    ``CAP_PROP_CONVERT_RGB`` on it expands each frame to BGR, off it hands over the buffer's
+    bytes as one row. ``mode``: the size the camera really delivers."""
+
+    def __init__(self, mode: tuple[int, int]) -> None:
+        self.mode = mode
+        self.convert = True
+        self.frames = 0
+
+    def isOpened(self) -> bool:
+        return True
+
+    def set(self, prop: int, value: float) -> bool:
+        import cv2
+
+        if prop == cv2.CAP_PROP_CONVERT_RGB:
+            self.convert = bool(value)
+        return True
+
+    def get(self, prop: int) -> float:
+        return 0.0
+
+    def grab(self) -> bool:
+        time.sleep(0.02)
+        return True
+
+    def retrieve(self):
+        import cv2
+
+        self.frames += 1
+        grey = _grey_pattern(*self.mode)
+        return True, cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR) if self.convert else grey.reshape(1, -1)
+
+    def release(self) -> None:
+        pass
+
+
+def test_v4l2_driver_reads_grey_frames_undecoded_and_falls_back_for_another_mode(caplog):
+    cap = RawCapture((48, 64))
+    cam = V4l2Camera("x", width=64, height=48, fps=50, capture_factory=lambda _: cap)
+    frames = collect(cam, 0.3)
+    assert len(frames) >= 3 and not cap.convert and cam.status()["raw_buffers"]
+    assert all(np.array_equal(f.image, _grey_pattern(48, 64)) for f in frames)
+    # a camera that runs another mode than the one asked for: OpenCV decodes its frames,
+    # which come at their own size (the runtime refuses them, saying so)
+    cap = RawCapture((30, 40))
+    cam = V4l2Camera("x", width=64, height=48, fps=50, capture_factory=lambda _: cap)
+    frames = collect(cam, 0.3)
+    assert cap.convert and not cam.status()["raw_buffers"]
+    assert frames and all(f.image.shape == (30, 40) for f in frames)
+    assert "a GREY buffer of 1200 bytes is no 64x48 frame; OpenCV decodes" in caplog.text

@@ -17,6 +17,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from drivers.camera.base import CameraSource
 from mowerhw.common.clocksync import FrameClock
 from mowerhw.common.samples import FrameSample
@@ -25,6 +27,35 @@ log = logging.getLogger(__name__)
 
 
 _FOURCC = {"GREY": "GREY", "YUYV": "YUYV", "MJPG": "MJPG", "BGR3": "BGR3"}
+#: bytes per pixel of the uncompressed formats' buffers
+_BYTES_PER_PIXEL = {"GREY": 1, "YUYV": 2, "BGR3": 3}
+
+
+def grey_from_buffer(buf: Any, pixel_format: str, width: int, height: int) -> np.ndarray | None:
+    """The grey image in a V4L2 buffer as OpenCV hands it over with ``CAP_PROP_CONVERT_RGB``
+    off (one row of the buffer's bytes; rows may be padded to a stride), or an image OpenCV
+    decoded after all (BGR, or grey): GREY as it is, YUYV's luma, MJPG decoded to grey only,
+    BGR3 converted. None when the buffer is no ``width``×``height`` frame of that format (the
+    camera runs another mode)."""
+    import cv2
+
+    a = np.asarray(buf)
+    if a.ndim == 3 and a.shape[2] == 3:
+        out: np.ndarray = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY)
+        return out
+    if a.shape == (height, width):
+        return a
+    data = a.reshape(-1)
+    if pixel_format == "MJPG":
+        return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)  # None if it is no JPEG
+    bpp = _BYTES_PER_PIXEL[pixel_format]
+    if data.size < height * width * bpp or data.size % height:
+        return None
+    rows = data.reshape(height, data.size // height)[:, : width * bpp]
+    if pixel_format == "GREY":
+        return np.ascontiguousarray(rows)
+    code = cv2.COLOR_YUV2GRAY_YUYV if pixel_format == "YUYV" else cv2.COLOR_BGR2GRAY
+    return cv2.cvtColor(np.ascontiguousarray(rows).reshape(height, width, bpp), code)
 
 
 class V4l2Camera(CameraSource):
@@ -55,10 +86,16 @@ class V4l2Camera(CameraSource):
         self.clock = clock or FrameClock()
         self._factory = capture_factory
         self._seq = 0
+        #: frames come as the buffer's bytes (``CAP_PROP_CONVERT_RGB`` off), not decoded
+        self.raw_buffers = False
 
     def status(self) -> dict[str, Any]:
         """The counters, and where the frame times come from (:class:`FrameClock`)."""
-        return {**super().status(), "clock": dict(vars(self.clock.stats))}
+        return {
+            **super().status(),
+            "raw_buffers": self.raw_buffers,
+            "clock": dict(vars(self.clock.stats)),
+        }
 
     def _open(self) -> Any:
         import cv2
@@ -77,6 +114,9 @@ class V4l2Camera(CameraSource):
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
         cap.set(cv2.CAP_PROP_FPS, self.fps)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a backlog
+        # the buffer's bytes, not a BGR image: OpenCV would expand a GREY frame to three
+        # channels (and decode an MJPG one in colour) for the grey to be taken back out
+        self.raw_buffers = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0))
         return cap
 
     def _run(self) -> None:
@@ -128,8 +168,26 @@ class V4l2Camera(CameraSource):
             # on the rate's grid (a faster camera gives the rate itself), and not a burst to
             # catch up after a stall: never due within half a period of this frame
             next_due = max(next_due + period, host_s + 0.5 * period)
-            if img.ndim == 3:
-                img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+            grey = grey_from_buffer(img, self.pixel_format, self.width, self.height)
+            if grey is None and self.raw_buffers and self.pixel_format != "MJPG":
+                # not the mode asked for: OpenCV decodes it from now on (the runtime then
+                # refuses a frame of another size, saying which)
+                log.warning(
+                    "camera: a %s buffer of %d bytes is no %dx%d frame; OpenCV decodes "
+                    "the frames from now on",
+                    self.pixel_format,
+                    np.asarray(img).size,
+                    self.width,
+                    self.height,
+                )
+                cap.set(cv2.CAP_PROP_CONVERT_RGB, 1)
+                self.raw_buffers = False
+                continue
+            if grey is None:  # a JPEG that does not decode (a USB glitch)
+                self.stats.read_failures += 1
+                self.stats.last_error = f"{self.device}: a {self.pixel_format} frame, no image"
+                continue
+            img = grey
             dev_ms = float(cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0)
             t = self.clock.time(dev_ms / 1000.0 if dev_ms > 0 else None, host_s)
             self._seq += 1
