@@ -205,7 +205,8 @@ class StampedCapture:
     def get(self, prop: int) -> float:
         import cv2
 
-        return self._stamp_ms if prop == cv2.CAP_PROP_POS_MSEC else 0.0
+        sizes = {cv2.CAP_PROP_FRAME_WIDTH: 64.0, cv2.CAP_PROP_FRAME_HEIGHT: 48.0}
+        return self._stamp_ms if prop == cv2.CAP_PROP_POS_MSEC else sizes.get(prop, 0.0)
 
     def grab(self) -> bool:
         time.sleep(self.every_s)
@@ -298,6 +299,8 @@ def test_grey_from_the_buffers_opencv_hands_over_undecoded():
     padded = np.zeros((h, w + 16), np.uint8)  # a stride of 80 bytes
     padded[:, :w] = grey
     assert np.array_equal(grey_from_buffer(padded.reshape(1, -1), "GREY", w, h), grey)
+    wide = np.zeros((h, w + 300), np.uint8)  # rows of another, wider mode: no padding
+    assert grey_from_buffer(wide.reshape(1, -1), "GREY", w, h) is None
     yuyv = np.empty((h, w, 2), np.uint8)
     yuyv[..., 0], yuyv[..., 1] = grey, 77  # Y, then U/V alternating
     assert np.array_equal(grey_from_buffer(yuyv.reshape(1, -1), "YUYV", w, h), grey)
@@ -339,7 +342,10 @@ class RawCapture:
         return True
 
     def get(self, prop: int) -> float:
-        return 0.0
+        import cv2
+
+        h, w = self.mode
+        return {cv2.CAP_PROP_FRAME_WIDTH: w, cv2.CAP_PROP_FRAME_HEIGHT: h}.get(prop, 0.0)
 
     def grab(self) -> bool:
         time.sleep(0.02)
@@ -362,9 +368,17 @@ def test_v4l2_driver_reads_grey_frames_undecoded_and_falls_back_for_another_mode
     frames = collect(cam, 0.3)
     assert len(frames) >= 3 and not cap.convert and cam.status()["raw_buffers"]
     assert all(np.array_equal(f.image, _grey_pattern(48, 64)) for f in frames)
-    # a camera that runs another mode than the one asked for: OpenCV decodes its frames,
-    # which come at their own size (the runtime refuses them, saying so)
+    # a camera that runs another mode than the one asked for, and says so: OpenCV decodes
+    # its frames, which come at their own size (the runtime refuses them, saying so)
     cap = RawCapture((30, 40))
+    cam = V4l2Camera("x", width=64, height=48, fps=50, capture_factory=lambda _: cap)
+    frames = collect(cam, 0.3)
+    assert cap.convert and not cam.status()["raw_buffers"]
+    assert frames and all(f.image.shape == (30, 40) for f in frames)
+    assert "camera: x runs at 40x30, not the 64x48 asked for" in caplog.text
+    # … and one that says the mode asked for and delivers another: found by the bytes
+    cap = RawCapture((30, 40))
+    cap.get = lambda prop: {3: 64.0, 4: 48.0}.get(prop, 0.0)  # type: ignore[method-assign]
     cam = V4l2Camera("x", width=64, height=48, fps=50, capture_factory=lambda _: cap)
     frames = collect(cam, 0.3)
     assert cap.convert and not cam.status()["raw_buffers"]

@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 _FOURCC = {"GREY": "GREY", "YUYV": "YUYV", "MJPG": "MJPG", "BGR3": "BGR3"}
 #: bytes per pixel of the uncompressed formats' buffers
 _BYTES_PER_PIXEL = {"GREY": 1, "YUYV": 2, "BGR3": 3}
+#: a driver may pad each row of a buffer to an alignment (bytes): more is another mode
+_MAX_ROW_PADDING = 255
 
 
 def grey_from_buffer(buf: Any, pixel_format: str, width: int, height: int) -> np.ndarray | None:
@@ -49,9 +51,10 @@ def grey_from_buffer(buf: Any, pixel_format: str, width: int, height: int) -> np
     if pixel_format == "MJPG":
         return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)  # None if it is no JPEG
     bpp = _BYTES_PER_PIXEL[pixel_format]
-    if data.size < height * width * bpp or data.size % height:
+    stride, rest = divmod(data.size, height)
+    if rest or not 0 <= stride - width * bpp <= _MAX_ROW_PADDING:
         return None
-    rows = data.reshape(height, data.size // height)[:, : width * bpp]
+    rows = data.reshape(height, stride)[:, : width * bpp]
     if pixel_format == "GREY":
         return np.ascontiguousarray(rows)
     code = cv2.COLOR_YUV2GRAY_YUYV if pixel_format == "YUYV" else cv2.COLOR_BGR2GRAY
@@ -115,8 +118,21 @@ class V4l2Camera(CameraSource):
         cap.set(cv2.CAP_PROP_FPS, self.fps)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a backlog
         # the buffer's bytes, not a BGR image: OpenCV would expand a GREY frame to three
-        # channels (and decode an MJPG one in colour) for the grey to be taken back out
-        self.raw_buffers = bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0))
+        # channels (and decode an MJPG one in colour) for the grey to be taken back out.
+        # Only in the mode asked for: another one's bytes could be read as a frame of this
+        # size, where OpenCV, decoding, knows the mode (and the runtime refuses its size)
+        mode = (cap.get(cv2.CAP_PROP_FRAME_WIDTH), cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        self.raw_buffers = mode == (self.width, self.height) and bool(
+            cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
+        )
+        if mode != (self.width, self.height):
+            log.warning(
+                "camera: %s runs at %gx%g, not the %dx%d asked for",
+                self.device,
+                *mode,
+                self.width,
+                self.height,
+            )
         return cap
 
     def _run(self) -> None:
