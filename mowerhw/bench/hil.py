@@ -55,6 +55,7 @@ from mowerhw.bench.notify import NotifyListener
 from mowerhw.evaluation.recovery import WRONG_M
 from mowerhw.evaluation.scoring import score_halts
 from mowerhw.runtime.control_protocol import request
+from mowerhw.runtime.process import cpu_seconds
 from mowerhw.supervisor.status_socket import ask_supervisor
 
 log = logging.getLogger("mowerhw.bench")
@@ -260,7 +261,7 @@ class Bench:
             return 0.0, 0.0
         cpu = rss = 0.0
         for pid in _process_tree(self.proc.pid):
-            cpu += _pid_cpu_s(pid)
+            cpu += cpu_seconds(pid) or 0.0  # 0 if it is gone
             rss += _pid_status_mb(pid, "VmHWM")
         return cpu, rss
 
@@ -637,7 +638,8 @@ class Bench:
     def _web_cpu(self) -> tuple[float, float, float]:
         """(when, CPU s of all the daemon's processes, CPU s of the page's process)."""
         pid = self._web_pid()
-        return time.monotonic(), self._proc_cpu_rss()[0], 0.0 if pid is None else _pid_cpu_s(pid)
+        page_cpu = (cpu_seconds(pid) if pid is not None else None) or 0.0
+        return time.monotonic(), self._proc_cpu_rss()[0], page_cpu
 
     def _web_plan(self, t_mow0: float) -> None:
         """First half of mowing with the page closed, second half open (web_check)."""
@@ -943,15 +945,6 @@ def _process_tree(pid: int) -> list[int]:
             except (OSError, ValueError):
                 continue
     return out
-
-
-def _pid_cpu_s(pid: int) -> float:
-    """CPU seconds (user + system) of a running process; 0 if it is gone."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
-        return 0.0
 
 
 def _pid_status_mb(pid: int, key: str) -> float:

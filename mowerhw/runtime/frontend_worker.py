@@ -27,7 +27,6 @@ import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
@@ -36,7 +35,7 @@ from numpy.typing import NDArray
 from mowerhw.common.relocalization import SearchRequest
 from mowerhw.common.samples import FrameSample
 from mowerhw.frontend import FrameTracks
-from mowerhw.runtime.process import die_with_parent
+from mowerhw.runtime.process import cpu_seconds, die_with_parent
 from mowerhw.vision.base import VisionBase
 
 _LEN = struct.Struct("<I")
@@ -45,17 +44,6 @@ _LEN = struct.Struct("<I")
 IDLE_HANG_S = 10.0
 #: how often the wait for an answer looks at the worker's CPU time (s)
 CHECK_S = 0.5
-_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 0.01
-
-
-def cpu_seconds(pid: int) -> float | None:
-    """CPU time (user + system) process ``pid`` has used, from ``/proc`` (None where it
-    cannot be read)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) * _TICK_S  # utime, stime (fields 14, 15)
-    except (OSError, IndexError, ValueError):
-        return None
 
 
 class HangWatch:
