@@ -122,10 +122,9 @@ class V4l2Camera(CameraSource):
         # Only in the mode asked for: another one's bytes could be read as a frame of this
         # size, where OpenCV, decoding, knows the mode (and the runtime refuses its size)
         mode = (cap.get(cv2.CAP_PROP_FRAME_WIDTH), cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        self.raw_buffers = mode == (self.width, self.height) and bool(
-            cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
-        )
-        if mode != (self.width, self.height):
+        asked = mode == (self.width, self.height)
+        self.raw_buffers = asked and bool(cap.set(cv2.CAP_PROP_CONVERT_RGB, 0))
+        if not asked:
             log.warning(
                 "camera: %s runs at %gx%g, not the %dx%d asked for",
                 self.device,

@@ -207,8 +207,8 @@ class FrameClock:
     ``device`` maps them; ``arrival`` ignores them; ``auto`` decides on the first stamped
     frame — a buffer time at most :attr:`SAME_CLOCK_S` before its arrival, and not after
     it, is on the host's clock — and maps from the first one that comes after its arrival
-    (which a host-clock stamp never does), saying so once. In every mode a frame without a
-    buffer time has its arrival, and a host-clock stamp after its arrival is clamped to it.
+    (which a host-clock stamp never does), saying so once; under ``monotonic`` such a frame
+    has its arrival. In every mode a frame without a buffer time has its arrival.
     """
 
     #: a buffer time this close before its arrival is on the host's monotonic clock (the
@@ -245,18 +245,17 @@ class FrameClock:
                 "used as they are" if same else "mapped onto the host clock",
             )
         if self.stats.source == "monotonic":
-            if ahead > self.FUTURE_TOLERANCE_S:
-                self.stats.future_stamps += 1
-                if self.mode == "auto":
-                    self.stats.source = "device"
-                    log.warning(
-                        "camera: a buffer time %.3f s after its frame arrived: not this "
-                        "computer's clock after all; mapping buffer times from now on",
-                        ahead,
-                    )
-                    return self._seen(self.sync.update(stamp_s, arrival_s), arrival_s)
+            if ahead <= self.FUTURE_TOLERANCE_S:
+                return self._seen(stamp_s, arrival_s)
+            self.stats.future_stamps += 1
+            if self.mode == "monotonic":  # the user's word: this one stamp is not believed
                 return self._seen(arrival_s, arrival_s)
-            return self._seen(stamp_s, arrival_s)
+            self.stats.source = "device"
+            log.warning(
+                "camera: a buffer time %.3f s after its frame arrived: not this "
+                "computer's clock after all; mapping buffer times from now on",
+                ahead,
+            )
         return self._seen(self.sync.update(stamp_s, arrival_s), arrival_s)
 
     def _seen(self, t: float, arrival_s: float) -> float:
