@@ -33,6 +33,12 @@ frame at its first sample: x forward, y left, z up, origin at the camera centre)
       "compass": {"north_rad", "sigma_rad", "strength_t", "dip_rad", "samples"},
                                          optional: the Earth's field in the map's frame, as
                                          the teach drive read it (mowerhw.common.magnetic)
+      "frame_covariance": [[...] × 4],   optional: the error the map's frame shares at every
+                                         landmark and edge point, against the ground: a
+                                         shift (x, y, m), a turn (rad) and a scale (1), about
+                                         the origin (:func:`frame_pose_covariance`); the
+                                         landmark covariances are each landmark's own error
+                                         in the map's frame
       "checksum": "sha256:<hex>"         over the canonical JSON of everything else
     }
 
@@ -71,6 +77,7 @@ from shapely.validation import explain_validity
 
 from mowerhw import __version__
 from mowerhw.common.fileio import write_atomic
+from mowerhw.common.geometry import frame_jacobian
 from mowerhw.common.magnetic import CompassReference
 from mowerhw.common.strictjson import JsonLimitError, bounded_int, no_constant, unique_keys
 from mowerhw.zones import Garden, Zone
@@ -153,6 +160,8 @@ class LawnMap:
     areas: list[Area] = field(default_factory=list)
     dock_approach: FloatArray | None = None  # (K, 2): from the dock into the garden
     compass: CompassReference | None = None  # the field's direction in the map's frame
+    #: (4, 4) the map frame's own error against the ground (module doc), when teach knew it
+    frame_covariance: FloatArray | None = None
 
     # -- geometry -----------------------------------------------------------------------------
 
@@ -418,6 +427,8 @@ class LawnMap:
         }
         if self.compass is not None:  # only when read: a map without one keeps its bytes
             doc["compass"] = self.compass.to_dict()
+        if self.frame_covariance is not None:  # likewise
+            doc["frame_covariance"] = _rows(self.frame_covariance)
         doc["checksum"] = "sha256:" + _digest(doc)
         return doc
 
@@ -484,6 +495,7 @@ class LawnMap:
             teach=teach,
             created_utc=_utc_now(),
             compass=getattr(result, "compass", None),
+            frame_covariance=getattr(result, "frame_covariance", None),
         )
 
 
@@ -547,6 +559,41 @@ def _covariance(value: Any, where: str) -> FloatArray:
             f"{where}: σ of {math.sqrt(eig[-1]):.3g} m; at most {MAX_LANDMARK_SIGMA_M} m"
         )
     return cov
+
+
+#: the map frame's σ at most: a shift (m), a turn (rad), a scale (1). A frame worse than
+#: that is no map to mow by (the teach's closure would have failed long before)
+MAX_FRAME_SIGMA = (MAX_LANDMARK_SIGMA_M, 0.1, 0.1)
+
+
+def _frame_covariance(value: Any, where: str) -> FloatArray:
+    """The map frame's 4×4 covariance (shift x, y; turn; scale): symmetric, positive
+    semi-definite, each σ within :data:`MAX_FRAME_SIGMA`."""
+    cov = _vector(value, where, (4, 4))
+    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-15):
+        raise MapError(f"{where}: not symmetric")
+    eig = np.linalg.eigvalsh(cov)
+    if eig[0] < -1e-12 * max(1e-6, float(eig[-1])):
+        raise MapError(f"{where}: not positive semi-definite (eigenvalue {eig[0]:.3g})")
+    limits = np.array([MAX_FRAME_SIGMA[0], MAX_FRAME_SIGMA[0], *MAX_FRAME_SIGMA[1:]])
+    sigma = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    if np.any(sigma > limits):
+        names = ("shift x (m)", "shift y (m)", "turn (rad)", "scale")
+        k = int(np.argmax(sigma / limits))
+        raise MapError(f"{where}: σ of {names[k]} {sigma[k]:.3g}; at most {limits[k]:g}")
+    return cov
+
+
+def frame_pose_covariance(frame_cov: FloatArray, xy: FloatArray) -> FloatArray:
+    """(3, 3): what the map frame's error (``frame_cov``, :attr:`LawnMap.frame_covariance`)
+    adds to the covariance of a pose's (x, y, heading) at ``xy`` when the pose is taken
+    against the ground rather than the map (:func:`~mowerhw.common.geometry.frame_jacobian`;
+    the turn turns the heading too)."""
+    jac = np.zeros((3, 4))
+    jac[:2] = frame_jacobian(np.array([[xy[0], xy[1], 0.0]]))[0, :2]
+    jac[2, 2] = 1.0
+    out: FloatArray = jac @ frame_cov @ jac.T
+    return out
 
 
 def _int_id(value: Any) -> bool:
@@ -663,8 +710,12 @@ def _from_document(doc: Any, source: str, strict: bool) -> LawnMap:
             compass = CompassReference.from_dict(doc["compass"])
         except ValueError as exc:
             raise MapError(f"{source}: {exc}") from None
+    frame_cov = None
+    if doc.get("frame_covariance") is not None:
+        frame_cov = _frame_covariance(doc["frame_covariance"], f"{source}: frame_covariance")
     lawn = LawnMap(
         compass=compass,
+        frame_covariance=frame_cov,
         boundary=boundary,
         boundary_name=boundary_name,
         areas=areas,

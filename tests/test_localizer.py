@@ -424,3 +424,28 @@ def test_frames_from_one_spot_are_worth_a_bounded_number_of_frames():
         assert info == pytest.approx(ks / ((1 - f) + ks * f), rel=1e-9)
         assert info[-1] < 1.0 / f
     assert spot_sigma_factor(7.0, 0.0) == pytest.approx(1.0)
+
+
+def test_against_the_ground_the_pose_carries_the_map_frames_error(lawn_map):
+    """Containment works against the map (its edge shares the map's frame); against the
+    ground the pose is as uncertain as that plus the frame's own error where the mower is,
+    which the teach's loop closure measured. A map without it adds nothing."""
+    from dataclasses import replace
+
+    from mowerhw.map import frame_pose_covariance
+
+    assert lawn_map.frame_covariance is not None
+    sigma = np.sqrt(np.diag(lawn_map.frame_covariance))
+    assert np.all(sigma > 0) and sigma[3] < 0.01  # a scale known to better than 1 %
+    world = make_world("paper", 6)
+    loc = Localizer(lawn_map)
+    drive(loc, MowerPlant(world, 1), [(0, 0, 2.0), (0, 0.8, 1.2), (0.45, 0, 3.0)])
+    _, pos, _, cov = loc.pose()
+    on_map = cov[np.ix_([0, 1, 5], [0, 1, 5])]
+    ground = loc.ground_covariance()
+    assert np.allclose(ground, on_map + frame_pose_covariance(lawn_map.frame_covariance, pos[:2]))
+    assert np.all(np.linalg.eigvalsh(ground - on_map) >= -1e-18)
+    bare = Localizer(replace(lawn_map, frame_covariance=None))
+    assert np.allclose(
+        bare.ground_covariance(), bare.pose().covariance[np.ix_([0, 1, 5], [0, 1, 5])]
+    )

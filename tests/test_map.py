@@ -143,3 +143,47 @@ def test_non_finite_numbers_are_refused(tmp_path):
     path.write_text(text)
     with pytest.raises(MapError):
         lawnmap.load(path)
+
+
+def test_the_map_frames_covariance_round_trips_and_a_bad_one_is_named(tmp_path):
+    """A taught map keeps its frame's 4×4 covariance (shift, turn, scale); one that is not
+    a covariance, or says the frame is off by more than a map could be, is refused by name.
+    A map without one loads without one (older maps)."""
+    m = make_map()
+    frame = np.diag([1e-6, 2e-6, 1e-8, 4e-7])
+    frame[0, 3] = frame[3, 0] = 1e-7
+    with_frame = LawnMap(**{**vars(m), "frame_covariance": frame})
+    path = tmp_path / "lawn.json"
+    with_frame.save(path)
+    assert np.allclose(lawnmap.load(path).frame_covariance, frame)
+    m.save(tmp_path / "old.json")
+    assert lawnmap.load(tmp_path / "old.json").frame_covariance is None
+    assert "frame_covariance" not in json.loads((tmp_path / "old.json").read_text())
+    bad = {
+        "not symmetric": np.triu(np.ones((4, 4))) * 1e-6,
+        "not positive semi-definite": np.diag([1e-6, 1e-6, -1e-6, 1e-6]),
+        "σ of scale": np.diag([1e-6, 1e-6, 1e-8, 0.5]),
+        "shape (4, 4)": np.eye(3) * 1e-6,
+    }
+    for why, cov in bad.items():
+        doc = json.loads(path.read_text())
+        doc["frame_covariance"] = cov.tolist()
+        doc["checksum"] = "sha256:" + lawnmap._digest(doc)
+        path.write_text(json.dumps(doc))
+        with pytest.raises(MapError, match="frame_covariance") as err:
+            lawnmap.load(path)
+        assert why in str(err.value)
+
+
+def test_the_frames_error_at_a_pose_grows_with_its_distance_from_the_origin():
+    """Against the ground, a pose on the map carries the frame's error: its shift anywhere,
+    its turn and scale in proportion to the distance from the map's origin; the turn is
+    the heading's too."""
+    frame = np.diag([1e-6, 1e-6, 1e-8, 1e-6])
+    at_origin = lawnmap.frame_pose_covariance(frame, np.array([0.0, 0.0]))
+    assert np.allclose(at_origin, np.diag([1e-6, 1e-6, 1e-8]))
+    far = lawnmap.frame_pose_covariance(frame, np.array([10.0, 0.0]))
+    # along x: the scale (10 m × 1e-3); across: the turn (10 m × 1e-4 rad)
+    assert far[0, 0] == pytest.approx(1e-6 + 100 * 1e-6)
+    assert far[1, 1] == pytest.approx(1e-6 + 100 * 1e-8)
+    assert far[1, 2] == pytest.approx(10 * 1e-8) and far[2, 2] == pytest.approx(1e-8)

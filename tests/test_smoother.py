@@ -1,6 +1,7 @@
 """Loop-closure smoother: SO(3) helpers, preintegration, and the least-squares solve."""
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -54,29 +55,10 @@ def test_the_landmark_schur_solve_matches_a_direct_solve(
     pose–landmark and pose–pose couplings, none between two landmarks."""
     import scipy.sparse as sp
 
-    from mowerhw.teach.smoother import _LandmarkSchur, _Layout
+    from mowerhw.teach.smoother import _LandmarkSchur
 
-    rng = np.random.default_rng(landmarks)
-    lay = _Layout(k=12, n=landmarks, nseg=2)
-    rows = []
-    for _ in range(seen * landmarks):  # a bearing: one pose, one landmark
-        j = np.zeros(lay.size)
-        p, i = 6 * rng.integers(0, lay.k - 1), lay.lm0 + 3 * rng.integers(0, landmarks)
-        j[p : p + 6] = rng.normal(size=6)
-        j[i : i + 3] = rng.normal(size=3)
-        rows.append(j)
-    for p in range(lay.k - 2):  # odometry: consecutive poses, a bias, the scale
-        for _ in range(6):
-            j = np.zeros(lay.size)
-            j[6 * p : 6 * p + 12] = rng.normal(size=12)
-            j[lay.bias0 : lay.size] = rng.normal(size=lay.size - lay.bias0) * 0.1
-            rows.append(j)
-    for i in range(lay.lm0, lay.size):  # weak priors: every variable constrained
-        j = np.zeros(lay.size)
-        j[i] = 0.1
-        rows.append(j)
-    jac = np.array(rows)
-    a = jac.T @ jac
+    lay, a = _random_system(landmarks, seen)
+    rng = np.random.default_rng(landmarks + 1)
     b = rng.normal(size=lay.size)
     damp = np.full(lay.size, 1e-3)
     dense = []
@@ -98,6 +80,59 @@ def test_the_landmark_schur_solve_matches_a_direct_solve(
     for i in range(landmarks):
         s = lay.lm0 + 3 * i
         assert np.allclose(cov[i], inv[s : s + 3, s : s + 3], rtol=1e-6, atol=1e-12)
+
+
+def test_the_frame_split_is_the_joint_covariance_of_the_frame_fit_and_its_residuals() -> None:
+    """The map frame's covariance is that of the least-squares frame (shift, turn, scale)
+    fitted to the landmarks' errors, and each landmark's own covariance that of its residual
+    after the fit, both from the landmarks' joint covariance (here the dense inverse); the
+    marginals are the joint's diagonal blocks."""
+    import scipy.sparse as sp
+
+    from mowerhw.common.geometry import frame_jacobian
+    from mowerhw.teach.smoother import _LandmarkSchur
+
+    lay, a = _random_system(30, 3)
+    xy = np.random.default_rng(7).uniform(-8.0, 8.0, (30, 2))
+    marginal, own, frame = _LandmarkSchur(sp.csc_matrix(a), lay, np.zeros(lay.size)).frame_split(xy)
+    joint = np.linalg.inv(a)[lay.lm0 : lay.bias0, lay.lm0 : lay.bias0]
+    big_a = frame_jacobian(np.column_stack([xy, np.zeros(30)])).reshape(-1, 4)
+    g = np.linalg.solve(big_a.T @ big_a, big_a.T)
+    assert np.allclose(frame, g @ joint @ g.T, rtol=1e-6, atol=1e-14)
+    resid = np.eye(90) - big_a @ g
+    full_own = resid @ joint @ resid.T
+    for i in range(30):
+        blk = slice(3 * i, 3 * i + 3)
+        assert np.allclose(own[i], full_own[blk, blk], rtol=1e-6, atol=1e-14)
+        assert np.allclose(marginal[i], joint[blk, blk], rtol=1e-6, atol=1e-14)
+
+
+def _random_system(landmarks: int, seen: int) -> tuple[Any, np.ndarray]:
+    """A random information matrix of the smoother's shape: pose–landmark and pose–pose
+    couplings, none between two landmarks, every variable weakly constrained."""
+    from mowerhw.teach.smoother import _Layout
+
+    rng = np.random.default_rng(landmarks)
+    lay = _Layout(k=12, n=landmarks, nseg=2)
+    rows = []
+    for _ in range(seen * landmarks):  # a bearing: one pose, one landmark
+        j = np.zeros(lay.size)
+        p, i = 6 * rng.integers(0, lay.k - 1), lay.lm0 + 3 * rng.integers(0, landmarks)
+        j[p : p + 6] = rng.normal(size=6)
+        j[i : i + 3] = rng.normal(size=3)
+        rows.append(j)
+    for p in range(lay.k - 2):  # odometry: consecutive poses, a bias, the scale
+        for _ in range(6):
+            j = np.zeros(lay.size)
+            j[6 * p : 6 * p + 12] = rng.normal(size=12)
+            j[lay.bias0 : lay.size] = rng.normal(size=lay.size - lay.bias0) * 0.1
+            rows.append(j)
+    for i in range(lay.lm0, lay.size):  # weak priors: every variable constrained
+        j = np.zeros(lay.size)
+        j[i] = 0.1
+        rows.append(j)
+    jac = np.array(rows)
+    return lay, jac.T @ jac
 
 
 def _tracks(n_landmarks: int, length: int, rho: float, sigma: float, seed: int = 0):

@@ -280,3 +280,15 @@ def tangent_basis(u: ArrayLike) -> FloatArray:
     e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
     e2 = np.cross(u, e1)
     return np.stack([e1, e2], axis=-1)
+
+
+def frame_jacobian(points: FloatArray) -> FloatArray:
+    """(N, 3, 4): how an error ``δ = (t_x, t_y, θ, s)`` of a whole map's frame against the
+    ground (a shift, a turn about the vertical and a scale, about the frame's origin) moves
+    points at ``points`` (N, 3): ``δp_xy = t + θ ẑ × p + s p_xy``; heights stay."""
+    n = points.shape[0]
+    a = np.zeros((n, 3, 4))
+    a[:, 0, 0] = a[:, 1, 1] = 1.0
+    a[:, 0, 2], a[:, 1, 2] = -points[:, 1], points[:, 0]
+    a[:, 0, 3], a[:, 1, 3] = points[:, 0], points[:, 1]
+    return a

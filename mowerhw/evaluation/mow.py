@@ -71,6 +71,8 @@ class MowOutcome:
     #: (K, 3, 3) covariance of the estimate's (x, y, heading); the localizer's global
     #: relocalizations so far, and whether it was searching for its pose, per sample
     cov_xy_yaw: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    #: (K, 3, 3) the same against the ground (:meth:`Localizer.ground_covariance`): the truth
+    cov_xy_yaw_ground: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     relocalizations: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     searching: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     details: NDArray[Any] = field(default_factory=lambda: np.zeros(0, object))  # why halted
@@ -143,6 +145,7 @@ def run_mow(
     reason = np.empty(n + 1, dtype=object)
     detail = np.empty(n + 1, dtype=object)
     cov3 = np.zeros((n + 1, 3, 3))
+    cov3_ground = np.zeros((n + 1, 3, 3))
     relocalized = np.zeros(n + 1, np.int64)
     searching = np.zeros(n + 1, bool)
     reasons: Counter[str] = Counter()
@@ -184,6 +187,7 @@ def run_mow(
         reason[k] = why
         detail[k] = "" if deck or stop else f"{why}: {cont.detail}"
         cov3[k] = loc.pose().covariance[np.ix_([0, 1, 5], [0, 1, 5])]
+        cov3_ground[k] = loc.ground_covariance()
         relocalized[k] = loc.counters.relocalizations
         searching[k] = loc.searching
         if prev_permit and not deck:
@@ -268,6 +272,7 @@ def run_mow(
         plant.landmarks_w,
         dict(reasons),
         cov3,
+        cov3_ground,
         relocalized,
         searching,
         detail,

@@ -155,14 +155,20 @@ def map_landmark_nees(lawn_map: LawnMap) -> dict[str, Any] | None:
 
 def _nees(out: MowOutcome, align: Alignment | None = None) -> list[FloatArray]:
     """The NEES of (x, y, heading) over :data:`NEES_S` after each accepted relocalization,
-    against the truth, or (``align``) against the truth in the map's frame."""
+    against the truth with the covariance against the ground, or (``align``) against the
+    truth in the map's frame with the covariance against the map."""
     err = _pose_errors(out, align)
+    covs = (
+        out.cov_xy_yaw
+        if align is not None or not out.cov_xy_yaw_ground.size
+        else out.cov_xy_yaw_ground
+    )
     dt = float(out.t[1] - out.t[0])
     n = round(NEES_S / dt)
     series = []
     for k in np.flatnonzero(np.diff(out.relocalizations) > 0) + 1:
         seg = slice(k, min(k + n, out.t.size))
-        e, cov = err[seg], out.cov_xy_yaw[seg]
+        e, cov = err[seg], covs[seg]
         series.append(np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0]))
     return series
 

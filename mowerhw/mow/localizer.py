@@ -74,7 +74,7 @@ from mowerhw.estimation.odometry import (
 )
 from mowerhw.estimation.posefit import fit_pose_to_bearings
 from mowerhw.estimation.standstill import StandstillCalibrator
-from mowerhw.map import LawnMap
+from mowerhw.map import LawnMap, frame_pose_covariance
 from mowerhw.map import load as load_map
 from mowerhw.mow.containment import (
     Containment,
@@ -1010,6 +1010,16 @@ class Localizer:
         """The newest estimate: t, position, q_wb, covariance (position then rotation)."""
         t = self.t_imu if self.t_imu is not None else float("nan")
         return Pose(t, self.ekf.x.copy(), self.ekf.q.copy(), self.ekf.pose_covariance())
+
+    def ground_covariance(self) -> FloatArray:
+        """(3, 3) the (x, y, heading) covariance against the ground itself: :meth:`pose`'s,
+        which is against the map (what containment needs: the taught edge shares the map's
+        frame), plus the map frame's own error where the mower is
+        (:func:`mowerhw.map.frame_pose_covariance`; nothing more for a map without it)."""
+        cov: FloatArray = self.ekf.pose_covariance()[np.ix_([0, 1, 5], [0, 1, 5])]
+        if self.map.frame_covariance is not None:
+            cov = cov + frame_pose_covariance(self.map.frame_covariance, self.ekf.x[:2])
+        return cov
 
     def require_frames(self, n: int, why: str = "since a restart") -> None:
         """Not localized again until ``n`` good frames from now (after a discontinuity: an

@@ -164,6 +164,10 @@ class TeachResult:
     zones: list[TaughtZone] = field(default_factory=list)  # marked stretches (teach/marks.py)
     dock_index: int | None = None  # the trajectory sample the operator marked as the dock
     compass: CompassReference | None = None  # the field in the map's frame, when it was read
+    #: (4, 4) the error the map's frame shares at every landmark and edge point, against the
+    #: ground: shift x, y; turn; scale about the start (``geometry.frame_jacobian``). None
+    #: without a loop closure (the landmark covariances then hold it)
+    frame_covariance: FloatArray | None = None
 
     @property
     def start_pose(self) -> tuple[FloatArray, FloatArray]:
@@ -261,6 +265,7 @@ class Teacher:
         self.speed_mps = 0.0
         self.w_last = np.zeros(3)
         self.distance_m = 0.0
+        self.frame_covariance: FloatArray | None = None  # the loop closure's (TeachResult)
         self.keyframes: list[Keyframe] = []
         self._standstill = StandstillCalibrator()
         self._compass = CompassCalibration()
@@ -746,12 +751,15 @@ class Teacher:
         traj[:, 4:8] = quat_multiply(quat_exp(phi_i), traj[:, 4:8])
         for j, lid in enumerate(lm_ids):
             landmarks[lid]["xyz"] = out.landmarks[j].copy()
-            landmarks[lid]["cov"] = out.landmark_cov[j].copy()
+            # the landmark's own error; what all share, the map frame's, is kept apart
+            own = out.landmark_cov if out.landmark_cov_own is None else out.landmark_cov_own
+            landmarks[lid]["cov"] = own[j].copy()
             if out.landmark_cov_configured is not None:
                 landmarks[lid]["cov_geometry"] = out.landmark_cov_configured[j].copy()
         rms = _landmark_rms(problem, out.r_wb, out.t_wb, out.landmarks)
         for j, lid in enumerate(lm_ids):
             landmarks[lid]["rms"] = float(rms[j])
+        self.frame_covariance = out.frame_cov
         self.ekf_bias_smoothed = out.bias[-1]
         self.gyro_scale_error = out.scale
         closed = reobserved >= 4
@@ -946,6 +954,7 @@ class Teacher:
             zones=zones,
             dock_index=dock_index(traj9[:, 0], self.marks),
             compass=self._compass.fit(traj9[:, :8]),
+            frame_covariance=self.frame_covariance,
         )
 
     def mark(self, t: float, kind: str, name: str = "") -> str:
