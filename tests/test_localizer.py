@@ -445,6 +445,8 @@ def test_against_the_ground_the_pose_carries_the_map_frames_error(lawn_map):
     ground = loc.ground_covariance()
     assert np.allclose(ground, on_map + frame_pose_covariance(lawn_map.frame_covariance, pos[:2]))
     assert np.all(np.linalg.eigvalsh(ground - on_map) >= -1e-18)
+    status = loc.status()
+    assert status["sigma_xy_ground_m"] > status["sigma_xy_m"] > 0.0
     bare = Localizer(replace(lawn_map, frame_covariance=None))
     assert np.allclose(
         bare.ground_covariance(), bare.pose().covariance[np.ix_([0, 1, 5], [0, 1, 5])]

@@ -236,10 +236,7 @@ class WorldPoseEKF:
 
     def sigma_xy(self) -> float:
         """Largest standard deviation of the horizontal position (m)."""
-        # the larger eigenvalue of the symmetric 2×2 block, in closed form (per IMU sample)
-        a, b, c = float(self.P[0, 0]), float(self.P[0, 1]), float(self.P[1, 1])
-        largest = 0.5 * (a + c) + math.hypot(0.5 * (a - c), b)
-        return math.sqrt(largest) if largest > 0.0 else (largest if math.isnan(largest) else 0.0)
+        return largest_sigma_xy(self.P)
 
     @property
     def R(self) -> FloatArray:
@@ -372,3 +369,12 @@ def _bearing_model(
         + sigma**2 * np.eye(2)[None]
     )
     return h, bt, hx, hl, s_each
+
+
+def largest_sigma_xy(cov: FloatArray) -> float:
+    """Largest standard deviation (m) of the horizontal position whose covariance is
+    ``cov[:2, :2]``: the larger eigenvalue of the symmetric 2×2 block in closed form (per IMU
+    sample); NaN stays NaN."""
+    a, b, c = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+    largest = 0.5 * (a + c) + math.hypot(0.5 * (a - c), b)
+    return math.sqrt(largest) if largest > 0.0 else (largest if math.isnan(largest) else 0.0)

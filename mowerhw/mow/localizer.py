@@ -82,7 +82,7 @@ from mowerhw.mow.containment import (
     LawnGeometry,
     Reason,
 )
-from mowerhw.mow.ekf import EkfState, LocalizerNoise, WorldPoseEKF
+from mowerhw.mow.ekf import EkfState, LocalizerNoise, WorldPoseEKF, largest_sigma_xy
 from mowerhw.mow.recovery import (
     Pose2D,
     Probation,
@@ -1099,6 +1099,8 @@ class Localizer:
             "checking": self.probation.describe() if self.probation is not None else "",
             "position": p.position.tolist(),
             "sigma_xy_m": self.sigma_xy(),
+            # against the ground (the map frame's own error too: ground_covariance)
+            "sigma_xy_ground_m": largest_sigma_xy(self.ground_covariance()),
             "gyro_bias": self.ekf.bg.tolist(),
             "compass": self._compass_status(),
             **vars(self.counters),
