@@ -121,6 +121,8 @@ class MapError(ValueError):
 class Landmark:
     id: int
     xyz: FloatArray
+    #: (3, 3) its own error in the map's frame (a map with ``frame_covariance``: what all
+    #: landmarks share is there; an older map: the marginal, both in one)
     covariance: FloatArray
     descriptor: bytes | None = None
     keyframe: int | None = None
