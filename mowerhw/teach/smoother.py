@@ -204,7 +204,8 @@ class SmootherResult:
     #: speed noise that makes the drive 0.1 % long makes every landmark 0.1 % far); the map
     #: keeps them as independent, which holds for these, not for the marginals.
     landmark_cov_own: FloatArray | None = None
-    #: (4, 4) the map frame's error (shift x, y; turn; scale) against the world (the ground)
+    #: (4, 4) the map frame's error (shift x, y; turn; scale) against the world (the ground);
+    #: None when it could not be told apart (fewer than 3 landmarks, a singular system)
     frame_cov: FloatArray | None = None
 
 
@@ -437,7 +438,7 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
     inlier = nb <= 2.5
     factor = bearing_variance_factor(parts["b"][inlier], fi[inlier], li[inlier])
     lm_cov = lm_cov_configured = lm_own = np.zeros((n, 3, 3))
-    frame_cov = np.zeros((4, 4))
+    frame_cov: FloatArray | None = None  # too few landmarks: the marginals hold the frame
     if n and a is not None:
         lm_cov_configured = _landmark_covariances(a, lay, n)
         # the information again, the bearings' rows at their long-run variance
@@ -445,9 +446,11 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
         row_scale[bearing_rows] = 1.0 / math.sqrt(factor)
         scaled = sp.diags(row_scale) @ jac
         if n >= 3:
-            lm_cov, lm_own, frame_cov = _split_covariances(
-                (scaled.T @ scaled).tocsc(), lay, lms[:, :2]
-            )
+            lm_cov, lm_own, split = _split_covariances((scaled.T @ scaled).tocsc(), lay, lms[:, :2])
+            if np.all(np.isfinite(split)):
+                frame_cov = split
+            else:  # singular: the marginals (NaN too) say so, the frame stays unknown
+                lm_own = lm_cov
         else:
             lm_cov = lm_own = _landmark_covariances((scaled.T @ scaled).tocsc(), lay, n)
     ang_rms = float(np.sqrt(np.mean((nb * problem.obs_sigma) ** 2 / 2))) if nb.size else 0.0
