@@ -102,3 +102,18 @@ def test_an_unfit_map_is_shown_and_drawn_with_its_problems(map_file, tmp_path, c
     png = tmp_path / "unfit.png"
     assert main(["map", "plot", str(map_file), "-o", str(png)]) == 78
     assert png.stat().st_size > 1000
+
+
+def test_show_gives_the_map_frames_error_or_says_there_is_none(map_file, capsys):
+    """`map show` says how far the map's frame may be off the ground (1σ), when the teach
+    measured it, and says so when it did not (a map taught before)."""
+    assert main(["map", "show", str(map_file)]) == 0
+    assert "frame        not measured" in capsys.readouterr().out
+    m = lawnmap.load(map_file)
+    m.frame_covariance = np.diag([4e-6, 1e-6, np.radians(0.01) ** 2, 1e-6])
+    m.save(map_file)
+    assert main(["map", "show", str(map_file), "--json"]) == 0
+    f = json.loads(capsys.readouterr().out)["frame_sigma"]
+    assert f == {"shift_x_m": 0.002, "shift_y_m": 0.001, "turn_deg": 0.01, "scale_percent": 0.1}
+    assert main(["map", "show", str(map_file)]) == 0
+    assert "shift 0.002 / 0.001 m, turn 0.01°, scale 0.1 %" in capsys.readouterr().out

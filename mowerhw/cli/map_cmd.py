@@ -175,6 +175,21 @@ def _summary(m, path: Path) -> dict:
         )
         if m.landmarks
         else None,
+        # the error the map's frame shares with every landmark and edge point, against the
+        # ground (1σ; a map taught before stop 51 has none: its landmark σ hold it)
+        "frame_sigma": None
+        if m.frame_covariance is None
+        else dict(
+            zip(
+                ("shift_x_m", "shift_y_m", "turn_deg", "scale_percent"),
+                (
+                    round(float(v), 5)
+                    for v in np.sqrt(np.maximum(np.diag(m.frame_covariance), 0.0))
+                    * np.array([1.0, 1.0, math.degrees(1.0), 100.0])
+                ),
+                strict=True,
+            )
+        ),
         "dock_position": [round(v, 3) for v in m.dock_position.tolist()],
         "dock_approach_points": None if m.dock_approach is None else len(m.dock_approach),
         "camera": (m.camera or {}).get("camera_model"),
@@ -227,6 +242,13 @@ def _show(args: argparse.Namespace) -> int:
     for z in s["keepout_zones"]:
         print(f"keep-out     {z['name']!r}: {z['points']} points, {z['area_m2']} m²")
     print(f"landmarks    {s['landmarks']} (median σ {s['landmark_sigma_median_m']} m)")
+    f = s["frame_sigma"]
+    print(
+        "frame        not measured (each landmark's σ holds the map frame's error)"
+        if f is None
+        else f"frame        against the ground, 1σ: shift {f['shift_x_m']} / {f['shift_y_m']} m, "
+        f"turn {f['turn_deg']}°, scale {f['scale_percent']} %"
+    )
     way = s["dock_approach_points"]
     print(f"dock         {s['dock_position']}" + (f", approach of {way} points" if way else ""))
     c = s["compass"]
