@@ -1015,7 +1015,10 @@ class Localizer:
         """(3, 3) the (x, y, heading) covariance against the ground itself: :meth:`pose`'s,
         which is against the map (what containment needs: the taught edge shares the map's
         frame), plus the map frame's own error where the mower is
-        (:func:`mowerhw.map.frame_pose_covariance`; nothing more for a map without it)."""
+        (:func:`mowerhw.map.frame_pose_covariance`; nothing more for a map without it).
+        What the teach could not see is not in it: the ground-speed sensor's own scale error
+        (a tyre's circumference) makes the whole map that much larger or smaller, and
+        bearings cannot tell (design.md §4)."""
         cov: FloatArray = self.ekf.pose_covariance()[np.ix_([0, 1, 5], [0, 1, 5])]
         if self.map.frame_covariance is not None:
             cov = cov + frame_pose_covariance(self.map.frame_covariance, self.ekf.x[:2])
