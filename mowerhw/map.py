@@ -548,14 +548,24 @@ def _vector(value: Any, where: str, shape: tuple[int, ...], limit: float = math.
     return arr
 
 
-def _covariance(value: Any, where: str) -> FloatArray:
-    """A landmark's 3×3 position covariance: symmetric, positive semi-definite, σ bounded."""
-    cov = _vector(value, where, (3, 3))
-    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12):
+def _symmetric_psd(
+    value: Any, where: str, shape: tuple[int, int], atol: float, scale_floor: float
+) -> tuple[FloatArray, FloatArray]:
+    """A covariance of ``shape``: symmetric (to ``atol``) and positive semi-definite (to
+    1e-12 of its largest eigenvalue, or of ``scale_floor`` when that is larger); with its
+    eigenvalues."""
+    cov = _vector(value, where, shape)
+    if not np.allclose(cov, cov.T, rtol=1e-6, atol=atol):
         raise MapError(f"{where}: not symmetric")
     eig = np.linalg.eigvalsh(cov)
-    if eig[0] < -1e-12 * max(1.0, float(eig[-1])):
+    if eig[0] < -1e-12 * max(scale_floor, float(eig[-1])):
         raise MapError(f"{where}: not positive semi-definite (eigenvalue {eig[0]:.3g})")
+    return cov, eig
+
+
+def _covariance(value: Any, where: str) -> FloatArray:
+    """A landmark's 3×3 position covariance: symmetric, positive semi-definite, σ bounded."""
+    cov, eig = _symmetric_psd(value, where, (3, 3), atol=1e-12, scale_floor=1.0)
     if eig[-1] > MAX_LANDMARK_SIGMA_M**2:
         raise MapError(
             f"{where}: σ of {math.sqrt(eig[-1]):.3g} m; at most {MAX_LANDMARK_SIGMA_M} m"
@@ -563,26 +573,22 @@ def _covariance(value: Any, where: str) -> FloatArray:
     return cov
 
 
-#: the map frame's σ at most: a shift (m), a turn (rad), a scale (1). A frame worse than
+#: the map frame's σ at most: shift x, y (m), turn (rad), scale (1). A frame worse than
 #: that is no map to mow by (the teach's closure would have failed long before)
-MAX_FRAME_SIGMA = (MAX_LANDMARK_SIGMA_M, 0.1, 0.1)
+MAX_FRAME_SIGMA = np.array([MAX_LANDMARK_SIGMA_M, MAX_LANDMARK_SIGMA_M, 0.1, 0.1])
+_FRAME_PARTS = ("shift x (m)", "shift y (m)", "turn (rad)", "scale")
 
 
 def _frame_covariance(value: Any, where: str) -> FloatArray:
     """The map frame's 4×4 covariance (shift x, y; turn; scale): symmetric, positive
     semi-definite, each σ within :data:`MAX_FRAME_SIGMA`."""
-    cov = _vector(value, where, (4, 4))
-    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-15):
-        raise MapError(f"{where}: not symmetric")
-    eig = np.linalg.eigvalsh(cov)
-    if eig[0] < -1e-12 * max(1e-6, float(eig[-1])):
-        raise MapError(f"{where}: not positive semi-definite (eigenvalue {eig[0]:.3g})")
-    limits = np.array([MAX_FRAME_SIGMA[0], MAX_FRAME_SIGMA[0], *MAX_FRAME_SIGMA[1:]])
+    cov, _ = _symmetric_psd(value, where, (4, 4), atol=1e-15, scale_floor=1e-6)
     sigma = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    if np.any(sigma > limits):
-        names = ("shift x (m)", "shift y (m)", "turn (rad)", "scale")
-        k = int(np.argmax(sigma / limits))
-        raise MapError(f"{where}: σ of {names[k]} {sigma[k]:.3g}; at most {limits[k]:g}")
+    if np.any(sigma > MAX_FRAME_SIGMA):
+        k = int(np.argmax(sigma / MAX_FRAME_SIGMA))
+        raise MapError(
+            f"{where}: σ of {_FRAME_PARTS[k]} {sigma[k]:.3g}; at most {MAX_FRAME_SIGMA[k]:g}"
+        )
     return cov
 
 

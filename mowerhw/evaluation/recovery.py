@@ -158,11 +158,7 @@ def _nees(out: MowOutcome, align: Alignment | None = None) -> list[FloatArray]:
     against the truth with the covariance against the ground, or (``align``) against the
     truth in the map's frame with the covariance against the map."""
     err = _pose_errors(out, align)
-    covs = (
-        out.cov_xy_yaw
-        if align is not None or not out.cov_xy_yaw_ground.size
-        else out.cov_xy_yaw_ground
-    )
+    covs = out.cov_xy_yaw if align is not None else out.cov_xy_yaw_ground
     dt = float(out.t[1] - out.t[0])
     n = round(NEES_S / dt)
     series = []

@@ -749,10 +749,10 @@ class Teacher:
         r_i = quat_to_rotmat(quat_exp(phi_i))
         traj[:, 1:4] = np.einsum("nij,nj->ni", r_i, traj[:, 1:4]) + t_i
         traj[:, 4:8] = quat_multiply(quat_exp(phi_i), traj[:, 4:8])
+        # each landmark's own error; what all share, the map frame's, is kept apart
+        own = out.landmark_cov if out.landmark_cov_own is None else out.landmark_cov_own
         for j, lid in enumerate(lm_ids):
             landmarks[lid]["xyz"] = out.landmarks[j].copy()
-            # the landmark's own error; what all share, the map frame's, is kept apart
-            own = out.landmark_cov if out.landmark_cov_own is None else out.landmark_cov_own
             landmarks[lid]["cov"] = own[j].copy()
             if out.landmark_cov_configured is not None:
                 landmarks[lid]["cov_geometry"] = out.landmark_cov_configured[j].copy()
