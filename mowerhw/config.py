@@ -443,7 +443,13 @@ class TeachConfig(MotionNoiseConfig):
 class MowConfig(MotionNoiseConfig):
     """Mow phase: world-centric EKF localizer (eqs 21–23)."""
 
-    bearing_sigma_rad: float = opt(0.008, "bearing noise (1σ per axis)", gt=0.0, lt=0.5)
+    bearing_sigma_rad: float = opt(
+        0.0045,
+        "bearing noise of a frame counted alone (1σ per axis); frames from one spot or "
+        "along one track share part of it and count less",
+        gt=0.0,
+        lt=0.5,
+    )
     gate_probability: float = opt(0.999, "χ² gate of each landmark bearing", gt=0.5, lt=1.0)
     history_s: float = opt(2.0, "IMU history kept to apply late frames", gt=0.0, le=30.0)
     lockout_s: float = opt(

@@ -426,6 +426,27 @@ def test_frames_from_one_spot_are_worth_a_bounded_number_of_frames():
     assert spot_sigma_factor(7.0, 0.0) == pytest.approx(1.0)
 
 
+def test_frames_along_a_track_share_part_of_their_error():
+    """``Localizer.frames_sharing``: standing, each frame adds one to the frames that share
+    its error; driving, the earlier ones share less for each ``SPOT_M`` driven, so a mower
+    driving on counts ``1 / (1 − ρ)`` frames, not 1 (a corner's error changes slowly along a
+    track), each frame still adding information; far from where it stood, k is back to 1."""
+    from mowerhw.mow.localizer import Localizer, spot_sigma_factor
+
+    assert Localizer.frames_sharing(3.0, 0.0, 0.0) == pytest.approx(4.0)
+    step = 0.1  # m between two frames
+    rho = math.exp(-step / Localizer.SPOT_M)
+    k = 40.0  # after a long stand
+    for _ in range(200):
+        k = Localizer.frames_sharing(k, step, 0.0)
+    assert k == pytest.approx(1.0 / (1.0 - rho), rel=1e-6)
+    factor = spot_sigma_factor(k, Localizer.SPOT_SHARED)
+    assert 1.0 < factor < 3.0  # 2.1 at 0.1 m a frame: a driving frame counts a fifth
+    turned = Localizer.frames_sharing(k, 0.0, math.radians(20.0))
+    assert 1.0 < turned < k  # a turn on the spot moves the view too
+    assert Localizer.frames_sharing(40.0, 10.0, 0.0) == pytest.approx(1.0, abs=1e-12)
+
+
 def test_against_the_ground_the_pose_carries_the_map_frames_error(lawn_map):
     """Containment works against the map (its edge shares the map's frame); against the
     ground the pose is as uncertain as that plus the frame's own error where the mower is,
