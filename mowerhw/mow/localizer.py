@@ -207,7 +207,7 @@ class Localizer:
         self._frames_needed = 0  # more than localized_after_frames after an IMU gap
         self._w_last = np.zeros(3)
         self._t_last_frame: float | None = None  # time of the last frame's update
-        self._still_frames = 1.0  # frames from about one spot (this one included)
+        self._shared_frames = 1.0  # frames sharing this frame's error: one spot, one track
         self._standstill = StandstillCalibrator()
         self._resets = 0
         self._injected = 0
@@ -892,8 +892,8 @@ class Localizer:
         bound of 2.54); with this rule it holds level (tools/recovery_pixel.py, README)."""
         t_from, self._t_last_frame = self._t_last_frame, t
         moved, turned = self._motion_between(t_from, t)
-        self._still_frames = self.frames_sharing(self._still_frames, moved, turned)
-        return self.cfg.bearing_sigma_rad * spot_sigma_factor(self._still_frames, self.SPOT_SHARED)
+        self._shared_frames = self.frames_sharing(self._shared_frames, moved, turned)
+        return self.cfg.bearing_sigma_rad * spot_sigma_factor(self._shared_frames, self.SPOT_SHARED)
 
     @classmethod
     def frames_sharing(cls, k: float, moved: float, turned: float) -> float:
