@@ -86,6 +86,23 @@ def test_without_the_gyro_a_fast_turn_loses_tracks(scene):
     assert np.isin(a.ids, b.ids).mean() < 0.5
 
 
+def test_a_carried_camera_starts_its_tracks_afresh(scene):
+    """After a carry (``restart``) no track goes on: every track of the frame is new, found
+    where the corners are now — a track carried along slides onto the corner beside its own
+    (issue 18, measured on kidnaps) and would keep its old descriptor."""
+    world, r, c = scene
+    fe = FrontEnd(world.camera, world.q_bc)
+    a = fe.process(0.0, r.render(c[0], c[1], 0.3))
+    b = fe.process(0.25, r.render(c[0], c[1], 0.3))
+    assert a.ids.size >= 15 and np.isin(a.ids, b.ids).mean() > 0.9  # standing: tracks go on
+    moved = r.render(c[0] + 0.3, c[1], 0.35)  # carried 0.3 m: half the tracks would go on
+    d = fe.process(0.5, moved, restart=True)
+    assert d.ids.size >= 15 and not np.isin(d.ids, b.ids).any()
+    assert (d.ages == 0).all() and d.ids.min() > b.ids.max()
+    e = FrontEnd(world.camera, world.q_bc).process(0.0, moved)  # a front end seeing it first
+    assert np.allclose(np.sort(d.pixels[:, 0]), np.sort(e.pixels[:, 0]))
+
+
 def test_epipolar_ransac_finds_the_outliers():
     rng = np.random.default_rng(4)
     pts = rng.uniform(-8, 8, (80, 3)) + np.array([0, 0, 1.0])

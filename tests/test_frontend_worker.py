@@ -112,6 +112,10 @@ def test_the_worker_relocalizes_a_frame_when_asked() -> None:
         asked = worker.track("chain-1", (args, (lawn_map,)), 0.25, image, None, SearchRequest())
         assert plain.relocalization is None
         assert asked.relocalization is not None and asked.relocalization.ms > 0
+        carried = worker.track(
+            "chain-1", (args, (lawn_map,)), 0.5, image, None, SearchRequest(carried=True)
+        )
+        assert carried.ids.size and not np.isin(carried.ids, asked.ids).any()  # all new
     finally:
         worker.close()
 

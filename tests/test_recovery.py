@@ -145,6 +145,26 @@ def test_a_lift_drops_the_pose_and_no_answer_pairs_across_it() -> None:
     assert not plain.searching
 
 
+def test_a_frame_after_a_lift_asks_the_front_end_for_new_tracks() -> None:
+    """Every frame searched after the mower was lifted (the supervisor says so at every IMU
+    sample while it is) tells the front end to forget its tracks; the frames after it, with
+    the mower standing, keep theirs."""
+    from mowerhw.sim import make_world
+    from mowerhw.vision.mow import MowVision
+
+    world = make_world("paper", 1)
+    loc = Localizer(_map())
+    vision = MowVision(loc, world.camera, world.q_bc)
+    first = vision.wants_search()
+    assert first is not None and not first.carried  # searching from the start, never lifted
+    loc.lifted()
+    loc.lifted()
+    after = vision.wants_search()
+    assert after is not None and after.carried
+    again = vision.wants_search()
+    assert again is not None and not again.carried
+
+
 def test_an_accepted_answer_hands_its_landmark_cross_covariance_to_the_filter() -> None:
     """The filter restarts from an accepted answer knowing which map errors it shares with
     it: the answer's cross-covariance lands in the filter's consider terms, in the columns

@@ -158,29 +158,70 @@ def test_a_feature_beside_its_landmark_neither_pulls_the_answer_nor_hides_from_i
     those few down (Huber at the residuals' robust σ) and its covariance still counts what
     they do: over random places, the answers' NEES stays within its 99 % bounds (2.9; with
     every inlier weighed alike 4.1) and the answers are half as far off (median 5.6 mm
-    against 10.5)."""
+    against 10.5). A filter restarting from the answer is seeded only with the pairs the fit
+    trusts in full (:meth:`Relocalization.seeds`): not with the features beside."""
     from scipy.stats import chi2
 
     rng = np.random.default_rng(12)
     pts = _ring(rng, 40)
     reloc = GlobalRelocalizer(_map(pts))
     nees, errors = [], []
+    beside_seeded, beside_inliers, clean_seeded, clean_inliers = 0, 0, 0, 0
     for _ in range(30):
         p = np.r_[rng.uniform(-3, 3, 2), 0.0]
         yaw = float(rng.uniform(-math.pi, math.pi))
         b = _view(pts, p, yaw, rng, math.radians(0.15) / math.sqrt(2))
-        for k in rng.choice(len(pts), 4, replace=False):  # turned about the vertical
+        beside = rng.choice(len(pts), 4, replace=False)
+        for k in beside:  # turned about the vertical
             turn = math.radians(rng.uniform(0.5, 0.95)) * rng.choice([-1.0, 1.0])
             c, s = math.cos(turn), math.sin(turn)
             b[k] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ b[k]
         res = reloc.locate(b)
         assert res.ok and res.covariance is not None, res.why
+        seeded = {r for r, _ in res.seeds()[0]}
+        for r, _ in res.inliers:
+            if r in beside:
+                beside_inliers += 1
+                beside_seeded += r in seeded
+            else:
+                clean_inliers += 1
+                clean_seeded += r in seeded
         err = np.r_[res.p_wb[:2] - p[:2], (res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi]
         nees.append(float(err @ np.linalg.solve(res.covariance, err)))
         errors.append(float(np.linalg.norm(err[:2])))
     lo, hi = chi2.ppf([0.005, 0.995], 3 * len(nees)) / len(nees)
     assert lo <= np.mean(nees) <= hi, (np.mean(nees), lo, hi)
     assert np.median(errors) < 0.008, np.median(errors)
+    assert beside_inliers > 30 and beside_seeded <= 0.1 * beside_inliers
+    assert clean_seeded >= 0.95 * clean_inliers
+
+
+@pytest.mark.parametrize("consensus", [True, False])
+def test_beside_features_that_pull_one_way_do_not_carry_the_answer(consensus: bool) -> None:
+    """Two fifths of the inliers are features beside their landmarks' corners, 0.25–0.5°
+    off and all turned the same way (pixel level, a kidnap: eleven of 27, the answer 0.26° off
+    at σ 0.055°): the answer is the sharp score's best optimum among the inliers' own
+    poses, fitted to the pairs inside its χ² gate, and lands near the true pose, inside its
+    own σ. The check can fail: without the consensus search it does."""
+    rng = np.random.default_rng(5)
+    pts = _ring(rng, 36)
+    reloc = GlobalRelocalizer(_map(pts))
+    if not consensus:
+        reloc._consensus = lambda obs, rows, cols, state, sigma: state  # type: ignore[method-assign]
+    worst = 0.0
+    for _ in range(6):
+        p = np.r_[rng.uniform(-2, 2, 2), 0.0]
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        b = _view(pts, p, yaw, rng, math.radians(0.05) / math.sqrt(2))
+        for k in rng.choice(len(pts), 14, replace=False):
+            turn = math.radians(rng.uniform(0.25, 0.5))
+            c, s = math.cos(turn), math.sin(turn)
+            b[k] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ b[k]
+        res = reloc.locate(b)
+        assert res.ok and res.covariance is not None, res.why
+        turned = abs((res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi)
+        worst = max(worst, turned / math.sqrt(res.covariance[2, 2]))
+    assert (worst < 3.0) == consensus, worst
 
 
 def test_an_accepted_pose_starts_as_sure_as_its_answer_within_bounds() -> None:

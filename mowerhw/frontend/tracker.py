@@ -215,11 +215,21 @@ class FrontEnd:
         self._end(~keep)
         self._keep(keep)
 
-    def process(self, t: float, image: NDArray[np.uint8], r_prev_cur: FloatArray | None = None):
+    def process(
+        self,
+        t: float,
+        image: NDArray[np.uint8],
+        r_prev_cur: FloatArray | None = None,
+        restart: bool = False,
+    ):
         """One frame; ``r_prev_cur`` maps current body-frame vectors into the previous frame's
-        (from the gyro; identity if unknown). Returns :class:`FrameTracks`."""
+        (from the gyro; identity if unknown); ``restart``: the camera moved in a way tracking
+        cannot follow (the mower was carried): every track ends, and this frame's are all new.
+        Returns :class:`FrameTracks`."""
         t0 = time.perf_counter()
         c = self.cfg
+        if restart:
+            self.drop(self._ids.copy())
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         # Lucas–Kanade runs on pyramid level ``klt_base_level`` (OpenCV 5's Python binding

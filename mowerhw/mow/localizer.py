@@ -215,6 +215,9 @@ class Localizer:
         self.calibrating = True
         self.last_rejected = np.zeros(0, np.int64)  # map ids the last frame's χ² gate refused
         self.search: RelocalizationSearch | None = None  # no trustworthy pose: searching
+        #: calls of :meth:`lifted` so far: a front end that sees it grow since its previous
+        #: frame forgets its tracks (:attr:`~mowerhw.common.relocalization.SearchRequest.carried`)
+        self.lifted_calls = 0
         self.relocalizes = False  # a relocalizer answers searches (use_relocalizer)
         self.probation: Probation | None = None  # a re-localization being checked
         # the magnetometer as a coarse compass, when the map has the taught field
@@ -308,6 +311,7 @@ class Localizer:
         its landmark), the lock-out path recovers."""
         if not self.relocalizes:
             return
+        self.lifted_calls += 1
         if self.search is not None and self.search.why == self.LIFTED:
             self.search.hold()
             return

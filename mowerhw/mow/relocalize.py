@@ -69,6 +69,7 @@ import shapely
 from numpy.typing import NDArray
 from scipy.ndimage import maximum_filter
 from scipy.optimize import least_squares
+from scipy.stats import chi2
 
 from mowerhw.common.geometry import wrap_angle, yaw_rotation
 from mowerhw.common.relocalization import Relocalization
@@ -610,6 +611,56 @@ class GlobalRelocalizer:
             state = self._weighted_fit(obs, rows, pts, np.sqrt(huber_weights(state)), state)
         return state, huber_weights(state)
 
+    #: the consensus search (:meth:`_consensus`): this many fits to two inlier pairs each
+    CONSENSUS_DRAWS = 16
+
+    def _consensus(
+        self,
+        obs: FloatArray,
+        rows: NDArray[np.int64],
+        cols: NDArray[np.int64],
+        state: FloatArray,
+        sigma: float,
+    ) -> FloatArray:
+        """The sharp soft score's best optimum among the inliers' own poses: each of
+        :data:`CONSENSUS_DRAWS` pairs of inliers (drawn reproducibly) fitted exactly, refined
+        (:meth:`_anneal` at the frame's ``sigma``) and scored; ``state`` unless one scores
+        higher. Where a fifth to two fifths of the inliers are features beside their
+        landmarks' corners, 0.4–1° off, the polish's anneal (from a 1° kernel down) can end
+        in their basin (measured, paper lawn, a kidnap: 38 mm and 0.26° off at σ 9 mm and
+        0.055°, the true pose scoring 12.1 against its 10.9); two right pairs alone land in
+        the true one (2 mm, 0.003°)."""
+        best, best_score = state, self.soft_score(obs, state, sigma)
+        if rows.size < 2:
+            return best
+        rng = np.random.default_rng(rows.size)
+        for _ in range(self.CONSENSUS_DRAWS):
+            pick = rng.choice(rows.size, 2, replace=False)
+            pts = self.points[cols[pick]]
+            cand = self._weighted_fit(obs, rows[pick], pts, np.ones(2), state, max_nfev=20)
+            cand = self._anneal(obs, cand, (sigma,))
+            score = self.soft_score(obs, cand, sigma)
+            if score > best_score:
+                best, best_score = cand, score
+        return best
+
+    #: an inlier the fit trusts (a filter's first association, :meth:`Relocalization.seeds`)
+    #: has its residual inside this χ²₂ gate at the residuals' robust σ
+    TRUST_GATE = 0.99
+
+    def _trusted(
+        self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], state: FloatArray
+    ) -> NDArray[np.bool_]:
+        """Which inliers lie inside :data:`TRUST_GATE` of the pose ``state``: the rest,
+        within the inlier angle yet many robust σ off, are mostly features beside the
+        landmark's corner, and the answer's fit leaves them out (Huber alone still gave the
+        eleven such of 27 inliers a third of a weight each: they pulled the answer 0.26° off
+        the optimum :meth:`_consensus` had found)."""
+        norms = np.linalg.norm(self._residuals(obs, rows, self.points[cols], state), axis=1)
+        sigma = self._robust_sigma(norms)
+        out: NDArray[np.bool_] = norms**2 <= chi2.ppf(self.TRUST_GATE, df=2) * sigma**2
+        return out
+
     def covariance(
         self,
         obs: FloatArray,
@@ -790,9 +841,15 @@ class GlobalRelocalizer:
         gaps = np.diff(np.concatenate([az, az[:1] + 2 * math.pi]))
         if 2 * math.pi - gaps.max() < MIN_AZIMUTH_SPREAD_RAD:
             return done("inliers all on one side", len(hyps))
-        fitted, weights = self._final_fit(obs, rows, cols, np.array([p_wb[0], p_wb[1], yaw_best]))
+        start = self._consensus(obs, rows, cols, np.array([p_wb[0], p_wb[1], yaw_best]), sigma)
+        trusted = self._trusted(obs, rows, cols, start)
+        if trusted.sum() < self.min_inliers:
+            trusted = np.ones(rows.size, dtype=bool)
+        fitted, weights = self._final_fit(obs, rows[trusted], cols[trusted], start)
         r_wb, p_wb = self._pose(fitted)
-        cov, cross = self.covariance(obs, rows, cols, fitted, weights)
+        cov, cross_trusted = self.covariance(obs, rows[trusted], cols[trusted], fitted, weights)
+        cross = np.zeros((3, 3 * rows.size))  # the doubted pairs' landmarks: not in the fit
+        cross.reshape(3, -1, 3)[:, trusted, :] = cross_trusted.reshape(3, -1, 3)
         return Relocalization(
             True,
             r_wb,
@@ -803,4 +860,5 @@ class GlobalRelocalizer:
             1e3 * (time.perf_counter() - t0),
             covariance=cov,
             landmark_cross=cross,
+            trusted=trusted,
         )

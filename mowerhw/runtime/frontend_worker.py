@@ -260,7 +260,7 @@ def main() -> None:  # pragma: no cover - the child; exercised through FrontendW
             try:
                 assert frontend is not None, "a frame before the front end was set up"
                 image = slot.take(shape, dtype)
-                tracks = frontend.process(t, image, r)
+                tracks = frontend.process(t, image, r, search is not None and search.carried)
                 if search is not None and searcher is not None:
                     tracks = searcher(tracks, search)
                 _write(out, ("tracks", tracks))

@@ -96,6 +96,7 @@ class JournalEncoder:
                 "why": v.why,
                 "covariance": None if v.covariance is None else _floats(v.covariance),
                 "landmark_cross": None if v.landmark_cross is None else _floats(v.landmark_cross),
+                "trusted": None if v.trusted is None else [bool(x) for x in v.trusted],
             }
         if isinstance(v, LawnMap):
             if v.checksum in self._maps:
@@ -176,6 +177,7 @@ class JournalDecoder:
             None
             if d.get("landmark_cross") is None
             else np.asarray(d["landmark_cross"], dtype=np.float64).reshape(3, -1),
+            None if d.get("trusted") is None else np.asarray(d["trusted"], dtype=bool),
         )
 
     def lawn_map(self, d: dict[str, Any]) -> LawnMap:

@@ -110,7 +110,8 @@ class VisionBase:
         may run it on a worker thread (one frame at a time). ``t`` is the camera's capture
         time; the tracks carry it on the IMU's clock (``timeshift_cam_imu`` applied).
         ``search``: relocalize from the tracks too (:meth:`wants_search`)."""
-        tracks = self.frontend.process(t + self.time_shift_s, image, r_prev_cur)
+        carried = search is not None and search.carried
+        tracks = self.frontend.process(t + self.time_shift_s, image, r_prev_cur, carried)
         return self.tracked(tracks if search is None else self.searched(tracks, search))
 
     def searched(self, tracks: FrameTracks, search: SearchRequest) -> FrameTracks:

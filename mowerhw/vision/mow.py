@@ -71,6 +71,7 @@ class MowVision(VisionBase):
         self._refusals: dict[int, int] = {}  # track id → consecutive χ² refusals
         self._banned: dict[tuple[int, int], float] = {}  # pair → when it was refused
         self._t_last = -math.inf
+        self._lifted_calls = 0  # the localizer's, at the previous frame's search request
         # the last frame's associations: track ids, map ids, pixels
         self.last_associated = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
         self.last_bearings = np.zeros((0, 3))
@@ -82,10 +83,14 @@ class MowVision(VisionBase):
         return self.loc.corrected_rate(gyro)
 
     def wants_search(self) -> SearchRequest | None:
-        """While the localizer has given its pose up, every frame is searched."""
+        """While the localizer has given its pose up, every frame is searched; a frame after
+        the mower was lifted, with tracks that start afresh (a carried track slides onto the
+        corner next to its own: after a kidnap, a quarter of the answer's pairs were such)."""
+        lifts = self.loc.lifted_calls
+        carried, self._lifted_calls = lifts > self._lifted_calls, lifts
         if not self.loc.searching:
             return None
-        return SearchRequest(self.loc.search_near(), self.loc.search_heading())
+        return SearchRequest(self.loc.search_near(), self.loc.search_heading(), carried)
 
     def searched(self, tracks: FrameTracks, search: SearchRequest) -> FrameTracks:
         return self._search(tracks, search)
@@ -93,7 +98,7 @@ class MowVision(VisionBase):
     def use(self, tracks: FrameTracks) -> FrameTracks:
         """Associations of the tracks with map landmarks → the Localizer; while it searches
         for its pose, the frame's global relocalization instead, and when that is accepted
-        its inliers become the first associations."""
+        the inliers its fit trusts become the first associations."""
         t = tracks.t
         if self.loc.searching:
             self.landmark_of.clear()
@@ -105,7 +110,10 @@ class MowVision(VisionBase):
                 self.last_bearings = np.zeros((0, 3))
                 self._t_last = t
                 return tracks
-            self.landmark_of = {int(tracks.ids[r]): lid for r, lid in answer.inliers}
+            trusted, doubted = answer.seeds()
+            self.landmark_of = {int(tracks.ids[r]): lid for r, lid in trusted}
+            for r, lid in doubted:  # not re-associated at once either: the pose is the fit's
+                self._banned[(int(tracks.ids[r]), lid)] = t
         live = set(tracks.ids.tolist())
         for tid in [k for k in self.landmark_of if k not in live]:
             del self.landmark_of[tid]
