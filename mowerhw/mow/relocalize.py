@@ -591,13 +591,13 @@ class GlobalRelocalizer:
     def _final_fit(
         self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], x0: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
-        """The answer's (x, y, heading): the inlier pairs' least squares, each pair weighted
+        """The answer's (x, y, heading): the given pairs' least squares, each pair weighted
         by Huber at :data:`HUBER_K` robust σ of its residual's norm (iteratively reweighted).
-        The inliers are every pair within :attr:`inlier_angle_rad` (1°), the bearings' own
-        error a tenth of that: a feature beside the landmark, 0.5–1° off, would otherwise
-        weigh as much as a true corner (measured, pixel level: answers 2–4 cm and 0.1° off at
-        σ 7–10 mm, the true pose fitting the inliers better than the answer did). And the
-        weights, for :meth:`covariance`."""
+        :meth:`locate` gives it the inliers :meth:`_trusted` keeps; the inlier angle (1°) is
+        ten times the bearings' own error, and a feature beside the landmark, 0.5–1° off,
+        would otherwise weigh as much as a true corner (measured, pixel level: answers 2–4 cm
+        and 0.1° off at σ 7–10 mm, the true pose fitting the inliers better than the answer
+        did). And the weights, for :meth:`covariance`."""
         pts = self.points[cols]
 
         def huber_weights(state: FloatArray) -> FloatArray:
