@@ -572,6 +572,12 @@ class GlobalRelocalizer:
     #: a bearing's σ in the covariance is at least this (rad): a pose that fits its inliers
     #: better than the corners can be located is not that sure
     MIN_RESIDUAL_RAD = math.radians(0.1)
+    #: in the answer's covariance (:meth:`covariance`), a bearing's σ is at least this (rad):
+    #: about what a rendered corner's azimuth is off while mowing at best (0.055° rms,
+    #: README). Lower than the gate's floor above: at 0.1° the answers were wider than their
+    #: errors (pixel pools, stop 53: NEES 1.5–1.9 right after the answer, 0.4–0.8 of 1 per
+    #: component)
+    COVARIANCE_MIN_RAD = math.radians(0.05)
     #: the answer's fit (:meth:`_final_fit`): Huber weights at this many robust σ (95 %
     #: efficient on Gaussian errors), a few reweighting rounds
     HUBER_K = 1.345
@@ -695,7 +701,7 @@ class GlobalRelocalizer:
             d[k] = 1e-4
             jac_l[:, :, k] = (at(pts + d) - at(pts - d)) / 2e-4
         norms = np.linalg.norm(r0, axis=1)
-        s2 = self._robust_sigma(norms) ** 2
+        s2 = max(self.COVARIANCE_MIN_RAD, self._rayleigh_sigma(norms)) ** 2
         _, p_wb = self._pose(state)
         range2 = np.sum((pts - p_wb) ** 2, axis=1)
         seen_from_here = self._point_var[cols] / np.maximum(range2, 0.25)  # the map's part
@@ -703,7 +709,7 @@ class GlobalRelocalizer:
         # show beyond them (moments: E[s²] = noise² + mean map part), not all of it again
         noise2 = max(0.0, s2 - float(seen_from_here.mean()))
         own = 0.5 * norms**2  # per axis: a residual's two free directions
-        var = np.maximum(np.maximum(noise2 + seen_from_here, own), self.MIN_RESIDUAL_RAD**2)
+        var = np.maximum(np.maximum(noise2 + seen_from_here, own), self.COVARIANCE_MIN_RAD**2)
         # the fit's error is −A (n + J_L δL) with A = (Σ wᵢ Jᵢᵀ Jᵢ)⁻¹ [wᵢ Jᵢᵀ], so its
         # covariance is A diag(σᵢ²) Aᵀ (a sandwich) …
         gain = np.linalg.pinv(np.einsum("nri,nrj,n->ij", jac, jac, w))
