@@ -444,7 +444,7 @@ class MowConfig(MotionNoiseConfig):
     """Mow phase: world-centric EKF localizer (eqs 21–23)."""
 
     bearing_sigma_rad: float = opt(
-        0.004,
+        0.0035,
         "bearing noise of a frame counted alone (1σ per axis); frames from one spot or "
         "along one track share part of it and count less",
         gt=0.0,

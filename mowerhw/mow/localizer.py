@@ -863,8 +863,9 @@ class Localizer:
     #: the next frames still see the same corners from nearly the same place. 0.2 m, chosen
     #: with ``mow.bearing_sigma_rad`` 0.26° and every answer inlier seeded: NEES bins inside
     #: 19/20 on both pixel lawns' start pools (0.25 m: the look-alike's driving bins 2.4–2.6,
-    #: under; 0.15 m: the paper's up to 3.6). Since the answers seed only the pairs their fit
-    #: trusts, those pools are under at 0.23° (README, stop 53): not refitted yet
+    #: under; 0.15 m: the paper's up to 3.6). Refitted in stop 54 with the answers' new
+    #: floors and ``mow.bearing_sigma_rad`` 0.23°: 0.12 m put the paper starts' last bins
+    #: over (3.6–3.7), 0.15 m came out as 0.20° at 0.2 m did (README): kept
     SPOT_M, SPOT_RAD = 0.2, math.radians(10.0)
     #: the share of a standing frame's bearing variance that every frame from that spot has
     #: too (a corner's detection bias, the same pixels rendered again); the rest is its own.
