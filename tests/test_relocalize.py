@@ -150,7 +150,9 @@ def test_an_answer_says_how_sure_it_is_and_is_about_that_sure() -> None:
     assert lo <= np.mean(nees) <= hi, (np.mean(nees), lo, hi)
 
 
-def test_an_answer_from_sharp_bearings_is_as_sure_as_they_are(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_an_answer_from_sharp_bearings_is_as_sure_as_they_are(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """Bearings sharper than the trust gate's floor (0.06° of noise per axis, a map that is
     right; the gate and the Huber weights count every residual as at least 0.1° off): the
     answer's covariance follows the bearings down to its own floor,
