@@ -156,18 +156,31 @@ def _scale_free_mow_rmse(mowed: Any, map_scale: float | None) -> float | None:
     return round(float(np.sqrt(np.mean(err**2))), 5) if err.size else None
 
 
+#: the pixel noise (1σ, px) of the simulated cameras ``mow.bearing_sigma_rad``'s default
+#: serves: every yard's but U-sparse's
+DEFAULT_PIXEL_SIGMA = 3.0
+
+
 def scenario_config(scenario: str) -> Any:
     """The configuration a user of that yard's mower would write: the defaults with the
-    gyro grade of the scenario's IMU (its datasheet noise, the estimators' process noise)
-    and, where its camera's capture stamps jitter, that jitter (``mow.frame_stamp_sigma_s``:
-    measured once on the mower, like the IMU's grade)."""
-    from mowerhw.config import config_from_dict
+    gyro grade of the scenario's IMU (its datasheet noise, the estimators' process noise),
+    where its camera's capture stamps jitter, that jitter (``mow.frame_stamp_sigma_s``:
+    measured once on the mower, like the IMU's grade), and where its camera is noisier than
+    :data:`DEFAULT_PIXEL_SIGMA`, ``mow.bearing_sigma_rad`` widened in proportion (a bearing's
+    error scales with its corner's in pixels)."""
+    from mowerhw.config import MowConfig, config_from_dict
     from mowerhw.sim.scenarios import SCENARIOS
 
     sensors = SCENARIOS[scenario].sensors
     raw: dict[str, Any] = {"imu": {"grade": sensors.imu.name}}
+    mow: dict[str, float] = {}
     if sensors.camera.stamp_jitter_s > 0.0:
-        raw["mow"] = {"frame_stamp_sigma_s": sensors.camera.stamp_jitter_s}
+        mow["frame_stamp_sigma_s"] = sensors.camera.stamp_jitter_s
+    if sensors.camera.pixel_sigma > DEFAULT_PIXEL_SIGMA:
+        scale = sensors.camera.pixel_sigma / DEFAULT_PIXEL_SIGMA
+        mow["bearing_sigma_rad"] = MowConfig().bearing_sigma_rad * scale
+    if mow:
+        raw["mow"] = mow
     return config_from_dict(raw)
 
 
