@@ -105,13 +105,20 @@ def test_characterize_refuses_what_it_cannot_use(tmp_path, capsys):
 
 def test_a_yards_mower_is_configured_with_its_own_sensors():
     """The evaluation's localizer is configured as that yard's user would configure theirs:
-    the IMU's grade, and the camera's stamp jitter where it has one (none: nothing set)."""
+    the IMU's grade, the camera's stamp jitter where it has one (none: nothing set), and a
+    bearing σ widened with a camera noisier than the default's 3 px (U-sparse's 5 px)."""
+    from mowerhw.config import MowConfig
     from mowerhw.evaluation.campaign import scenario_config
     from mowerhw.sim.scenarios import SCENARIOS
 
+    default = MowConfig().bearing_sigma_rad
     for name, scenario in SCENARIOS.items():
         cfg = scenario_config(name)
         assert cfg.imu.grade == scenario.sensors.imu.name
         assert cfg.mow.frame_stamp_sigma_s == scenario.sensors.camera.stamp_jitter_s
+        px = max(3.0, scenario.sensors.camera.pixel_sigma)
+        assert cfg.mow.bearing_sigma_rad == pytest.approx(default * px / 3.0)
     assert scenario_config("trees-dense").mow.frame_stamp_sigma_s == 0.003
     assert scenario_config("paper").mow.frame_stamp_sigma_s == 0.0
+    assert scenario_config("paper").mow.bearing_sigma_rad == default
+    assert scenario_config("U-sparse").mow.bearing_sigma_rad == pytest.approx(default * 5 / 3)
