@@ -353,7 +353,7 @@ class GlobalRelocalizer:
                 if rows.size < 3:
                     return state
                 pts = self.points[cols]
-                norms = np.linalg.norm(self._residuals(obs, rows, pts, state), axis=1)
+                norms = self._residual_norms(obs, rows, pts, state)
                 root_w = np.exp(-(norms**2) / (4.0 * sigma**2))  # √ of the kernel
                 state = self._weighted_fit(obs, rows, pts, root_w, state, max_nfev=20)
         return state
@@ -455,7 +455,7 @@ class GlobalRelocalizer:
         for cand in candidates:
             rows, cols = self._associate(obs, *self._pose(cand), self.inlier_angle_rad)
             if rows.size >= self.min_inliers:
-                norms = np.linalg.norm(self._residuals(obs, rows, self.points[cols], cand), axis=1)
+                norms = self._residual_norms(obs, rows, self.points[cols], cand)
                 best = min(best, self._rayleigh_sigma(norms))
         return max(self.SOFT_SIGMA_RAD, best)
 
@@ -569,8 +569,9 @@ class GlobalRelocalizer:
         rival_score, rival = max(others, key=lambda r: r[0])
         return best, rival_score / top, rival, sigma
 
-    #: a bearing's σ in the covariance is at least this (rad): a pose that fits its inliers
-    #: better than the corners can be located is not that sure
+    #: the trust gate (:meth:`_trusted`) and the final fit's Huber weights take the
+    #: residuals' robust σ as at least this (rad): a frame fitted unusually well must not
+    #: gate out or down-weigh its good pairs
     MIN_RESIDUAL_RAD = math.radians(0.1)
     #: in the answer's covariance (:meth:`covariance`), a bearing's σ is at least this (rad):
     #: about what a rendered corner's azimuth is off while mowing at best (0.055° rms,
@@ -590,9 +591,17 @@ class GlobalRelocalizer:
         off (a corner next to the landmark's) do not move it."""
         return float(np.median(norms)) / math.sqrt(2.0 * math.log(2.0))
 
-    def _robust_sigma(self, norms: FloatArray) -> float:
-        """:meth:`_rayleigh_sigma`, at least :data:`MIN_RESIDUAL_RAD` (the covariance's)."""
-        return max(self.MIN_RESIDUAL_RAD, self._rayleigh_sigma(norms))
+    def _robust_sigma(self, norms: FloatArray, floor: float | None = None) -> float:
+        """:meth:`_rayleigh_sigma`, at least ``floor`` (default :data:`MIN_RESIDUAL_RAD`)."""
+        low = self.MIN_RESIDUAL_RAD if floor is None else floor
+        return max(low, self._rayleigh_sigma(norms))
+
+    def _residual_norms(
+        self, obs: FloatArray, rows: NDArray[np.int64], points: FloatArray, state: FloatArray
+    ) -> FloatArray:
+        """Each pair's angular residual's norm (rad): :meth:`_residuals`, per row."""
+        out: FloatArray = np.linalg.norm(self._residuals(obs, rows, points, state), axis=1)
+        return out
 
     def _final_fit(
         self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], x0: FloatArray
@@ -607,7 +616,7 @@ class GlobalRelocalizer:
         pts = self.points[cols]
 
         def huber_weights(state: FloatArray) -> FloatArray:
-            norms = np.linalg.norm(self._residuals(obs, rows, pts, state), axis=1)
+            norms = self._residual_norms(obs, rows, pts, state)
             scale = self.HUBER_K * self._robust_sigma(norms)
             out: FloatArray = np.minimum(1.0, scale / np.maximum(norms, 1e-12))
             return out
@@ -662,7 +671,7 @@ class GlobalRelocalizer:
         landmark's corner, and the answer's fit leaves them out (Huber alone still gave the
         eleven such of 27 inliers a third of a weight each: they pulled the answer 0.26° off
         the optimum :meth:`_consensus` had found)."""
-        norms = np.linalg.norm(self._residuals(obs, rows, self.points[cols], state), axis=1)
+        norms = self._residual_norms(obs, rows, self.points[cols], state)
         sigma = self._robust_sigma(norms)
         out: NDArray[np.bool_] = norms**2 <= chi2.ppf(self.TRUST_GATE, df=2) * sigma**2
         return out
@@ -682,7 +691,7 @@ class GlobalRelocalizer:
         too) plus the
         bearings' own noise — the residuals' robust variance per axis beyond the map's mean
         part — and at least what its own residual shows (a pair the weights doubt is as far
-        off as it looks), at least :attr:`MIN_RESIDUAL_RAD` squared. And how much the map's
+        off as it looks), at least :attr:`COVARIANCE_MIN_RAD` squared. And how much the map's
         errors move it: the cross-covariance with the inliers' landmark positions (J_L: the
         residual's derivative with respect to the landmark; P_L its map covariance),
         (3, 3·n) in the inliers' order."""
@@ -701,7 +710,7 @@ class GlobalRelocalizer:
             d[k] = 1e-4
             jac_l[:, :, k] = (at(pts + d) - at(pts - d)) / 2e-4
         norms = np.linalg.norm(r0, axis=1)
-        s2 = max(self.COVARIANCE_MIN_RAD, self._rayleigh_sigma(norms)) ** 2
+        s2 = self._robust_sigma(norms, self.COVARIANCE_MIN_RAD) ** 2
         _, p_wb = self._pose(state)
         range2 = np.sum((pts - p_wb) ** 2, axis=1)
         seen_from_here = self._point_var[cols] / np.maximum(range2, 0.25)  # the map's part
