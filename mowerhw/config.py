@@ -255,7 +255,20 @@ class CameraConfig:
     )
     width: int = opt(1540, "frame width (px)", ge=16, le=8192)
     height: int = opt(1540, "frame height (px)", ge=16, le=8192)
-    fps: float = opt(4.0, "frame rate", gt=0.0, le=120.0)
+    fps: float = opt(
+        4.0,
+        "frame rate the front end tracks (a faster camera's frames between are dropped)",
+        gt=0.0,
+        le=120.0,
+    )
+    device_fps: float | None = opt(
+        None,
+        "frame rate asked of the camera; null: fps. Above fps, the frames between are "
+        "dropped before decoding but each tells the runtime the camera is alive, so "
+        "stale_after_s may be as short as two of the camera's periods",
+        gt=0.0,
+        le=120.0,
+    )
     pixel_format: str = opt("GREY", "V4L2 FOURCC", choices=("GREY", "YUYV", "MJPG", "BGR3"))
     calibration: Path = opt(
         Path("camera/paper-table1.yaml"), "Kalibr camchain YAML (omni + radtan)", exists=True
@@ -285,6 +298,15 @@ class CameraConfig:
     )
     stale_after_s: float = opt(1.0, "halt when no frame for this long", gt=0.0, le=30.0)
     pixel_sigma: float = opt(1.0, "feature position noise (px, 1σ)", gt=0.0, le=20.0)
+
+    def camera_fps(self) -> float:
+        """The rate the camera delivers at (``device_fps``, else ``fps``): the one its
+        liveness is judged at."""
+        return self.fps if self.device_fps is None else self.device_fps
+
+    def rate_key(self) -> str:
+        """The key :meth:`camera_fps` comes from, for messages."""
+        return "camera.fps" if self.device_fps is None else "camera.device_fps"
 
     def body_rotation(self) -> Quat:
         """``q_bc`` as the config loader resolved it (from the calibration or the config;
@@ -1154,7 +1176,7 @@ def _cross_checks(cfg: Config) -> list[str]:
             )
     for name, limit, key, rate in (
         ("imu", cfg.imu.stale_after_s, "imu.rate_hz", float(cfg.imu.rate_hz)),
-        ("camera", cfg.camera.stale_after_s, "camera.fps", cfg.camera.fps),
+        ("camera", cfg.camera.stale_after_s, cfg.camera.rate_key(), cfg.camera.camera_fps()),
     ):
         if limit < 2.0 / rate:  # one late or lost sample must not halt the deck
             problems.append(
@@ -1162,6 +1184,13 @@ def _cross_checks(cfg: Config) -> list[str]:
                 f"{rate:g} ({2.0 / rate:g} s): every late sample would halt; raise it to at "
                 f"least {2.0 / rate:g} s, or the rate"
             )
+    cam = cfg.camera
+    if cam.device_fps is not None and cam.device_fps < cam.fps:
+        problems.append(
+            f"camera.device_fps: {cam.device_fps:g} is under camera.fps {cam.fps:g}: the front "
+            "end cannot track more frames than the camera delivers; set device_fps at or "
+            "above fps, or null (the camera at fps)"
+        )
     fe = cfg.frontend
     if fe.klt_base_level > fe.klt_levels:
         problems.append(

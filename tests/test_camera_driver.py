@@ -185,6 +185,97 @@ def test_v4l2_driver_decodes_no_more_frames_than_its_rate():
     assert cam.stats.skipped <= 0.1 * dev.grabbed, (cam.stats.skipped, dev.grabbed)
 
 
+def test_v4l2_driver_asks_the_device_rate_and_says_the_camera_lives_between_frames():
+    """``camera.device_fps`` above ``camera.fps``: the camera is asked for its own rate, the
+    front end gets ``fps``, and every frame dropped between says the camera is alive (the
+    runtime's liveness, judged at the camera's rate, not the front end's)."""
+    import cv2
+
+    dev = FakeDevice()
+    cam = V4l2Camera(
+        "/dev/video0", width=64, height=48, fps=10, device_fps=100, capture_factory=dev.open
+    )
+    frames, alive = [], []
+    cam.start(lambda f: frames.append(time.monotonic()), lambda: alive.append(time.monotonic()))
+    try:
+        assert wait_for(lambda: dev.grabbed >= 60)
+    finally:
+        cam.stop()
+    assert len(alive) == cam.stats.skipped and len(alive) >= 0.7 * dev.grabbed
+    assert len(alive) + len(frames) >= dev.grabbed - 2  # every grabbed frame told, one way
+    rate = (len(frames) - 1) / (frames[-1] - frames[0])
+    assert 8.0 <= rate <= 12.0, rate  # the front end's 10 a second
+    # the longest the runtime goes without hearing of the camera: its own period, not fps's
+    heard = np.sort(np.concatenate([alive, frames]))
+    assert np.max(np.diff(heard)) < 0.05, np.max(np.diff(heard))
+    cap = FlakyCapture(dev)
+    cam2 = V4l2Camera("x", 64, 48, fps=4, device_fps=30, capture_factory=lambda _: cap)
+    cam2._open()
+    assert cap.props[cv2.CAP_PROP_FPS] == 30
+
+
+def test_the_stream_camera_delivers_at_its_rate_and_says_the_camera_lives_between():
+    """The bench's camera over a real Unix socket: a server at 20 frames a second, the
+    camera configured for 5: about 5 a second reach the front end, in order and with their
+    capture times, and the 15 between reach ``on_alive`` (read from the socket, not handed on)."""
+    import tempfile
+
+    from drivers.camera.mock_server import MockCameraServer
+    from drivers.camera.stream import StreamCamera
+
+    with tempfile.TemporaryDirectory() as tmp:
+        server = MockCameraServer(
+            f"{tmp}/cam.sock", lambda t: synthetic_frame(t, 64, 48), fps=20.0
+        ).start()
+        cam = StreamCamera(f"{tmp}/cam.sock", fps=5.0)
+        frames, alive = [], []
+        cam.start(frames.append, lambda: alive.append(time.monotonic()))
+        try:
+            assert wait_for(lambda: len(frames) >= 6, timeout=10.0)
+        finally:
+            cam.stop()
+            server.stop()
+    rate = (len(frames) - 1) / (frames[-1].t - frames[0].t)
+    assert 4.0 <= rate <= 6.0, rate
+    assert [f.sequence for f in frames] == sorted({f.sequence for f in frames})
+    assert all(f.image.shape == (48, 64) for f in frames)
+    assert abs(cam.stats.skipped - len(alive)) <= 1  # the last may be counted as it stops
+    assert len(alive) >= 2 * (len(frames) - 1), (len(alive), len(frames))
+    # the same camera without a rate hands on every frame
+    with tempfile.TemporaryDirectory() as tmp:
+        server = MockCameraServer(
+            f"{tmp}/cam.sock", lambda t: synthetic_frame(t, 64, 48), fps=20.0
+        ).start()
+        cam = StreamCamera(f"{tmp}/cam.sock")
+        every: list = []
+        cam.start(every.append)
+        try:
+            assert wait_for(lambda: len(every) >= 10, timeout=10.0)
+        finally:
+            cam.stop()
+            server.stop()
+    assert cam.stats.skipped == 0
+    assert np.median(np.diff([f.t for f in every])) == pytest.approx(0.05, abs=0.015)
+
+
+def test_the_mock_camera_renders_only_the_frames_it_delivers():
+    """The in-process mock at ``device_fps`` 20 with ``fps`` 5: 5 a second rendered and
+    delivered, the others only told to ``on_alive``."""
+    rendered: list[float] = []
+
+    def render(t: float) -> np.ndarray:
+        rendered.append(t)
+        return synthetic_frame(t, 32, 32)
+
+    cam = MockCamera(render, fps=5.0, device_fps=20.0, width=32, height=32)
+    frames, alive = [], []
+    cam.start(frames.append, lambda: alive.append(1))
+    time.sleep(1.05)
+    cam.stop()
+    assert len(rendered) == len(frames) and 4 <= len(frames) <= 7, len(frames)
+    assert 13 <= len(alive) <= 17, len(alive)
+
+
 class StampedCapture:
     """``cv2.VideoCapture`` on a camera whose driver stamps each buffer (``CAP_PROP_POS_MSEC``)
     ``latency_s`` before ``grab`` returns it — a UVC camera stamps the start of the exposure,

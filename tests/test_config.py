@@ -42,6 +42,9 @@ def test_bench_config_points_at_mock_hardware():
     cfg = load_config(CONFIGS / "bench.yaml")
     assert cfg.imu.driver == "mock" and cfg.camera.driver == "mock"
     assert cfg.can.interface == "virtual"
+    # the camera's liveness at its own 10 Hz: a limit under two of the front end's periods
+    assert cfg.camera.camera_fps() == 10 and cfg.camera.fps == 4
+    assert cfg.camera.stale_after_s < 2 / cfg.camera.fps
 
 
 def test_defaults_and_round_trip():
@@ -79,6 +82,18 @@ BAD_VALUES = [
     (
         {"camera": {"fps": 1.5}},
         "camera.stale_after_s: 1 s is under two sample periods at camera.fps 1.5 (1.33333 s)",
+    ),
+    (
+        {"camera": {"device_fps": 2}},
+        "camera.device_fps: 2 is under camera.fps 4: the front end cannot track more frames",
+    ),
+    (
+        {"camera": {"device_fps": 10, "stale_after_s": 0.15}},
+        "camera.stale_after_s: 0.15 s is under two sample periods at camera.device_fps 10 (0.2 s)",
+    ),
+    (
+        {"camera": {"stale_after_s": 0.25}},
+        "camera.stale_after_s: 0.25 s is under two sample periods at camera.fps 4 (0.5 s)",
     ),
     (
         {"frontend": {"klt_base_level": 2, "klt_levels": 1}},

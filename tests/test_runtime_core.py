@@ -73,6 +73,41 @@ def _feed(core: RuntimeCore, t0: float, t1: float) -> Any:
     return d
 
 
+def test_frames_the_front_end_does_not_take_keep_the_camera_alive(camera: Any) -> None:
+    """``camera.device_fps`` above ``camera.fps``: the frames dropped between the front end's
+    keep the camera fresh (its limit can be under the front end's period), unless the last
+    frame taken was refused (the ones between are of the same mode)."""
+    import dataclasses
+
+    cfg = default_config()
+    cfg = dataclasses.replace(
+        cfg, camera=dataclasses.replace(cfg.camera, device_fps=10.0, stale_after_s=0.25)
+    )
+    core = RuntimeCore(cfg, None, lambda req: None)
+
+    def late(t: float) -> bool:
+        return core.gate.late("camera", t, core.last_arrival["camera"])
+
+    for k in range(100):  # 1 s: frames taken at 4 Hz, the camera's others at 10 Hz
+        t = 0.01 * k
+        if k % 25 == 0:
+            core.camera_frame(t)
+        elif k % 10 == 0:
+            core.camera_alive(t)
+        core.imu(ImuSample(t, np.array([0.0, 0.0, 0.001])), t)
+        if k % 10 == 0:
+            core.speed(SpeedSample(t, 0.0))
+        assert not late(t), t
+    # the camera freezes: late once its own limit has passed, not the front end's 0.5 s
+    assert not late(0.9 + 0.24) and late(0.9 + 0.26)
+    core.camera_refused(1.2, "the camera delivers 640x480 frames")
+    core.camera_alive(1.3)
+    assert late(1.35)
+    core.camera_frame(1.4)
+    core.camera_alive(1.5)
+    assert not late(1.6)
+
+
 def test_a_chain_built_for_a_request_that_was_overtaken_is_not_installed(camera: Any) -> None:
     core, asked = _core(camera, build_now=False)
     assert core.set_mode("teach") == ""

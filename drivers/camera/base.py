@@ -31,18 +31,58 @@ class CameraStats:
     connected: bool = False
 
 
+class FrameRate:
+    """Which of a camera's frames are delivered at ``fps`` (the rate the front end is sized
+    for) when the camera runs faster (``camera.device_fps``, or a camera without a mode at
+    the rate asked for): a frame is taken once it is due, on a grid of ``1/fps`` with a
+    tolerance of :data:`TOLERANCE` of a period (a camera at the rate itself, with its
+    jitter, keeps every frame), and the grid never bursts to catch up after a stall. The
+    one owner of that policy for every driver (V4L2, the socket stream, the mock)."""
+
+    #: a frame is taken from this share of a period before it is due
+    TOLERANCE = 0.25
+
+    def __init__(self, fps: float) -> None:
+        self.period = 1.0 / fps
+        self.next_due = 0.0  # host s
+
+    def skip(self, host_s: float) -> bool:
+        """True: the frame that arrived at ``host_s`` comes before its turn; drop it (before
+        decoding it)."""
+        return host_s < self.next_due - self.TOLERANCE * self.period
+
+    def taken(self, host_s: float) -> None:
+        """A frame arriving at ``host_s`` was delivered: the next is due a period on, and
+        never within half a period of this one."""
+        self.next_due = max(self.next_due + self.period, host_s + 0.5 * self.period)
+
+
 class CameraSource(ThreadedDevice, ABC):
-    """A source of timestamped frames, delivered from its own thread to ``on_frame``."""
+    """A source of timestamped frames, delivered from its own thread to ``on_frame``; a
+    frame dropped by :class:`FrameRate` is told to ``on_alive`` (the camera is alive)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.thread_name = type(self).__name__
         self.stats = CameraStats()
         self.on_frame: Callable[[FrameSample], None] | None = None
+        self.on_alive: Callable[[], None] | None = None
 
-    def start(self, on_frame: Callable[[FrameSample], None]) -> None:
-        self.on_frame = on_frame
+    def start(
+        self,
+        on_frame: Callable[[FrameSample], None],
+        on_alive: Callable[[], None] | None = None,
+    ) -> None:
+        """Deliver frames to ``on_frame``; ``on_alive`` (optional) hears of every frame the
+        rate drops, so the camera's liveness is judged at its own rate, not the front end's."""
+        self.on_frame, self.on_alive = on_frame, on_alive
         self._start_thread()
+
+    def _skipped(self) -> None:
+        """A frame came before its turn (:class:`FrameRate`) and was dropped undecoded."""
+        self.stats.skipped += 1
+        if self.on_alive is not None:
+            self.on_alive()
 
     @abstractmethod
     def _run(self) -> None: ...

@@ -1,8 +1,10 @@
 """A simulated camera behind the same interface as :class:`drivers.camera.v4l2.V4l2Camera`.
 
 Frames come from a generator ``render(t) -> uint8 image`` (t: seconds since start) at the
-configured rate, stamped with their capture time and delivered ``latency_s`` later, as a
-V4L2 device would. It can freeze (deliver nothing for a while, like a hung driver).
+camera's rate (``device_fps``; those beyond ``fps`` are dropped unrendered, as
+:class:`~drivers.camera.base.FrameRate` says), stamped with their capture time and delivered
+``latency_s`` later, as a V4L2 device would. It can freeze (deliver nothing for a while, like
+a hung driver).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.camera.base import CameraSource, synthetic_frame
+from drivers.camera.base import CameraSource, FrameRate, synthetic_frame
 from mowerhw.common.samples import FrameSample
 
 
@@ -21,6 +23,7 @@ class MockCamera(CameraSource):
         self,
         render: Callable[[float], np.ndarray] | None = None,
         fps: float = 4.0,
+        device_fps: float | None = None,
         width: int = 1540,
         height: int = 1540,
         latency_s: float = 0.0,
@@ -29,6 +32,7 @@ class MockCamera(CameraSource):
         super().__init__()
         self.render = render or (lambda t: synthetic_frame(t, width, height))
         self.fps = fps
+        self.device_fps = fps if device_fps is None else device_fps
         self.latency_s = latency_s
         self.freeze = list(freeze or [])
         self.frozen = False  # set from outside to freeze now (bench fault injection)
@@ -36,7 +40,8 @@ class MockCamera(CameraSource):
 
     def _run(self) -> None:
         t0 = time.monotonic()
-        period = 1.0 / self.fps
+        period = 1.0 / self.device_fps
+        rate = FrameRate(self.fps)
         nxt = t0
         self.stats.connected = True
         while not self._stop.is_set():
@@ -48,6 +53,10 @@ class MockCamera(CameraSource):
             rel = t_cap - t0
             if self.frozen or any(a <= rel < a + d for a, d in self.freeze):
                 continue
+            if rate.skip(t_cap):
+                self._skipped()  # not rendered: a V4L2 frame grabbed, not decoded
+                continue
+            rate.taken(t_cap)
             img = self.render(rel)
             if self.latency_s:
                 self._stop.wait(self.latency_s)

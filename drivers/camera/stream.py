@@ -19,10 +19,11 @@ import contextlib
 import logging
 import socket
 import struct
+import time
 
 import numpy as np
 
-from drivers.camera.base import CameraSource
+from drivers.camera.base import CameraSource, FrameRate
 from mowerhw.common.samples import FrameSample
 
 log = logging.getLogger(__name__)
@@ -69,11 +70,15 @@ def _read_exact(sock: socket.socket, n: int) -> bytearray:
 
 
 class StreamCamera(CameraSource):
-    """Frames from a Unix socket at ``path`` (see the module doc)."""
+    """Frames from a Unix socket at ``path`` (see the module doc), delivered at most at
+    ``fps`` (:class:`~drivers.camera.base.FrameRate`; None: every frame)."""
 
-    def __init__(self, path: str, reconnect_max_backoff_s: float = 2.0) -> None:
+    def __init__(
+        self, path: str, reconnect_max_backoff_s: float = 2.0, fps: float | None = None
+    ) -> None:
         super().__init__()
         self.path = path
+        self.fps = fps
         self.reconnect_max_backoff_s = reconnect_max_backoff_s
         self._sock: socket.socket | None = None
 
@@ -100,10 +105,17 @@ class StreamCamera(CameraSource):
             self.stats.connected = True
             backoff = 0.05
             log.info("camera: stream %s connected", self.path)
+            rate = None if self.fps is None else FrameRate(self.fps)
             try:
                 while not self._stop.is_set():
                     seq, t, w, h, ch = decode_header(_read_exact(sock, HEADER.size))
                     pixels = _read_exact(sock, w * h * ch)
+                    host_s = time.monotonic()
+                    if rate is not None and rate.skip(host_s):
+                        self._skipped()  # read (it is on the wire), not handed on
+                        continue
+                    if rate is not None:
+                        rate.taken(host_s)
                     shape = (h, w) if ch == 1 else (h, w, ch)
                     img = np.frombuffer(pixels, np.uint8).reshape(shape)
                     img.flags.writeable = False  # as every frame a source hands out

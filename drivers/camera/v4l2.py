@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.camera.base import CameraSource
+from drivers.camera.base import CameraSource, FrameRate
 from mowerhw.common.clocksync import FrameClock
 from mowerhw.common.samples import FrameSample
 
@@ -62,11 +62,8 @@ def grey_from_buffer(buf: Any, pixel_format: str, width: int, height: int) -> np
 
 
 class V4l2Camera(CameraSource):
-    """A V4L2 camera through OpenCV (see the module doc)."""
-
-    #: a frame is decoded from this share of a period before it is due (a camera at the
-    #: rate asked for, with its jitter, keeps every frame)
-    RATE_TOLERANCE = 0.25
+    """A V4L2 camera through OpenCV (see the module doc): asked for ``device_fps`` (default
+    ``fps``), it delivers frames at ``fps`` (:class:`~drivers.camera.base.FrameRate`)."""
 
     def __init__(
         self,
@@ -74,6 +71,7 @@ class V4l2Camera(CameraSource):
         width: int = 1540,
         height: int = 1540,
         fps: float = 4.0,
+        device_fps: float | None = None,
         pixel_format: str = "GREY",
         reconnect_max_backoff_s: float = 5.0,
         failures_before_reconnect: int = 5,
@@ -83,6 +81,7 @@ class V4l2Camera(CameraSource):
         super().__init__()
         self.device = device
         self.width, self.height, self.fps = width, height, fps
+        self.device_fps = fps if device_fps is None else device_fps
         self.pixel_format = pixel_format
         self.reconnect_max_backoff_s = reconnect_max_backoff_s
         self.failures_before_reconnect = failures_before_reconnect
@@ -115,7 +114,7 @@ class V4l2Camera(CameraSource):
         cap.set(cv2.CAP_PROP_FOURCC, fourcc)
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
-        cap.set(cv2.CAP_PROP_FPS, self.fps)
+        cap.set(cv2.CAP_PROP_FPS, self.device_fps)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a backlog
         # the buffer's bytes, not a BGR image: OpenCV would expand a GREY frame to three
         # channels (and decode an MJPG one in colour) for the grey to be taken back out.
@@ -140,8 +139,7 @@ class V4l2Camera(CameraSource):
         cap = None
         backoff = 0.1
         failures = 0
-        next_due = 0.0  # when the next frame to decode is due (host s)
-        period = 1.0 / self.fps
+        rate = FrameRate(self.fps)
         while not self._stop.is_set():
             if cap is None:
                 try:
@@ -157,11 +155,12 @@ class V4l2Camera(CameraSource):
                     continue
             ok = cap.grab()
             host_s = time.monotonic()
-            if ok and host_s < next_due - self.RATE_TOLERANCE * period:
-                # faster than camera.fps (many USB cameras have no mode at the rate asked
-                # for): the frame is dropped before it is decoded, or the front end would
-                # track every one of them on a computer sized for the rate configured
-                self.stats.skipped += 1
+            if ok and rate.skip(host_s):
+                # faster than camera.fps (camera.device_fps, or a USB camera with no mode at
+                # the rate asked for): the frame is dropped before it is decoded, or the
+                # front end would track every one of them on a computer sized for the rate
+                # configured; it still says the camera is alive
+                self._skipped()
                 failures = 0
                 continue
             ok, img = cap.retrieve() if ok else (False, None)
@@ -180,9 +179,7 @@ class V4l2Camera(CameraSource):
                     self._stop.wait(0.05)
                 continue
             failures = 0
-            # on the rate's grid (a faster camera gives the rate itself), and not a burst to
-            # catch up after a stall: never due within half a period of this frame
-            next_due = max(next_due + period, host_s + 0.5 * period)
+            rate.taken(host_s)
             grey = grey_from_buffer(img, self.pixel_format, self.width, self.height)
             if grey is None and self.raw_buffers and self.pixel_format != "MJPG":
                 # not the mode asked for: OpenCV decodes it from now on (the runtime then

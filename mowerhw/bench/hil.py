@@ -316,7 +316,9 @@ class Bench:
         )
         mower.deck_running = lambda: controller.deck_running
         camera = MockCameraServer(
-            cfg.camera.device, lambda t: renderer.render(*mower.map_pose_at(t)), cfg.camera.fps
+            cfg.camera.device,
+            lambda t: renderer.render(*mower.map_pose_at(t)),
+            cfg.camera.camera_fps(),
         )
         self.mower, self.controller, self.vn, self.speed, self.camera = (
             mower,

@@ -142,6 +142,12 @@ class Replay:
             s = self.speed_reader.handle(int(msg["id"]), bytes.fromhex(msg["data"]), self.now)
             if s is not None:
                 self.core.speed(s)
+        elif topic == "/runtime/journal" and msg.get("kind") == "camera_alive":
+            # a frame the camera sent between the recorded ones (camera.device_fps), not
+            # stored: the live core's note of it is the raw input
+            self.now = float(msg["now"])
+            self.core.camera_alive(self.now)
+            return
         elif topic == "/camera/image":
             ts = msg["timestamp"]
             t = ts["sec"] + ts["nsec"] * 1e-9
@@ -378,6 +384,8 @@ def replay_journal(
             core.lifted(bool(rec["lifted"]))
         elif kind == "camera_frame":
             core.camera_frame(rec["now"])
+        elif kind == "camera_alive":
+            core.camera_alive(rec["now"])
         elif kind == "camera_refused":
             core.camera_refused(rec["now"], rec["why"])
         elif kind == "tracks":

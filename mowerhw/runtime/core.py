@@ -236,6 +236,14 @@ class RuntimeCore:
         self.stream_notes.pop("camera", None)
         self.counts["frames"] += 1
 
+    def camera_alive(self, now: float) -> None:
+        """A frame the camera delivered between the front end's (``camera.device_fps`` above
+        ``camera.fps``), dropped undecoded: the camera is alive, unless the last one decoded
+        was refused (the frames between are of the same mode)."""
+        self._log("camera_alive", now=now)
+        if "camera" not in self.stream_notes:
+            self.last_arrival["camera"] = now
+
     def camera_refused(self, now: float, why: str) -> None:
         """A frame that cannot be used at all (not the calibration's size): not a fresh frame;
         ``why`` is the camera's halt detail while no good one comes."""

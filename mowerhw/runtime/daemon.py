@@ -145,7 +145,10 @@ class Daemon:
         # the camera is alive when its frames arrive, whatever the front end does with them
         # (a frame searched for the pose can take a second there)
         arrived = crash_only(self._on_frame, "camera frame", self._handler_failed)
-        self.camera = open_camera(self.cfg, asyncio_sink(loop, self._frames, arrived))
+        alive = threadsafe(loop, crash_only(self._on_camera_alive, "camera", self._handler_failed))
+        self.camera = open_camera(
+            self.cfg, asyncio_sink(loop, self._frames, arrived), lambda: alive(None)
+        )
         await self.set_mode(self.start_mode)
         self._timer_fired = crash_only(
             self._decision_timer_fired, "decision timer", self._handler_failed
@@ -228,6 +231,9 @@ class Daemon:
             self.core.camera_refused(time.monotonic(), problem)
         else:
             self.core.camera_frame(time.monotonic())
+
+    def _on_camera_alive(self, _: None) -> None:
+        self.core.camera_alive(time.monotonic())
 
     def _frame_problem(self, frame: FrameSample) -> str:
         """Why a frame cannot be used at all, or "": its size must be the calibration's (a

@@ -65,28 +65,34 @@ def open_imu(
     return dev
 
 
-def open_camera(cfg: Config, on_frame: Callable[[FrameSample], None]) -> CameraSource:
-    """The camera driver ``camera.driver`` names, started."""
+def open_camera(
+    cfg: Config,
+    on_frame: Callable[[FrameSample], None],
+    on_alive: Callable[[], None] | None = None,
+) -> CameraSource:
+    """The camera driver ``camera.driver`` names, started: frames at ``camera.fps`` to
+    ``on_frame``, and the camera's other frames (``camera.device_fps``) to ``on_alive``."""
     c = cfg.camera
     camera: CameraSource
     if c.driver == "stream":
         from drivers.camera.stream import StreamCamera
 
-        camera = StreamCamera(c.device)
+        camera = StreamCamera(c.device, fps=c.fps)
     elif c.driver == "mock":
         from drivers.camera.mock import MockCamera
 
-        camera = MockCamera(fps=c.fps, width=c.width, height=c.height)
+        camera = MockCamera(fps=c.fps, device_fps=c.device_fps, width=c.width, height=c.height)
     else:
         camera = V4l2Camera(
             c.device,
             width=c.width,
             height=c.height,
             fps=c.fps,
+            device_fps=c.device_fps,
             pixel_format=c.pixel_format,
             clock=FrameClock(c.timestamps),
         )
-    camera.start(on_frame)
+    camera.start(on_frame, on_alive)
     return camera
 
 
