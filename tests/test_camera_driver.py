@@ -214,6 +214,24 @@ def test_v4l2_driver_asks_the_device_rate_and_says_the_camera_lives_between_fram
     assert cap.props[cv2.CAP_PROP_FPS] == 30
 
 
+def test_a_camera_slower_than_asked_is_named_with_the_limit_it_needs(caplog):
+    """A camera that has no mode at ``camera.device_fps`` runs slower: the staleness limit
+    was judged at the rate asked for, so the log says what the camera runs at and what the
+    limit must span."""
+    import cv2
+
+    class SlowCapture(FlakyCapture):
+        def get(self, prop: int) -> float:
+            return 15.0 if prop == cv2.CAP_PROP_FPS else super().get(prop)
+
+    dev = FakeDevice()
+    cam = V4l2Camera("x", 64, 48, fps=4, device_fps=30, capture_factory=lambda _: SlowCapture(dev))
+    with caplog.at_level("WARNING", logger="drivers.camera.v4l2"):
+        cam._open()
+    assert "x runs at 15 fps, not the 30 asked for" in caplog.text
+    assert "two of its periods (0.133 s)" in caplog.text
+
+
 def test_the_stream_camera_delivers_at_its_rate_and_says_the_camera_lives_between():
     """The bench's camera over a real Unix socket: a server at 20 frames a second, the
     camera configured for 5: about 5 a second reach the front end, in order and with their

@@ -115,6 +115,16 @@ class V4l2Camera(CameraSource):
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
         cap.set(cv2.CAP_PROP_FPS, self.device_fps)
+        runs_at = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        if 0.0 < runs_at < 0.95 * self.device_fps:
+            log.warning(
+                "camera: %s runs at %g fps, not the %g asked for: camera.stale_after_s must "
+                "span two of its periods (%.3g s), or every late frame halts",
+                self.device,
+                runs_at,
+                self.device_fps,
+                2.0 / runs_at,
+            )
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a backlog
         # the buffer's bytes, not a BGR image: OpenCV would expand a GREY frame to three
         # channels (and decode an MJPG one in colour) for the grey to be taken back out.
