@@ -51,6 +51,13 @@ class MockCameraServer:
             self._threads.append(th)
         return self
 
+    def set_nice(self, nice: int) -> None:
+        """The render-and-send thread's niceness (Linux: per thread); OSError without the
+        right."""
+        for th in self._threads:
+            if th.name == "camera-render" and th.native_id is not None:
+                os.setpriority(os.PRIO_PROCESS, th.native_id, nice)
+
     def stop(self) -> None:
         self._stop.set()
         for th in self._threads:

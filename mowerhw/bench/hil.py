@@ -267,10 +267,12 @@ class Bench:
 
     # -------------------------------------------------------------------------------- run
 
-    #: under --load, the niceness of the mock sensors' threads (VN-100, speed sensor, mower
-    #: controller, the mower's motion): they stand for hardware, which a loaded computer
-    #: cannot slow down. The camera's renderer is not among them (it costs CPU a real
-    #: camera does not; at high priority it would take it from the daemon).
+    #: under --load, the niceness of the mock sensors (VN-100, speed sensor, mower
+    #: controller, the mower's motion, the camera and its renderer): they stand for hardware,
+    #: which a loaded computer cannot slow down. The renderer costs CPU a real camera does
+    #: not (about a third of a core at 10 Hz here), but left at the hogs' priority it
+    #: delivered the frame in flight at a freeze ~60 ms late, a delay a real camera's frames
+    #: do not take from the computer's load (stop 55)
     SENSOR_NICE = -15
 
     def _sensor_priority(self, devices: list[Any]) -> None:
@@ -328,7 +330,7 @@ class Bench:
             camera,
         )
         started = [mower.start(), vn.start(), speed.start(), controller.start(), camera.start()]
-        self._sensor_priority([mower, vn, speed, controller])
+        self._sensor_priority([mower, vn, speed, controller, camera, renderer])
         metrics: dict[str, Any] = {}
         hogs = [
             subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(self.load)

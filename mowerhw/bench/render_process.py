@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing
+import os
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -60,6 +61,11 @@ class RenderProcess:
         data = self._conn.recv_bytes()
         shape, dtype = self._conn.recv()
         return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+    def set_nice(self, nice: int) -> None:
+        """The renderer process's niceness; OSError without the right."""
+        if self._proc.pid is not None:
+            os.setpriority(os.PRIO_PROCESS, self._proc.pid, nice)
 
     def close(self) -> None:
         with contextlib.suppress(OSError, ValueError):
