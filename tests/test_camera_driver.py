@@ -276,6 +276,26 @@ def test_the_stream_camera_delivers_at_its_rate_and_says_the_camera_lives_betwee
     assert np.median(np.diff([f.t for f in every])) == pytest.approx(0.05, abs=0.015)
 
 
+def test_the_bench_camera_renders_at_the_priority_it_is_given():
+    """Under ``--load`` the bench gives its camera the mock sensors' priority (they stand for
+    hardware): the render-and-send thread takes the niceness (a positive one here: no
+    privilege needed)."""
+    import os
+    import tempfile
+
+    from drivers.camera.mock_server import MockCameraServer
+
+    with tempfile.TemporaryDirectory() as tmp:
+        server = MockCameraServer(f"{tmp}/cam.sock", lambda t: synthetic_frame(t, 8, 8), 20.0)
+        server.start()
+        try:
+            server.set_nice(7)
+            (render,) = [th for th in server._threads if th.name == "camera-render"]
+            assert os.getpriority(os.PRIO_PROCESS, render.native_id) == 7
+        finally:
+            server.stop()
+
+
 def test_the_mock_camera_renders_only_the_frames_it_delivers():
     """The in-process mock at ``device_fps`` 20 with ``fps`` 5: 5 a second rendered and
     delivered, the others only told to ``on_alive``."""
