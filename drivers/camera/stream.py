@@ -110,11 +110,11 @@ class StreamCamera(CameraSource):
                 while not self._stop.is_set():
                     seq, t, w, h, ch = decode_header(_read_exact(sock, HEADER.size))
                     pixels = _read_exact(sock, w * h * ch)
-                    host_s = time.monotonic()
-                    if rate is not None and rate.skip(host_s):
-                        self._skipped()  # read (it is on the wire), not handed on
-                        continue
                     if rate is not None:
+                        host_s = time.monotonic()
+                        if rate.skip(host_s):
+                            self._skipped()  # read (it is on the wire), not handed on
+                            continue
                         rate.taken(host_s)
                     shape = (h, w) if ch == 1 else (h, w, ch)
                     img = np.frombuffer(pixels, np.uint8).reshape(shape)
