@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _tools import load_tool
 
 from drivers.can.isobus import open_bus
 from drivers.can.mock_mower import MockMowerController
@@ -22,6 +23,7 @@ from drivers.imu.mock import MockVn100
 from mowerhw.config import config_from_dict, config_to_dict, default_config
 from mowerhw.map import Landmark, LawnMap
 from mowerhw.recording.replay import replay_decisions
+from mowerhw.runtime.callbacks import HandlerCosts, crash_only
 from mowerhw.runtime.daemon import Daemon
 
 
@@ -111,6 +113,12 @@ def test_daemon_in_process_on_the_virtual_bus(
         await _until(lambda: daemon.core.pipeline is not None, 20, "the rebuilt estimator")
         bad = await daemon.handle_command("fault", {"kind": "bogus"})
         assert not bad["ok"] and "allowed: nan, exception" in bad["error"]
+        costs = daemon.status()["handler_cpu"]
+        handlers = costs["handlers"]
+        for name in ("IMU sample", "decision timer", "camera frame"):
+            assert handlers[name]["calls"] > 0 and handlers[name]["cpu_s"] >= 0.0, costs
+        in_handlers = sum(h["cpu_s"] for h in handlers.values())
+        assert 0.0 < in_handlers <= costs["loop_thread_cpu_s"], costs
         imu.stop()  # the IMU goes silent
         await _until(lambda: reason() == "SENSOR_STALE", 5, "SENSOR_STALE on CAN")
         seen.append(reason())
@@ -197,6 +205,43 @@ def test_an_imu_handler_that_raises_ends_the_daemon_non_zero(tmp_path: Path, cap
     assert status == 1
     assert "the IMU sample handler failed" in caplog.text
     assert daemon.core.shutting_down  # the deck was halted on the way out
+    assert daemon.handler_costs.status()["handlers"]["IMU sample"]["calls"] >= 1  # counted too
+
+
+def test_handler_costs_count_each_call_and_its_cpu() -> None:
+    """A handler's calls and CPU (its thread's own clock: a wait is not CPU) are counted,
+    also when it raises; the profile tool turns two snapshots into shares of a core."""
+    costs = HandlerCosts()
+    failures: list[str] = []
+
+    def busy(n: int) -> None:
+        sum(i * i for i in range(n))
+
+    def sleepy(_: Any) -> None:
+        time.sleep(0.05)
+
+    def broken(_: Any) -> None:
+        raise ValueError("bad sample")
+
+    first = costs.status()
+    for _ in range(3):
+        crash_only(busy, "busy", failures.append, costs)(200_000)
+    crash_only(sleepy, "sleepy", failures.append, costs)(None)
+    crash_only(broken, "broken", failures.append, costs)(None)
+    second = costs.status()
+    h = second["handlers"]
+    assert h["busy"]["calls"] == 3 and h["busy"]["cpu_s"] > 0.005
+    assert h["sleepy"]["calls"] == 1 and h["sleepy"]["cpu_s"] < 0.02  # 50 ms asleep, no CPU
+    assert h["broken"]["calls"] == 1
+    assert failures == ["the broken handler failed (ValueError('bad sample'))"]
+    shares = load_tool("profile_daemon").handler_shares(first, second, 2.0)
+    assert shares["handlers"]["busy"]["calls_per_s"] == 1.5
+    busy_pct = 100 * h["busy"]["cpu_s"] / 2.0
+    assert shares["handlers"]["busy"]["percent_of_one_core"] == pytest.approx(busy_pct, abs=0.01)
+    assert next(iter(shares["handlers"])) == "busy"  # the costliest first
+    loop_pct = 100 * (second["loop_thread_cpu_s"] - first["loop_thread_cpu_s"]) / 2.0
+    assert shares["loop_thread_percent_of_one_core"] == pytest.approx(loop_pct, abs=0.01)
+    assert shares["outside_the_handlers_percent"] >= -0.01
 
 
 def test_a_frame_not_of_the_calibrations_size_is_refused_naming_why(tmp_path: Path) -> None:

@@ -37,7 +37,7 @@ from mowerhw.config import Config
 from mowerhw.frontend.tracker import FrameTracks
 from mowerhw.mow.gate import Decision
 from mowerhw.recording.mcap import Recorder
-from mowerhw.runtime.callbacks import crash_only, threadsafe
+from mowerhw.runtime.callbacks import HandlerCosts, crash_only, threadsafe
 from mowerhw.runtime.commands import core_status, handle_command
 from mowerhw.runtime.control import ControlServer, control_server
 from mowerhw.runtime.core import MODES, RuntimeCore
@@ -94,6 +94,7 @@ class Daemon:
         self.imu_dev: Vn100 | None = None
         self.camera: CameraSource | None = None
         self.loop_lag = LoopLag()
+        self.handler_costs = HandlerCosts()
         self.live_view = LiveView(config.web.trajectory_points)
         self.control: ControlServer | None = None
         self.estimator_delay_s, self._next_delay = 0.0, 0.0
@@ -131,28 +132,26 @@ class Daemon:
         self.can = open_output(
             self.cfg,
             self.link,
-            threadsafe(loop, crash_only(self._on_speed, "speed sample", self._handler_failed)),
+            threadsafe(loop, self._handler(self._on_speed, "speed sample")),
             threadsafe(loop, self.request_stop),
             self.recorder,
-            threadsafe(loop, crash_only(self.core.lifted, "lift notice", self._handler_failed)),
+            threadsafe(loop, self._handler(self.core.lifted, "lift notice")),
         )
         self.imu_dev = open_imu(
             self.cfg,
-            crash_only(self._on_imu, "IMU sample", self._handler_failed),
+            self._handler(self._on_imu, "IMU sample"),
             self.recorder,
             loop,
         )
         # the camera is alive when its frames arrive, whatever the front end does with them
         # (a frame searched for the pose can take a second there)
-        arrived = crash_only(self._on_frame, "camera frame", self._handler_failed)
-        alive = threadsafe(loop, crash_only(self._on_camera_alive, "camera", self._handler_failed))
+        arrived = self._handler(self._on_frame, "camera frame")
+        alive = threadsafe(loop, self._handler(self._on_camera_alive, "camera"))
         self.camera = open_camera(
             self.cfg, asyncio_sink(loop, self._frames, arrived), lambda: alive(None)
         )
         await self.set_mode(self.start_mode)
-        self._timer_fired = crash_only(
-            self._decision_timer_fired, "decision timer", self._handler_failed
-        )
+        self._timer_fired = self._handler(self._decision_timer_fired, "decision timer")
         tasks = [self._spawn(self._ticker(), "ticker"), self._spawn(self._frame_task(), "frontend")]
         self.notifier.ready(self.core.status_line())
         log.info("running: mode %s, control socket %s", self.core.mode, control.path)
@@ -215,6 +214,10 @@ class Daemon:
             self.exit_status = 1
             self.request_stop(f"the {name} task died")
 
+    def _handler(self, fn: Callable[[Any], None], name: str) -> Callable[[Any], None]:
+        """A loop callback that ends the process if it raises, its CPU counted."""
+        return crash_only(fn, name, self._handler_failed, self.handler_costs)
+
     def _handler_failed(self, why: str) -> None:
         self.exit_status = 1
         self.request_stop(why)
@@ -257,6 +260,7 @@ class Daemon:
         loop = asyncio.get_running_loop()
         while True:
             frame = await self._frames.get()
+            started = time.thread_time()
             if self.recorder is not None:
                 self.recorder.frame(time.monotonic_ns(), frame.t, frame.sequence, frame.image)
             if self._frame_problem(frame):  # refused as it arrived
@@ -267,6 +271,7 @@ class Daemon:
             serial, pipe = target
             try:
                 r, search = pipe.vision.prepare(frame.t), pipe.vision.wants_search()
+                before = time.thread_time() - started  # the front end's wait is not counted
                 tracks: FrameTracks = await loop.run_in_executor(
                     self._frontend_pool,
                     track_frame,
@@ -283,7 +288,9 @@ class Daemon:
                 self.core.frontend_error()
                 log.error("front end failed on frame %d: %s", frame.sequence, exc)
                 continue
+            started = time.thread_time()
             self.core.tracks(serial, tracks)
+            self.handler_costs.add("frame tracks", before + time.thread_time() - started)
 
     # ------------------------------------------------------------------- chains, decisions
 
@@ -478,6 +485,7 @@ class Daemon:
             "map": str(self.cfg.map.path),
             "loop_lag_ms_over_5": self.loop_lag.lags_ms[-50:],
             "loop_lag_times": self.loop_lag.lag_times[-50:],
+            "handler_cpu": self.handler_costs.status(),
             "control": self.control.status() if self.control else {},
             **device_status(self.imu_dev, self.camera, self.can, self.recorder),
         }
