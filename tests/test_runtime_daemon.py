@@ -119,6 +119,8 @@ def test_daemon_in_process_on_the_virtual_bus(
             assert handlers[name]["calls"] > 0 and handlers[name]["cpu_s"] >= 0.0, costs
         in_handlers = sum(h["cpu_s"] for h in handlers.values())
         assert 0.0 < in_handlers <= costs["loop_thread_cpu_s"], costs
+        reads = daemon.status()["imu_driver"]["loop_read_cpu_s"]  # the IMU handler runs in it
+        assert handlers["IMU sample"]["cpu_s"] < reads <= costs["loop_thread_cpu_s"] + 0.05
         imu.stop()  # the IMU goes silent
         await _until(lambda: reason() == "SENSOR_STALE", 5, "SENSOR_STALE on CAN")
         seen.append(reason())
@@ -234,14 +236,22 @@ def test_handler_costs_count_each_call_and_its_cpu() -> None:
     assert h["sleepy"]["calls"] == 1 and h["sleepy"]["cpu_s"] < 0.02  # 50 ms asleep, no CPU
     assert h["broken"]["calls"] == 1
     assert failures == ["the broken handler failed (ValueError('bad sample'))"]
-    shares = load_tool("profile_daemon").handler_shares(first, second, 2.0)
+    shares = load_tool("profile_daemon").handler_shares(
+        {"handler_cpu": first, "imu_driver": {"loop_read_cpu_s": 1.0}},
+        {"handler_cpu": second, "imu_driver": {"loop_read_cpu_s": 1.02}},
+        2.0,
+    )
     assert shares["handlers"]["busy"]["calls_per_s"] == 1.5
     busy_pct = 100 * h["busy"]["cpu_s"] / 2.0
     assert shares["handlers"]["busy"]["percent_of_one_core"] == pytest.approx(busy_pct, abs=0.01)
     assert next(iter(shares["handlers"])) == "busy"  # the costliest first
     loop_pct = 100 * (second["loop_thread_cpu_s"] - first["loop_thread_cpu_s"]) / 2.0
     assert shares["loop_thread_percent_of_one_core"] == pytest.approx(loop_pct, abs=0.01)
-    assert shares["outside_the_handlers_percent"] >= -0.01
+    assert shares["vn100_reading_and_parsing_percent"] == 1.0  # 20 ms of reads, no IMU handler
+    assert shares["outside_the_handlers_percent"] == pytest.approx(
+        loop_pct - busy_pct - sum(100 * h[n]["cpu_s"] / 2.0 for n in ("sleepy", "broken")) - 1.0,
+        abs=0.02,
+    )
 
 
 def test_a_frame_not_of_the_calibrations_size_is_refused_naming_why(tmp_path: Path) -> None:

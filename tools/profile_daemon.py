@@ -164,11 +164,13 @@ def summarise(path: Path, seconds: float, rate: int) -> dict[str, Any]:
 
 
 def handler_shares(before: dict[str, Any], after: dict[str, Any], seconds: float) -> dict[str, Any]:
-    """The estimation loop's handlers between two ``handler_cpu`` snapshots of the daemon's
-    status: per handler, its share of one core, calls a second and CPU per call; the loop
-    thread's own share, and what of it no handler holds (the loop, its tasks, the control
-    socket)."""
-    h0, h1 = before.get("handlers", {}), after.get("handlers", {})
+    """The estimation loop's handlers between two snapshots of the daemon's status
+    (``handler_cpu``, and the VN-100 driver's ``loop_read_cpu_s``): per handler, its share of
+    one core, calls a second and CPU per call; the VN-100's reading and parsing around its
+    sample handler; the loop thread's own share, and what of it neither holds (the loop,
+    its tasks, the control socket)."""
+    c0, c1 = before.get("handler_cpu", {}), after.get("handler_cpu", {})
+    h0, h1 = c0.get("handlers", {}), c1.get("handlers", {})
     out: dict[str, dict[str, float]] = {}
     in_handlers = 0.0
     for name, now in h1.items():
@@ -182,10 +184,18 @@ def handler_shares(before: dict[str, Any], after: dict[str, Any], seconds: float
             "calls_per_s": round(calls / seconds, 1),
             "us_per_call": round(1e6 * cpu / calls, 1),
         }
-    loop_cpu = after.get("loop_thread_cpu_s", 0.0) - before.get("loop_thread_cpu_s", 0.0)
+    loop_cpu = c1.get("loop_thread_cpu_s", 0.0) - c0.get("loop_thread_cpu_s", 0.0)
+    reads = after.get("imu_driver", {}).get("loop_read_cpu_s", 0.0) - before.get(
+        "imu_driver", {}
+    ).get("loop_read_cpu_s", 0.0)
+    imu_handler = out.get("IMU sample", {}).get("percent_of_one_core", 0.0) * seconds / 100
+    parsing = max(0.0, reads - imu_handler)  # the sample handler runs inside the read
     return {
         "loop_thread_percent_of_one_core": round(100 * loop_cpu / seconds, 2),
-        "outside_the_handlers_percent": round(100 * (loop_cpu - in_handlers) / seconds, 2),
+        "vn100_reading_and_parsing_percent": round(100 * parsing / seconds, 2),
+        "outside_the_handlers_percent": round(
+            100 * (loop_cpu - in_handlers - parsing) / seconds, 2
+        ),
         "handlers": dict(sorted(out.items(), key=lambda kv: -kv[1]["percent_of_one_core"])),
     }
 
@@ -222,7 +232,7 @@ def main() -> None:
                     if b"frontend_worker" in Path(f"/proc/{grandkid}/cmdline").read_bytes():
                         procs["frontend"] = grandkid
         names = {pid: thread_names(pid) for pid in procs.values()}
-        cpu0 = request(bench.sock, "status", timeout=5.0).get("handler_cpu", {})
+        cpu0 = request(bench.sock, "status", timeout=5.0)
         before = {pid: thread_times(pid) for pid in procs.values()}
         t0 = time.monotonic()
         spies = []
@@ -234,7 +244,7 @@ def main() -> None:
         seconds = time.monotonic() - t0
         for name, pid in procs.items():
             threads[name] = per_thread(before[pid], thread_times(pid), names[pid], seconds)
-        cpu1 = request(bench.sock, "status", timeout=5.0).get("handler_cpu", {})
+        cpu1 = request(bench.sock, "status", timeout=5.0)
         handlers.update(handler_shares(cpu0, cpu1, time.monotonic() - t0))
 
     t = threading.Thread(target=sample, daemon=True)

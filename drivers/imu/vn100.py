@@ -572,6 +572,9 @@ class DriverStats:
     read_errors: int = 0
     last_error: str = ""
     baudrate: int = 0
+    #: CPU time (s) of the event loop's thread reading the port, parsing and delivering —
+    #: ``on_sample`` included (its consumer may count its own share apart)
+    loop_read_cpu_s: float = 0.0
 
 
 #: where the angular rate may come from (``imu.gyro_source``), each with the binary fields
@@ -1081,6 +1084,14 @@ class Vn100(ThreadedDevice):
         """On the loop: the port has bytes (or failed). A failure is handed to the thread,
         which reconnects; an exception from a sample's consumer is not the port's and goes
         to the loop (the daemon's handler halts)."""
+        started = time.thread_time()
+        try:
+            self._read_on_loop_once(fd)
+        finally:
+            self.stats.loop_read_cpu_s += time.thread_time() - started
+
+    def _read_on_loop_once(self, fd: int) -> None:
+        """:meth:`_readable`'s work: what waits, then what the port has."""
         try:
             if self._pending:
                 pending, self._pending = self._pending, []
