@@ -18,7 +18,7 @@ class HandlerCosts:
     ``handler_cpu``). Counted with ``time.thread_time`` around each call — the loop
     thread's own CPU, not what it waited for — which a sampling profiler cannot give:
     sampling misses most of the short callbacks the loop runs at 50 Hz (on the bench,
-    py-spy saw 1.6 % of a core in the IMU sample's handler, the handler's own clock 4.4 %).
+    py-spy saw 1.6 % of a core on the IMU path, the clocks of its reads and handler 4.0 %).
     Two snapshots a known time apart give each handler's share of a core in between."""
 
     def __init__(self) -> None:
