@@ -196,8 +196,6 @@ class Localizer:
         self._history: deque[_Step] = deque()
         self.t_imu: float | None = None
         self.t_speed: float | None = None
-        #: how long the ground speed has been stale (s; 0 while it is fresh)
-        self._speed_stale_for = 0.0
         self.t_camera: float | None = None  # arrival (capture stamp) of the newest frame
         self.t_fix: float | None = None  # newest frame that gave a landmark fix
         self._good_frames = 0
@@ -682,18 +680,9 @@ class Localizer:
         pos_var = yaw_var = 0.0
         if speed_stale:
             # no ground speed: holding the last value would drive on while the mower may
-            # have stopped; propagate at zero with the speed unknown up to max_speed_mps.
-            # The unknown speed is one speed over the whole silence, not a new one each
-            # step: the distance missed grows as max_speed × T (T the time without speed),
-            # so each step adds max_speed² ((T + dt)² − T²) — independent steps would add
-            # max_speed² dt² each, σ growing as √T: 0.09 m after 0.4 s at 1 m/s where a
-            # mower driving on at 0.5 m/s is 0.2 m away, and its next frames' landmarks
-            # seemed to jump (a false kidnap, bench under load)
+            # have stopped; propagate at zero with the speed unknown up to max_speed_mps
             self.counters.speed_stale_steps += 1
-            before, self._speed_stale_for = self._speed_stale_for, self._speed_stale_for + t1 - t0
-            pos_var = self.cfg.max_speed_mps**2 * (self._speed_stale_for**2 - before**2)
-        else:
-            self._speed_stale_for = 0.0
+            pos_var = (self.cfg.max_speed_mps * (t1 - t0)) ** 2
         if gap:
             pos_var += (self.GAP_POS_RATE * (t1 - t0)) ** 2
             yaw_var += (self.GAP_YAW_RATE * (t1 - t0)) ** 2
