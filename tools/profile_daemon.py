@@ -172,29 +172,28 @@ def handler_shares(before: dict[str, Any], after: dict[str, Any], seconds: float
     c0, c1 = before.get("handler_cpu", {}), after.get("handler_cpu", {})
     h0, h1 = c0.get("handlers", {}), c1.get("handlers", {})
     out: dict[str, dict[str, float]] = {}
-    in_handlers = 0.0
+    cpu_of: dict[str, float] = {}
     for name, now in h1.items():
         was = h0.get(name, {"calls": 0, "cpu_s": 0.0})
         calls, cpu = now["calls"] - was["calls"], now["cpu_s"] - was["cpu_s"]
         if calls <= 0:
             continue
-        in_handlers += cpu
+        cpu_of[name] = cpu
         out[name] = {
             "percent_of_one_core": round(100 * cpu / seconds, 2),
             "calls_per_s": round(calls / seconds, 1),
             "us_per_call": round(1e6 * cpu / calls, 1),
         }
     loop_cpu = c1.get("loop_thread_cpu_s", 0.0) - c0.get("loop_thread_cpu_s", 0.0)
-    reads = after.get("imu_driver", {}).get("loop_read_cpu_s", 0.0) - before.get(
-        "imu_driver", {}
-    ).get("loop_read_cpu_s", 0.0)
-    imu_handler = out.get("IMU sample", {}).get("percent_of_one_core", 0.0) * seconds / 100
-    parsing = max(0.0, reads - imu_handler)  # the sample handler runs inside the read
+    d0, d1 = before.get("imu_driver", {}), after.get("imu_driver", {})
+    reads = d1.get("loop_read_cpu_s", 0.0) - d0.get("loop_read_cpu_s", 0.0)
+    # the sample handler runs inside the read
+    parsing = max(0.0, reads - cpu_of.get("IMU sample", 0.0))
     return {
         "loop_thread_percent_of_one_core": round(100 * loop_cpu / seconds, 2),
         "vn100_reading_and_parsing_percent": round(100 * parsing / seconds, 2),
         "outside_the_handlers_percent": round(
-            100 * (loop_cpu - in_handlers - parsing) / seconds, 2
+            100 * (loop_cpu - sum(cpu_of.values()) - parsing) / seconds, 2
         ),
         "handlers": dict(sorted(out.items(), key=lambda kv: -kv[1]["percent_of_one_core"])),
     }
