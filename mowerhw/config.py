@@ -498,8 +498,25 @@ class MowConfig(MotionNoiseConfig):
     )
     max_speed_mps: float = opt(
         1.0,
-        "fastest the mower can go: while the ground speed is stale, the position is "
-        "propagated at zero speed with this much uncertainty per second",
+        "fastest the mower can go: while the ground speed is stale (and the accelerometer "
+        "does not carry it, accel_bridge_s), the position is propagated at zero speed with "
+        "this much uncertainty per second",
+        gt=0.0,
+        le=10.0,
+    )
+    accel_bridge_s: float = opt(
+        2.0,
+        "while the ground speed is stale, the IMU's along-track acceleration (gravity taken "
+        "out through the filter's attitude) carries the last speed on for at most this long "
+        "past the staleness limit (a mower braking for the halt the silence caused is "
+        "followed, not taken to stop at once); 0: off, or an IMU without acceleration",
+        ge=0.0,
+        le=10.0,
+    )
+    accel_sigma_mps2: float = opt(
+        0.1,
+        "1σ of that along-track acceleration (bias, gravity through an attitude error, "
+        "vibration): the position σ grows as σ·T²/2 over the T it carries the speed",
         gt=0.0,
         le=10.0,
     )

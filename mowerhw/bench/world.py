@@ -76,7 +76,8 @@ class RealTimeMower(ThreadedDevice):
         self._hist: deque[tuple[float, float, float, float, float, float]] = deque(maxlen=1000)
         self.log: list[tuple[float, float, float, float, float, int, int]] = []
         self._lock = threading.Lock()
-        self._imu_prev: tuple[float, float] | None = None  # (t, yaw) at the last IMU packet
+        #: (t, yaw, speed) at the last IMU packet
+        self._imu_prev: tuple[float, float, float] | None = None
         #: (from, until, specific force in the body frame): what a lift, tilt or bump makes the
         #: accelerometer read (host monotonic s)
         self.accel_events: list[tuple[float, float, FloatArray]] = []
@@ -226,21 +227,23 @@ class RealTimeMower(ThreadedDevice):
     # ------------------------------------------------------------------- sensor sources
 
     def imu_source(self, _t_device: float) -> MockImuState:
-        """What the VN-100 measures now: mean body rate since its previous packet."""
+        """What the VN-100 measures now: mean body rate and specific force since its
+        previous packet (gravity, the along-track acceleration, the centripetal one)."""
         now = time.monotonic()
-        _, _, yaw, _ = self.pose_at(now)
+        _, _, yaw, v = self.pose_at(now)
         if self._imu_prev is None or now <= self._imu_prev[0]:
-            rate = 0.0
+            rate = along = 0.0
             dt = 0.01
         else:
             dt = now - self._imu_prev[0]
             rate = (yaw - self._imu_prev[1]) / dt
-        self._imu_prev = (now, yaw)
+            along = (v - self._imu_prev[2]) / dt
+        self._imu_prev = (now, yaw, v)
         g = self.sensors.imu
         self.bias = self.bias + self.rng.normal(0.0, g.rate_random_walk * math.sqrt(dt), 3)
         white = g.noise_density / math.sqrt(max(dt, 1e-3))
         gyro_b = np.array([0.0, 0.0, rate]) + self.bias + self.rng.normal(0.0, white, 3)
-        accel_b = np.array([0.0, 0.0, 9.80665])  # specific force at rest, body z up
+        accel_b = np.array([along, v * rate, 9.80665])  # specific force, body z up
         for t0, t1, forced in self.accel_events:
             if t0 <= now < t1:
                 accel_b = forced

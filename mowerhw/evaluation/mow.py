@@ -197,7 +197,7 @@ def run_mow(
             break
         v, w = controller.command(plant.t, float(x[0]), float(x[1]), yaw, str(res.state))
         out = plant.step(v, w)
-        loc.imu(*out.imu)
+        loc.imu(*out.imu, plant.specific_force())
         if vision is not None:
             vision.imu(*out.imu)
         if out.speed is not None:

@@ -1,7 +1,7 @@
 """The mow phase as one pure object: localize against the map, decide containment.
 
     loc = Localizer(map_, config=None, start_pose=None)
-    loc.imu(t, gyro_xyz); loc.speed(t, v)
+    loc.imu(t, gyro_xyz, accel_xyz=None); loc.speed(t, v)
     loc.bearings(t, ids, unit_xyz)     # ids = map landmark ids
     loc.pose()          # -> Pose(t, position (3,), quaternion (4,) wxyz, covariance (6, 6))
     loc.containment()   # -> .state, .permit, .signed_distance_m, .sigma_m, .reason
@@ -34,6 +34,10 @@ Around the world-centric EKF (:mod:`mowerhw.mow.ekf`):
   lock-out, fault restart) the filter is on probation until enough consecutive frames are
   consistent (:class:`mowerhw.mow.recovery.Probation`); one that cannot show it in 10 s is
   given up and searched for.
+* **A silent ground speed**: past its staleness limit the IMU's along-track acceleration
+  carries the last speed on (``mow.accel_bridge_s``, :meth:`Localizer._carried_speed`);
+  without acceleration, or after that, the position is propagated at zero speed with the
+  mower's top speed as its uncertainty.
 * **Containment**: UNKNOWN unless localized, all sensors fresh, the last landmark fix no older
   than ``mow.max_dead_reckoning_s``, and σ ≤ ``containment.sigma_max_m``; otherwise the table
   of :mod:`mowerhw.mow.containment`. The dead-reckoning limit is what halts first when the
@@ -64,6 +68,7 @@ from mowerhw.common.geometry import (
     yaw_to_quat,
 )
 from mowerhw.common.relocalization import Relocalization
+from mowerhw.common.units import GRAVITY_MPS2
 from mowerhw.config import Config, ContainmentConfig, MowConfig, stale_limits_s, with_imu_noise
 from mowerhw.estimation.compass import Compass
 from mowerhw.estimation.odometry import (
@@ -119,6 +124,7 @@ class LocalizerCounters:
     faults: int = 0
     nonfinite_inputs: int = 0
     speed_stale_steps: int = 0  # IMU steps propagated without a fresh ground speed
+    speed_carried_steps: int = 0  # … of them at the speed the accelerometer carried on
     frames_without_imu: int = 0  # frames refused: no IMU sample near their time
     imu_gaps: int = 0  # IMU intervals past the IMU's staleness limit (see Localizer._step)
     searches: int = 0  # times the pose was given up and searched for (no prior, kidnap, …)
@@ -206,6 +212,11 @@ class Localizer:
         self._lost_inflated = False
         self._frames_needed = 0  # more than localized_after_frames after an IMU gap
         self._w_last = np.zeros(3)
+        #: the newest IMU sample's mean specific force along the body's x (m/s²), if it has
+        #: one, and the speed carried on from the newest ground-speed sample by integrating
+        #: the along-track acceleration since (:meth:`_carried_speed`)
+        self._force_x: float | None = None
+        self._carried_v: float | None = None
         self._t_last_frame: float | None = None  # time of the last frame's update
         self._shared_frames = 1.0  # frames sharing this frame's error: one spot, one track
         self._standstill = StandstillCalibrator()
@@ -488,13 +499,17 @@ class Localizer:
 
     # ------------------------------------------------------------------------------ inputs
 
-    def imu(self, t: float, gyro_xyz: ArrayLike) -> None:
-        """Gyro (rad/s, body frame): the mean rate over the interval ending at ``t``."""
+    def imu(self, t: float, gyro_xyz: ArrayLike, accel_xyz: ArrayLike | None = None) -> None:
+        """Gyro (rad/s, body frame): the mean rate over the interval ending at ``t``;
+        ``accel_xyz``: the mean specific force over it (m/s², body frame, +g up at rest),
+        if the IMU gives one (it carries a stale ground speed on: :meth:`_carried_speed`)."""
         gyro = np.asarray(gyro_xyz, dtype=np.float64).reshape(3)
         gx, gy, gz = gyro.tolist()
         if not (math.isfinite(t) and math.isfinite(gx + gy + gz)):
             self.counters.nonfinite_inputs += 1
             return
+        force_x = None if accel_xyz is None else float(np.asarray(accel_xyz).reshape(-1)[0])
+        self._force_x = force_x if force_x is not None and math.isfinite(force_x) else None
         self.counters.imu_samples += 1
         if self.t_imu is None:
             self.t_imu = float(t)
@@ -524,6 +539,8 @@ class Localizer:
             return
         previous = self._speeds.last_time
         self._speeds.add(t, v)
+        if self.t_speed is None or t >= self.t_speed:
+            self._carried_v = float(v)  # the newest: carried on from here if it goes silent
         self.t_speed = float(t) if self.t_speed is None else max(self.t_speed, float(t))
         if self.calibrating and v != 0.0:
             self._end_calibration()
@@ -676,13 +693,19 @@ class Localizer:
                 self.require_frames(self.AFTER_GAP_FRAMES, self.AFTER_GAP)
 
     def _step_one(self, t0: float, t1: float, gyro: FloatArray, gap: bool = False) -> None:
+        carried = self._carry_speed(t0, t1)
         speed, speed_stale = self._speed_at(0.5 * (t0 + t1))
         pos_var = yaw_var = 0.0
         if speed_stale:
-            # no ground speed: holding the last value would drive on while the mower may
-            # have stopped; propagate at zero with the speed unknown up to max_speed_mps
             self.counters.speed_stale_steps += 1
-            pos_var = (self.cfg.max_speed_mps * (t1 - t0)) ** 2
+            bridged = self._carried_speed(t0, t1, carried)
+            if bridged is not None:
+                self.counters.speed_carried_steps += 1
+                speed, pos_var = bridged
+            else:
+                # no ground speed: holding the last value would drive on while the mower
+                # may have stopped; propagate at zero, the speed unknown up to max_speed_mps
+                pos_var = (self.cfg.max_speed_mps * (t1 - t0)) ** 2
         if gap:
             pos_var += (self.GAP_POS_RATE * (t1 - t0)) ** 2
             yaw_var += (self.GAP_YAW_RATE * (t1 - t0)) ** 2
@@ -701,6 +724,43 @@ class Localizer:
         self._widen((pos_var, yaw_var))
         self._remember(t0, t1, gyro, speed, widen=(pos_var, yaw_var), speed_known=not speed_stale)
         self._check_fault()
+
+    def _carry_speed(self, t0: float, t1: float) -> float | None:
+        """Carry the newest ground speed on over the step ``t0``–``t1`` (the part after
+        that sample) with the IMU's along-track acceleration: the specific force along the
+        body's x less gravity's share through the filter's attitude, ``f_x − g·R[2,0]``
+        (DESIGN.md §1: body x forward, z up; ``R`` world ← body). Returns the carried
+        speed at the step's middle, or None without a speed or an acceleration."""
+        v0, t_s, f_x = self._carried_v, self.t_speed, self._force_x
+        if v0 is None or t_s is None or f_x is None:
+            return None
+        w, x, y, z = self.ekf.q.tolist()
+        along = float(f_x - GRAVITY_MPS2 * 2.0 * (x * z - w * y))
+        dt = t1 - max(t0, t_s)
+        if dt <= 0.0:
+            return v0
+        self._carried_v = v0 + along * dt
+        return v0 + 0.5 * along * dt
+
+    def _carried_speed(
+        self, t0: float, t1: float, carried: float | None
+    ) -> tuple[float, float] | None:
+        """While the ground speed is stale (``mow.accel_bridge_s`` past its limit at
+        most): the speed the accelerometer carried on (within ± ``max_speed_mps``), and
+        the position variance this step adds — an acceleration error ``δa`` makes the
+        speed ``δa (t − t_s)`` off since the newest speed at ``t_s``, and the position
+        ``δa ((t − t_s)² − S²) / 2`` off since the limit ``S`` passed; that σ at ``t1``
+        squared less the same at ``t0``. None: the position is propagated at zero speed."""
+        t_s, c = self.t_speed, self.cfg
+        limit = self.stale_s["speed"]
+        if carried is None or t_s is None or not 0.0 < c.accel_bridge_s >= t1 - t_s - limit:
+            return None
+
+        def sigma(t: float) -> float:
+            return 0.5 * c.accel_sigma_mps2 * max((t - t_s) ** 2 - limit**2, 0.0)
+
+        speed = min(max(carried, -c.max_speed_mps), c.max_speed_mps)
+        return speed, sigma(t1) ** 2 - sigma(t0) ** 2
 
     def _speed_at(self, t: float) -> tuple[float, bool]:
         """The ground speed to propagate with at ``t``, and whether it is stale (then 0)."""

@@ -126,20 +126,20 @@ class RuntimeCore:
         self.t_imu_newest = sample.t
         self.counts["imu"] += 1
         gyro = self._to_body(sample.gyro)
-        if sample.accel is not None:  # for the supervisor's lift/tilt/collision checks
-            self.last_accel = tuple3(self._to_body(sample.accel))
-        # the buffer holds what the estimators read: ``t`` and the body-frame rate
+        accel = None if sample.accel is None else self._to_body(sample.accel)
+        if accel is not None:  # for the supervisor's lift/tilt/collision checks
+            self.last_accel = tuple3(accel)
+        # the buffer holds what the estimators read: ``t``, the body-frame rate and force
         self.buffer.push(
             Stream.IMU,
             sample
             if self._imu_is_body
-            else ImuSample(sample.t, gyro, None, sample.device_time_ns, sample.host_time_ns),
+            else ImuSample(sample.t, gyro, accel, sample.device_time_ns, sample.host_time_ns),
         )
         if self.pipeline is not None:
             self.pipeline.vision.imu(sample.t, gyro)  # the front end's derotation history
             if sample.mag is not None and sample.t >= self._next_mag_t:  # the compass: 10 Hz
                 self._next_mag_t = sample.t + compass.KEEP_AFTER_S
-                accel = None if sample.accel is None else self._to_body(sample.accel)
                 self.pipeline.magnetometer(sample.t, self._to_body(sample.mag), accel)
         self._hold_pose()
         self._consume(sample.t)

@@ -86,7 +86,7 @@ def feed_ready(pipe: Pipeline, buffer: SensorBuffer, until: float) -> None:
     and a replay both feed it this way)."""
     for stream, s in buffer.pop_ready(until):
         if stream == Stream.IMU:
-            pipe.imu(s.t, s.gyro)
+            pipe.imu(s.t, s.gyro, s.accel)
         elif stream == Stream.SPEED:
             pipe.speed(s.t, s.speed_mps if s.valid else float("nan"))
         elif stream == TRACKS:
@@ -120,7 +120,7 @@ class TeachPipeline:
         self._stopped_since: float | None = None
         self.t_last = -math.inf
 
-    def imu(self, t: float, gyro: FloatArray) -> None:
+    def imu(self, t: float, gyro: FloatArray, accel: FloatArray | None = None) -> None:
         self.teacher.imu(t, gyro)
         self.t_last = t
 
@@ -233,8 +233,8 @@ class MowPipeline:
         self._news = (c.searches, c.relocalizations, c.checks_failed)
         return out
 
-    def imu(self, t: float, gyro: FloatArray) -> None:
-        self.localizer.imu(t, gyro)
+    def imu(self, t: float, gyro: FloatArray, accel: FloatArray | None = None) -> None:
+        self.localizer.imu(t, gyro, accel)
 
     def magnetometer(self, t: float, mag: FloatArray, accel: FloatArray | None) -> None:
         self.localizer.magnetometer(t, mag, accel)
