@@ -301,22 +301,36 @@ def test_a_mower_that_rolls_off_is_where_it_rolled_once_the_speed_says_so(lawn_m
     assert worst < 2e-4, worst  # without: 4.5 mm from the first sample on
 
 
-def _brake_through_a_speed_gap(lawn_map, accel_bias: float | None) -> tuple[float, float]:
-    """A mower at 0.45 m/s whose ground speed goes silent at 5 s for 0.6 s; at the
-    staleness limit (0.3 s after the last sample, when the runtime halts) it brakes at
-    1 m/s² to 0.05 m/s, as the bench's mower does on the halt. IMU at 100 Hz with the
-    specific force (``accel_bias`` on its x; None: an IMU without acceleration). The
-    along-track error when the speed comes back, and the σ the gap added to it."""
+def _cruising(t: float) -> float:
+    """Up to 0.45 m/s from 2 s (the standstill before), braking at 1 m/s² to 0.05 m/s from
+    5.2 s: the staleness limit of a speed silent after its sample at 4.9 s, when the
+    runtime halts and the bench's mower brakes."""
+    if t <= 5.2:
+        return min(0.45, 0.9 * max(0.0, t - 2.0))
+    return max(0.05, 0.45 - 1.0 * (t - 5.2))
+
+
+def _setting_off(t: float) -> float:
+    """Driven and stopped, then setting off at 1.3 m/s² at 4.95 s, just after the speed's
+    last sample (a turn on the spot ends), braking at the limit (5.2 s) as above."""
+    if t <= 3.5:
+        return min(0.45, 0.9 * max(0.0, t - 2.0), max(0.0, 0.9 * (3.5 - t)))
+    if t <= 5.2:
+        return 1.3 * max(0.0, t - 4.95)
+    return max(0.05, 1.3 * 0.25 - 1.0 * (t - 5.2))
+
+
+def _through_a_speed_gap(
+    lawn_map, accel_bias: float | None, speed=_cruising
+) -> tuple[float, float]:
+    """A mower driving at ``speed(t)`` whose ground speed goes silent after its sample at
+    4.9 s, for 0.7 s. IMU at 100 Hz with the specific force (``accel_bias`` on its x;
+    None: an IMU without acceleration). The along-track error when the speed comes back,
+    and the σ the gap added to it."""
     loc = Localizer(lawn_map)
     q = loc.pose().quaternion
     ahead = np.array([1 - 2 * (q[2] ** 2 + q[3] ** 2), 2 * (q[1] * q[2] + q[0] * q[3])])
     start = loc.pose().position[:2].copy()
-    last_sample, limit = 4.9, 0.3  # the speed's staleness limit (speed.stale_after_s)
-
-    def speed(t: float) -> float:
-        if t <= last_sample + limit:
-            return min(0.45, 0.9 * max(0.0, t - 2.0))
-        return max(0.05, 0.45 - 1.0 * (t - last_sample - limit))
 
     def sigma_ahead() -> float:
         return math.sqrt(float(ahead @ loc.pose().covariance[:2, :2] @ ahead))
@@ -340,19 +354,30 @@ def _brake_through_a_speed_gap(lawn_map, accel_bias: float | None) -> tuple[floa
 
 
 def test_through_a_silent_ground_speed_the_accelerometer_carries_the_speed_on(lawn_map):
-    """While the ground speed is stale the IMU's along-track acceleration carries the last
+    """Past the newest ground-speed sample the IMU's along-track acceleration carries its
     speed on (the mower brakes for the halt the silence caused): exact with an exact
     acceleration, where without it 10 cm were lost for good at 1.6 σ (the filter drove on at
     zero from the limit; on the bench 9.4 cm at σ 5.7 cm, and a loaded run's false
     "landmarks jumped away" came 0.2 s after such a gap). An acceleration off by its σ
-    (0.1 m/s²) leaves the position about that σ off (2 cm here)."""
-    exact, _ = _brake_through_a_speed_gap(lawn_map, 0.0)
-    biased, added = _brake_through_a_speed_gap(lawn_map, 0.1)
-    without, added_without = _brake_through_a_speed_gap(lawn_map, None)
+    (0.1 m/s²) leaves the position about that σ off (2.5 cm here)."""
+    exact, _ = _through_a_speed_gap(lawn_map, 0.0)
+    biased, added = _through_a_speed_gap(lawn_map, 0.1)
+    without, added_without = _through_a_speed_gap(lawn_map, None)
     assert abs(exact) < 0.002, exact
     assert abs(without) > 0.05, without  # the check can fail: the old way
     assert 0.005 < abs(biased) < 1.5 * added, (biased, added)  # off by about its σ
     assert added < 0.5 * added_without, (added, added_without)  # and a narrower one
+
+
+def test_a_mower_setting_off_as_its_speed_goes_silent_is_followed(lawn_map):
+    """Setting off just after the speed's last sample (at 0 m/s): its slope, extrapolated
+    until the limit, said the mower stood (on the bench: 1.9 cm off at σ 2 mm while the
+    deck ran, 3.1 cm at the halt); the acceleration carried on from that sample follows
+    it from the first step."""
+    exact, _ = _through_a_speed_gap(lawn_map, 0.0, _setting_off)
+    without, _ = _through_a_speed_gap(lawn_map, None, _setting_off)
+    assert abs(exact) < 0.002, exact
+    assert abs(without) > 0.05, without
 
 
 def test_a_turn_on_the_spot_after_the_standstill_is_neither_bias_nor_lost(lawn_map):

@@ -694,7 +694,7 @@ class Localizer:
 
     def _step_one(self, t0: float, t1: float, gyro: FloatArray, gap: bool = False) -> None:
         carried = self._carry_speed(t0, t1)
-        speed, speed_stale = self._speed_at(0.5 * (t0 + t1))
+        speed, speed_stale = self._speed_at(0.5 * (t0 + t1), carried)
         pos_var = yaw_var = 0.0
         if speed_stale:
             self.counters.speed_stale_steps += 1
@@ -749,23 +749,31 @@ class Localizer:
         most): the speed the accelerometer carried on (within ± ``max_speed_mps``), and
         the position variance this step adds — an acceleration error ``δa`` makes the
         speed ``δa (t − t_s)`` off since the newest speed at ``t_s``, and the position
-        ``δa ((t − t_s)² − S²) / 2`` off since the limit ``S`` passed; that σ at ``t1``
-        squared less the same at ``t0``. None: the position is propagated at zero speed."""
+        ``δa (t − t_s)² / 2`` off: that σ at ``t1`` squared less the same at ``t0``, the
+        first stale step taking all of it (the steps before the limit, driven at the same
+        carried speed, added none: a sample then would have corrected them, `_respeed`).
+        None: the position is propagated at zero speed."""
         t_s, c = self.t_speed, self.cfg
         limit = self.stale_s["speed"]
         if carried is None or t_s is None or not 0.0 < c.accel_bridge_s >= t1 - t_s - limit:
             return None
+        before = 0.5 * c.accel_sigma_mps2 * (t0 - t_s) ** 2 if t0 - t_s > limit else 0.0
+        after = 0.5 * c.accel_sigma_mps2 * (t1 - t_s) ** 2
+        return self._within_top_speed(carried), after**2 - before**2
 
-        def sigma(t: float) -> float:
-            return 0.5 * c.accel_sigma_mps2 * max((t - t_s) ** 2 - limit**2, 0.0)
+    def _within_top_speed(self, speed: float) -> float:
+        top = self.cfg.max_speed_mps
+        return min(max(speed, -top), top)
 
-        speed = min(max(carried, -c.max_speed_mps), c.max_speed_mps)
-        return speed, sigma(t1) ** 2 - sigma(t0) ** 2
-
-    def _speed_at(self, t: float) -> tuple[float, bool]:
-        """The ground speed to propagate with at ``t``, and whether it is stale (then 0)."""
+    def _speed_at(self, t: float, carried: float | None = None) -> tuple[float, bool]:
+        """The ground speed to propagate with at ``t``, and whether it is stale (then 0).
+        Past the newest sample: the speed the accelerometer ``carried`` on from it, or
+        without one its slope extrapolated; the next sample drives those steps again
+        (:meth:`_respeed`)."""
         if self.t_speed is None or t - self.t_speed > self.stale_s["speed"]:
             return 0.0, True
+        if carried is not None and t > self.t_speed:
+            return self._within_top_speed(carried), False
         return self._speeds.at(t), False
 
     def _respeed(self, since: float) -> None:
