@@ -769,12 +769,13 @@ class Localizer:
         """The ground speed to propagate with at ``t``, and whether it is stale (then 0).
         Past the newest sample: the speed the accelerometer ``carried`` on from it, or
         without one its slope extrapolated; the next sample drives those steps again
-        (:meth:`_respeed`)."""
+        (:meth:`_respeed`). Before it (IMU samples held up on this computer while the
+        speed came on time): interpolated between the samples around ``t``."""
         if self.t_speed is None or t - self.t_speed > self.stale_s["speed"]:
             return 0.0, True
         if carried is not None and t > self.t_speed:
             return self._within_top_speed(carried), False
-        return self._speeds.at(t), False
+        return self._speeds.known(t), False
 
     def _respeed(self, since: float) -> None:
         """A ground-speed sample has come: the IMU intervals after the one before it (at
