@@ -725,6 +725,9 @@ class Localizer:
         self._remember(t0, t1, gyro, speed, widen=(pos_var, yaw_var), speed_known=not speed_stale)
         self._check_fault()
 
+    #: the along-track acceleration that carries the speed on is taken within ± this (m/s²)
+    MAX_ALONG_MPS2 = 3.0
+
     def _carry_speed(self, t0: float, t1: float) -> float | None:
         """Carry the newest ground speed on over the step ``t0``–``t1`` (the part after
         that sample) with the IMU's along-track acceleration: the specific force along the
@@ -736,6 +739,10 @@ class Localizer:
             return None
         w, x, y, z = self.ekf.q.tolist()
         along = float(f_x - GRAVITY_MPS2 * 2.0 * (x * z - w * y))
+        # a mower's own drive and brakes stay well inside this; a bump's spike (3 g for 60
+        # ms on the bench) is not the wheels' speed, and the next sample tells what it was
+        top = self.MAX_ALONG_MPS2
+        along = min(max(along, -top), top)
         dt = t1 - max(t0, t_s)
         if dt <= 0.0:
             return v0
