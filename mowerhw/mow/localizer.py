@@ -732,7 +732,7 @@ class Localizer:
         """Carry the newest ground speed on over the step ``t0``–``t1`` (the part after
         that sample) with the IMU's along-track acceleration: the specific force along the
         body's x less gravity's share through the filter's attitude, ``f_x − g·R[2,0]``
-        (DESIGN.md §1: body x forward, z up; ``R`` world ← body). Returns the carried
+        (docs/design.md §3: body x forward, z up; ``R`` world ← body). Returns the carried
         speed at the step's middle, or None without a speed or an acceleration."""
         v0, t_s, f_x = self._carried_v, self.t_speed, self._force_x
         if v0 is None or t_s is None or f_x is None:
