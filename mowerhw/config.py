@@ -509,7 +509,8 @@ class MowConfig(MotionNoiseConfig):
         "while the ground speed is stale, the IMU's along-track acceleration (gravity taken "
         "out through the filter's attitude) carries the last speed on for at most this long "
         "past the staleness limit (a mower braking for the halt the silence caused is "
-        "followed, not taken to stop at once); 0: off, or an IMU without acceleration",
+        "followed, not taken to stop at once); 0: not past the limit (between two samples "
+        "the acceleration still carries the newest one on); nothing without acceleration",
         ge=0.0,
         le=10.0,
     )

@@ -34,10 +34,12 @@ Around the world-centric EKF (:mod:`mowerhw.mow.ekf`):
   lock-out, fault restart) the filter is on probation until enough consecutive frames are
   consistent (:class:`mowerhw.mow.recovery.Probation`); one that cannot show it in 10 s is
   given up and searched for.
-* **A silent ground speed**: past its staleness limit the IMU's along-track acceleration
-  carries the last speed on (``mow.accel_bridge_s``, :meth:`Localizer._carried_speed`);
-  without acceleration, or after that, the position is propagated at zero speed with the
-  mower's top speed as its uncertainty.
+* **Between speed samples, and a silent ground speed**: past the newest sample the IMU's
+  along-track acceleration carries its speed on (:meth:`Localizer._carry_speed`; the next
+  sample drives those steps again), past the speed's staleness limit for at most
+  ``mow.accel_bridge_s`` (:meth:`Localizer._carried_speed`); without acceleration, or after
+  that, the position is propagated at zero speed with the mower's top speed as its
+  uncertainty.
 * **Containment**: UNKNOWN unless localized, all sensors fresh, the last landmark fix no older
   than ``mow.max_dead_reckoning_s``, and σ ≤ ``containment.sigma_max_m``; otherwise the table
   of :mod:`mowerhw.mow.containment`. The dead-reckoning limit is what halts first when the
