@@ -320,6 +320,33 @@ def _setting_off(t: float) -> float:
     return max(0.05, 1.3 * 0.25 - 1.0 * (t - 5.2))
 
 
+class _StraightDrive:
+    """A mower driving straight ahead from the dock, 100 Hz: the distance it truly travelled,
+    its along-track acceleration each step, and its localizer's error along the way."""
+
+    def __init__(self, lawn_map) -> None:
+        self.loc = Localizer(lawn_map)
+        q = self.loc.pose().quaternion
+        self.ahead = np.array([1 - 2 * (q[2] ** 2 + q[3] ** 2), 2 * (q[1] * q[2] + q[0] * q[3])])
+        self.start = self.loc.pose().position[:2].copy()
+        self.travelled = self.v = 0.0
+
+    def drive(self, v: float) -> float:
+        """One 10 ms step ending at speed ``v``: its along-track acceleration."""
+        self.travelled += 0.5 * (v + self.v) * 0.01
+        along = (v - self.v) / 0.01
+        self.v = v
+        return along
+
+    def error(self) -> float:
+        """How far ahead of the mower the pose is, along its track (m)."""
+        return float((self.loc.pose().position[:2] - self.start) @ self.ahead) - self.travelled
+
+    def sigma(self) -> float:
+        """The pose's σ along the track (m)."""
+        return math.sqrt(float(self.ahead @ self.loc.pose().covariance[:2, :2] @ self.ahead))
+
+
 def _through_a_speed_gap(
     lawn_map, accel_bias: float | None, speed=_cruising
 ) -> tuple[float, float]:
@@ -327,30 +354,21 @@ def _through_a_speed_gap(
     4.9 s, for 0.7 s. IMU at 100 Hz with the specific force (``accel_bias`` on its x;
     None: an IMU without acceleration). The along-track error when the speed comes back,
     and the σ the gap added to it."""
-    loc = Localizer(lawn_map)
-    q = loc.pose().quaternion
-    ahead = np.array([1 - 2 * (q[2] ** 2 + q[3] ** 2), 2 * (q[1] * q[2] + q[0] * q[3])])
-    start = loc.pose().position[:2].copy()
-
-    def sigma_ahead() -> float:
-        return math.sqrt(float(ahead @ loc.pose().covariance[:2, :2] @ ahead))
-
-    travelled, v_prev, before = 0.0, 0.0, math.nan
+    mower = _StraightDrive(lawn_map)
+    loc = mower.loc
+    before = math.nan
     for k in range(561):  # 5.6 s at 100 Hz; a speed sample every 10th, none in [5.0, 5.6)
         t = 0.01 * k
         v = speed(t)
-        travelled += 0.5 * (v + v_prev) * 0.01
-        along = (v - v_prev) / 0.01 if k else 0.0
-        v_prev = v
+        along = mower.drive(v)
         force = None if accel_bias is None else [along + accel_bias, 0.0, 9.80665]
         loc.imu(t, [0.0, 0.0, 0.0], force)
         if k % 10 == 0 and not 5.0 <= t < 5.6:
             loc.speed(t, v)
         if k == 490:
-            before = sigma_ahead()
-    error = float((loc.pose().position[:2] - start) @ ahead) - travelled
+            before = mower.sigma()
     assert loc.counters.speed_stale_steps >= 29
-    return error, math.sqrt(sigma_ahead() ** 2 - before**2)
+    return mower.error(), math.sqrt(mower.sigma() ** 2 - before**2)
 
 
 def test_through_a_silent_ground_speed_the_accelerometer_carries_the_speed_on(lawn_map):
@@ -393,25 +411,20 @@ def test_imu_samples_held_up_behind_the_speed_are_driven_at_the_speed_of_their_t
         return 0.45 - max(0.0, min(t - 4.9, 0.2, 5.3 - t))
 
     def run(held: bool) -> float:
-        loc = Localizer(lawn_map)
-        q = loc.pose().quaternion
-        ahead = np.array([1 - 2 * (q[2] ** 2 + q[3] ** 2), 2 * (q[1] * q[2] + q[0] * q[3])])
-        start = loc.pose().position[:2].copy()
-        travelled, v_prev, waiting = 0.0, 0.0, []
+        mower = _StraightDrive(lawn_map)
+        loc = mower.loc
+        waiting = []
         for k in range(581):
             t = 0.01 * k
             v = speed(t)
-            travelled += 0.5 * (v + v_prev) * 0.01
-            force = [(v - v_prev) / 0.01 if k else 0.0, 0.0, 9.80665]
-            v_prev = v
-            waiting.append((t, force))
+            waiting.append((t, [mower.drive(v), 0.0, 9.80665]))
             if not (held and 4.9 < t <= 5.2) or k == 520:  # held 0.3 s, then all at once
                 for tw, fw in waiting:
                     loc.imu(tw, [0.0, 0.0, 0.0], fw)
                 waiting = []
             if k % 10 == 0:
                 loc.speed(t, v)
-        return float((loc.pose().position[:2] - start) @ ahead) - travelled
+        return mower.error()
 
     on_time, held = run(False), run(True)
     assert abs(on_time) < 0.002, on_time
@@ -424,23 +437,19 @@ def test_a_bumps_acceleration_spike_is_not_taken_for_the_wheels_speed(lawn_map):
     ± 3 m/s², so the pose is about a centimetre off until the next sample (taken whole,
     the spike drove the mower backwards at 1 m/s: 8.8 cm off while the deck ran, on the
     bench), and exact once it came."""
-    loc = Localizer(lawn_map)
-    q = loc.pose().quaternion
-    ahead = np.array([1 - 2 * (q[2] ** 2 + q[3] ** 2), 2 * (q[1] * q[2] + q[0] * q[3])])
-    start = loc.pose().position[:2].copy()
-    travelled, v_prev, worst = 0.0, 0.0, 0.0
+    mower = _StraightDrive(lawn_map)
+    loc = mower.loc
+    worst = 0.0
     for k in range(521):
         t = 0.01 * k
         v = min(0.45, 0.9 * max(0.0, t - 2.0))
-        travelled += 0.5 * (v + v_prev) * 0.01
-        along = (v - v_prev) / 0.01 if k else 0.0
-        v_prev = v
+        along = mower.drive(v)
         spike = -3.0 * 9.80665 if 5.01 <= t < 5.07 else 0.0
         loc.imu(t, [0.0, 0.0, 0.0], [along + spike, 0.0, 9.80665])
         if k % 10 == 0:
             loc.speed(t, v)
         if t > 5.0:
-            off = float((loc.pose().position[:2] - start) @ ahead) - travelled
+            off = mower.error()
             worst = max(worst, abs(off))
     assert worst < 0.015, worst
     assert abs(off) < 0.001, off

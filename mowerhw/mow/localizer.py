@@ -37,7 +37,7 @@ Around the world-centric EKF (:mod:`mowerhw.mow.ekf`):
 * **Between speed samples, and a silent ground speed**: past the newest sample the IMU's
   along-track acceleration carries its speed on (:meth:`Localizer._carry_speed`; the next
   sample drives those steps again), past the speed's staleness limit for at most
-  ``mow.accel_bridge_s`` (:meth:`Localizer._carried_speed`); without acceleration, or after
+  ``mow.accel_bridge_s`` (:meth:`Localizer._carried_variance`); without acceleration, or after
   that, the position is propagated at zero speed with the mower's top speed as its
   uncertainty.
 * **Containment**: UNKNOWN unless localized, all sensors fresh, the last landmark fix no older
@@ -160,6 +160,11 @@ def _configs(config: Any) -> tuple[MowConfig, ContainmentConfig, dict[str, float
     raise TypeError(f"config must be a Config or MowConfig, not {type(config).__name__}")
 
 
+def _within(value: float, bound: float) -> float:
+    """``value`` clipped to ± ``bound``."""
+    return min(max(value, -bound), bound)
+
+
 def spot_sigma_factor(k: float, shared: float) -> float:
     """σ of the ``k``-th frame from one spot over a lone frame's, when a share ``shared`` of
     each frame's variance is common to all frames from that spot: ``k`` such frames are
@@ -216,7 +221,7 @@ class Localizer:
         self._w_last = np.zeros(3)
         #: the newest IMU sample's mean specific force along the body's x (m/s²), if it has
         #: one, and the speed carried on from the newest ground-speed sample by integrating
-        #: the along-track acceleration since (:meth:`_carried_speed`)
+        #: the along-track acceleration since (:meth:`_carry_speed`)
         self._force_x: float | None = None
         self._carried_v: float | None = None
         self._t_last_frame: float | None = None  # time of the last frame's update
@@ -504,7 +509,7 @@ class Localizer:
     def imu(self, t: float, gyro_xyz: ArrayLike, accel_xyz: ArrayLike | None = None) -> None:
         """Gyro (rad/s, body frame): the mean rate over the interval ending at ``t``;
         ``accel_xyz``: the mean specific force over it (m/s², body frame, +g up at rest),
-        if the IMU gives one (it carries a stale ground speed on: :meth:`_carried_speed`)."""
+        if the IMU gives one (it carries a stale ground speed on: :meth:`_carry_speed`)."""
         gyro = np.asarray(gyro_xyz, dtype=np.float64).reshape(3)
         gx, gy, gz = gyro.tolist()
         if not (math.isfinite(t) and math.isfinite(gx + gy + gz)):
@@ -700,10 +705,10 @@ class Localizer:
         pos_var = yaw_var = 0.0
         if speed_stale:
             self.counters.speed_stale_steps += 1
-            bridged = self._carried_speed(t0, t1, carried)
-            if bridged is not None:
+            bridged = self._carried_variance(t0, t1)
+            if carried is not None and bridged is not None:
                 self.counters.speed_carried_steps += 1
-                speed, pos_var = bridged
+                speed, pos_var = carried, bridged
             else:
                 # no ground speed: holding the last value would drive on while the mower
                 # may have stopped; propagate at zero, the speed unknown up to max_speed_mps
@@ -735,7 +740,8 @@ class Localizer:
         that sample) with the IMU's along-track acceleration: the specific force along the
         body's x less gravity's share through the filter's attitude, ``f_x − g·R[2,0]``
         (docs/design.md §3: body x forward, z up; ``R`` world ← body). Returns the carried
-        speed at the step's middle, or None without a speed or an acceleration."""
+        speed at the step's middle (within ± ``max_speed_mps``), or None without a speed
+        or an acceleration."""
         v0, t_s, f_x = self._carried_v, self.t_speed, self._force_x
         if v0 is None or t_s is None or f_x is None:
             return None
@@ -743,36 +749,28 @@ class Localizer:
         along = float(f_x - GRAVITY_MPS2 * 2.0 * (x * z - w * y))
         # a mower's own drive and brakes stay well inside this; a bump's spike (3 g for 60
         # ms on the bench) is not the wheels' speed, and the next sample tells what it was
-        top = self.MAX_ALONG_MPS2
-        along = min(max(along, -top), top)
+        along = _within(along, self.MAX_ALONG_MPS2)
         dt = t1 - max(t0, t_s)
         if dt <= 0.0:
-            return v0
+            return _within(v0, self.cfg.max_speed_mps)
         self._carried_v = v0 + along * dt
-        return v0 + 0.5 * along * dt
+        return _within(v0 + 0.5 * along * dt, self.cfg.max_speed_mps)
 
-    def _carried_speed(
-        self, t0: float, t1: float, carried: float | None
-    ) -> tuple[float, float] | None:
+    def _carried_variance(self, t0: float, t1: float) -> float | None:
         """While the ground speed is stale (``mow.accel_bridge_s`` past its limit at
-        most): the speed the accelerometer carried on (within ± ``max_speed_mps``), and
-        the position variance this step adds — an acceleration error ``δa`` makes the
-        speed ``δa (t − t_s)`` off since the newest speed at ``t_s``, and the position
-        ``δa (t − t_s)² / 2`` off: that σ at ``t1`` squared less the same at ``t0``, the
-        first stale step taking all of it (the steps before the limit, driven at the same
-        carried speed, added none: a sample then would have corrected them, `_respeed`).
-        None: the position is propagated at zero speed."""
+        most), the position variance a step at the carried speed adds — an acceleration
+        error ``δa`` makes the speed ``δa (t − t_s)`` off since the newest speed at
+        ``t_s``, and the position ``δa (t − t_s)² / 2`` off: that σ at ``t1`` squared less
+        the same at ``t0``, the first stale step taking all of it (the steps before the
+        limit, driven at the same carried speed, added none: a sample then would have
+        corrected them, `_respeed`). None: past that, propagated at zero speed."""
         t_s, c = self.t_speed, self.cfg
         limit = self.stale_s["speed"]
-        if carried is None or t_s is None or not 0.0 < c.accel_bridge_s >= t1 - t_s - limit:
+        if t_s is None or not 0.0 < c.accel_bridge_s >= t1 - t_s - limit:
             return None
         before = 0.5 * c.accel_sigma_mps2 * (t0 - t_s) ** 2 if t0 - t_s > limit else 0.0
         after = 0.5 * c.accel_sigma_mps2 * (t1 - t_s) ** 2
-        return self._within_top_speed(carried), after**2 - before**2
-
-    def _within_top_speed(self, speed: float) -> float:
-        top = self.cfg.max_speed_mps
-        return min(max(speed, -top), top)
+        return after**2 - before**2
 
     def _speed_at(self, t: float, carried: float | None = None) -> tuple[float, bool]:
         """The ground speed to propagate with at ``t``, and whether it is stale (then 0).
@@ -783,7 +781,7 @@ class Localizer:
         if self.t_speed is None or t - self.t_speed > self.stale_s["speed"]:
             return 0.0, True
         if carried is not None and t > self.t_speed:
-            return self._within_top_speed(carried), False
+            return carried, False
         return self._speeds.known(t), False
 
     def _respeed(self, since: float) -> None:
