@@ -86,6 +86,28 @@ def test_a_wrong_prior_gives_no_pose_when_another_place_explains_more() -> None:
     assert wrong == []
 
 
+def test_a_prior_far_from_the_mower_says_nothing_and_the_whole_map_answers() -> None:
+    """A resumed pose the mower has since left (measured on the bench: it drove on and
+    turned 122° on the spot while the daemon restarted): no optimum within 1 m and 15° of
+    the prior explains enough bearings, so the frame is judged as a search of the whole map
+    — the true pose where one place explains the view (before: "3 inliers", no answer until
+    the search widened 3 s later), no pose where a half-turned twin explains it as well
+    (the prior must not pick a twin it is nowhere near)."""
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        p, yaw = np.r_[rng.uniform(-2, 2, 2), 0.0], float(rng.uniform(-math.pi, math.pi))
+        ang, turn = rng.uniform(0, 2 * math.pi), rng.choice([-1, 1]) * rng.uniform(1.6, 2.4)
+        prior = (p[0] + 0.7 * math.cos(ang), p[1] + 0.7 * math.sin(ang), yaw + turn)
+        pts = _ring(rng, 40)
+        res = GlobalRelocalizer(_map(pts)).locate(_view(pts, p, yaw, rng, 0.001), near=prior)
+        assert res.ok, (seed, res.why)
+        assert np.linalg.norm(res.p_wb - p) < 0.05, seed
+        half = _ring(rng, 20)
+        twins = np.vstack([half, half * [-1, -1, 1]])
+        res = GlobalRelocalizer(_map(twins)).locate(_view(twins, p, yaw, rng, 0.001), near=prior)
+        assert not res.ok and res.why.startswith("ambiguous"), (seed, res.why)
+
+
 def test_a_prior_tells_look_alike_twins_apart() -> None:
     """In the garden symmetric under a half turn the whole-map search gives no pose (above);
     a prior near the true place still does: the twin explains as many bearings, not more."""

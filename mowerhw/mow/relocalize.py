@@ -54,7 +54,10 @@ fit of a few bearings near it (measured on the bench: 8 inliers 1.2 m and 111° 
 the whole-map search found the true pose with 34), so the prior's answer stands only if no
 place elsewhere explains clearly more bearings (:meth:`GlobalRelocalizer._beaten`): a
 look-alike twin that explains about as many does not overrule it — telling twins apart is
-what the prior is for. Whether to *trust* an answer (the same pose from more than one frame, through
+what the prior is for. An optimum answers for the prior only within 1 m and 15° of it
+(:meth:`GlobalRelocalizer._near`), whatever start it was refined from; when none there
+explains enough bearings, the prior says nothing and the frame is judged as a search of the
+whole map (its ambiguity rule), not refused until the search widens. Whether to *trust* an answer (the same pose from more than one frame, through
 the odometry) is the caller's: :class:`mowerhw.mow.recovery.RelocalizationSearch`.
 """
 
@@ -735,16 +738,16 @@ class GlobalRelocalizer:
     # ---------------------------------------------------------------------------- answer
 
     @staticmethod
-    def _near(
-        p_wb: FloatArray, r_wb: FloatArray, prior: tuple[float, float, float], k: int
-    ) -> bool:
-        """An optimum that answers for the prior: the one refined from it (``k`` 0), or any
-        other within :data:`DISTINCT_M` and :data:`DISTINCT_RAD` of it — the refinement
+    def _near(p_wb: FloatArray, r_wb: FloatArray, prior: tuple[float, float, float]) -> bool:
+        """An optimum that answers for the prior: one within :data:`DISTINCT_M` and
+        :data:`DISTINCT_RAD` of it, whichever start it was refined from — the refinement
         from the prior itself can stop in a local optimum a few decimetres off (measured on
         the bench after a restart: 0.3 m and 7° off with σ 2 cm) that the places voted for
-        over the whole map find better."""
-        if k == 0:
-            return True
+        over the whole map find better; and it can wander far from the prior, where it is
+        no answer *for the prior* (measured on the bench: a mower that turned 122° after
+        its pose was saved; the refinement from the saved pose ended 0.9 m and 120° from it,
+        0.25 m from the truth, and counted as the prior's answer whatever the places voted
+        for found there, accepted and permitted)."""
         yaw = math.atan2(r_wb[1, 0], r_wb[0, 0])
         close = math.hypot(float(p_wb[0]) - prior[0], float(p_wb[1]) - prior[1]) <= DISTINCT_M
         return close and abs(wrap_angle(yaw - prior[2])) <= DISTINCT_RAD
@@ -788,7 +791,7 @@ class GlobalRelocalizer:
         if near is not None:  # the prior's own optimum first; the places voted for: rivals
             hyps = [near, *hyps]
         scored = []
-        for k, hyp in enumerate(hyps):
+        for hyp in hyps:
             r_wb, p_wb, rows, cols = self._refine(obs, hyp)
             # the angular residual of the inliers breaks ties between nearby local optima
             spread = (
@@ -800,12 +803,16 @@ class GlobalRelocalizer:
                 if rows.size
                 else 1.0
             )
-            scored.append((int(rows.size), r_wb, p_wb, rows, cols, spread, k))
+            scored.append((int(rows.size), r_wb, p_wb, rows, cols, spread))
+        if near is not None and not any(
+            n >= self.min_inliers and self._near(p, r, near) for n, r, p, *_ in scored
+        ):
+            near = None  # nothing near the prior explains enough: judged as a whole-map search
         if near is None:
             scored.sort(key=lambda s: (-s[0], s[5]))
         else:  # the answer is the best optimum near the prior; every other one is a rival
-            scored.sort(key=lambda s: (not self._near(s[2], s[1], near, s[6]), -s[0], s[5]))
-        n_best, r_wb, p_wb, rows, cols, _, _ = scored[0]
+            scored.sort(key=lambda s: (not self._near(s[2], s[1], near), -s[0], s[5]))
+        n_best, r_wb, p_wb, rows, cols, _ = scored[0]
         yaw0 = math.atan2(r_wb[1, 0], r_wb[0, 0])
         unpolished = np.array([p_wb[0], p_wb[1], yaw0])
         state, rival, rival_pose, sigma = self._polish(obs, unpolished)
