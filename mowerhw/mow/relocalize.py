@@ -57,8 +57,9 @@ look-alike twin that explains about as many does not overrule it — telling twi
 what the prior is for. An optimum answers for the prior only within 1 m and 15° of it
 (:meth:`GlobalRelocalizer._near`), whatever start it was refined from; when none there
 explains enough bearings, the prior says nothing and the frame is judged as a search of the
-whole map (its ambiguity rule), not refused until the search widens. Whether to *trust* an answer (the same pose from more than one frame, through
-the odometry) is the caller's: :class:`mowerhw.mow.recovery.RelocalizationSearch`.
+whole map (its ambiguity rule), not refused until the search widens. Whether to *trust* an
+answer (the same pose from more than one frame, through the odometry) is the caller's:
+:class:`mowerhw.mow.recovery.RelocalizationSearch`.
 """
 
 from __future__ import annotations
