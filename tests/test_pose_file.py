@@ -84,3 +84,25 @@ def test_a_missing_or_garbled_file_is_no_pose(tmp_path: Path) -> None:
     assert pf.load(MAP) is None  # type: ignore[arg-type]
     pf.path.write_text("[1, 2]")
     assert pf.load(MAP) is None  # type: ignore[arg-type]
+
+
+def test_the_gyro_bias_is_resumed_within_the_boot_only(tmp_path: Path) -> None:
+    """The bias the previous run had learnt comes back with its pose within the same boot
+    (the IMU stayed on); across a reboot, or garbled, the pose comes back without it (the
+    gyro is calibrated again while the mower stands)."""
+    pf = PoseFile(tmp_path / "pose.json")
+    bias = np.array([0.001, -0.002, 0.0005])
+    pf.save(StartPose(np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), bias), "c0ffee")
+    got = pf.load(MAP)  # type: ignore[arg-type]
+    assert got is not None and got.gyro_bias is not None
+    np.testing.assert_allclose(got.gyro_bias, bias)
+    doc = json.loads(pf.path.read_text())
+    for change in (
+        {"boot_id": "00000000-0000-0000-0000-000000000000", "wall_time": time.time()},
+        {"gyro_bias": [5.0, 0.0, 0.0]},
+    ):
+        pf.path.write_text(json.dumps({**doc, **change}))
+        got = pf.load(MAP)  # type: ignore[arg-type]
+        assert got is not None and got.gyro_bias is None
+    pf.path.write_text(json.dumps({**doc, "gyro_bias": [1.0, 2.0]}))
+    assert pf.load(MAP) is None  # type: ignore[arg-type]  # unreadable: the log says so

@@ -408,3 +408,37 @@ def test_a_held_up_imu_sample_says_whether_this_daemon_kept_deciding(
     sample(1.93, 0.60)  # the stuck loop before the last gap does not count for this one
     assert "before the daemon could read them (it went at most 0.040 s without" in caplog.text
     assert core.counts["imu_gaps_host"] == 3
+
+
+def test_a_restart_resumes_with_the_gyro_bias_it_had_not_one_learnt_while_turning(
+    camera: Any,
+) -> None:
+    """A restart within the same boot resumes with the gyro bias the saved pose carries: a
+    standstill cannot tell a bias from a steady turn (measured in the simulator: restarted
+    while turning on the spot at 0.8 rad/s, the daemon learnt 0.8 rad/s of bias and never
+    relocalized again). Fed that turn, the resumed localizer keeps the bias and turns with
+    it; without a saved bias it calibrates on the readings, as before — and learns the turn."""
+    from mowerhw.runtime.pipelines import StartPose
+
+    bias = np.array([0.001, -0.002, 0.003])
+    turning = 0.8
+
+    def resumed(saved_bias: Any) -> Any:
+        core, _ = _core(camera)
+        assert core.set_mode("mow") == ""
+        pose = StartPose(np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), saved_bias)
+        core.map_loaded(_map(), pose)
+        loc = core.pipeline.localizer  # type: ignore[union-attr]
+        for k in range(150):  # 1.5 s turning on the spot at a steady rate, then standing
+            t = 0.01 * k
+            rate = turning if t < 1.0 else 0.0
+            core.imu(ImuSample(t, bias + np.array([0.0, 0.0, rate])), t)
+            if k % 10 == 0:
+                core.speed(SpeedSample(t, 0.0))
+        return loc
+
+    kept = resumed(bias)
+    assert not kept.calibrating
+    np.testing.assert_allclose(kept.gyro_bias, bias)
+    learnt = resumed(None)  # the old way: the turn is taken for a bias
+    assert abs(learnt.gyro_bias[2]) > 0.5 * turning  # (the IMU is mounted upside down)

@@ -374,7 +374,7 @@ class RuntimeCore:
         if saving and now >= self._next_pose_save:
             self._next_pose_save = now + POSE_SAVE_PERIOD_S
             p = pipe.localizer.pose()
-            self._pose_to_save = StartPose(p.position, p.quaternion)
+            self._pose_to_save = StartPose(p.position, p.quaternion, pipe.localizer.gyro_bias)
         return containment
 
     def halt_sent(self, sent: float) -> None:

@@ -8,6 +8,7 @@ import contextlib
 import functools
 import json
 import logging
+import math
 import pickle
 import shutil
 import subprocess
@@ -23,12 +24,15 @@ import numpy as np
 from mowerhw.common.fileio import FileStamp, file_stamp, write_atomic
 from mowerhw.config import Config
 from mowerhw.map import MAX_MAP_BYTES, LawnMap, MapError, check_map_file
+from mowerhw.runtime.chains import RESUME_SIGMA_RESTART
 from mowerhw.runtime.pipelines import StartPose, TeachPipeline
 
 log = logging.getLogger("mowerhw.daemon")
 
 #: a pose saved by a previous run is resumed from if it is at most this old (s)
 RESUME_MAX_AGE_S = 120.0
+#: a saved gyro bias larger than this (rad/s) is not one (a garbled file): learnt again
+MAX_SAVED_BIAS_RAD_S = 1.0
 
 
 @functools.cache
@@ -191,6 +195,8 @@ class PoseFile:
             "position": np.asarray(pose.position).tolist(),
             "quaternion": np.asarray(pose.quaternion).tolist(),
         }
+        if pose.gyro_bias is not None:
+            doc["gyro_bias"] = np.asarray(pose.gyro_bias).tolist()
         try:
             write_atomic(self.path, json.dumps(doc).encode(), durable=False)
         except OSError as exc:
@@ -211,6 +217,8 @@ class PoseFile:
                 age = time.time() - float(doc["wall_time"])
             pos = np.asarray(doc["position"], dtype=np.float64).reshape(3)
             quat = np.asarray(doc["quaternion"], dtype=np.float64).reshape(4)
+            saved_bias = doc.get("gyro_bias")
+            bias = None if saved_bias is None else np.asarray(saved_bias, np.float64).reshape(3)
         except FileNotFoundError:
             return None
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
@@ -232,7 +240,18 @@ class PoseFile:
         if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))) or not np.any(quat):
             log.warning("not resuming from %s: its pose is not finite or not a rotation", self.path)
             return None
+        # the gyro bias the previous run had learnt (its landmarks refined it): within this
+        # boot only — the IMU may have been switched off with the computer
+        if bias is not None and not (same_boot and np.all(np.abs(bias) < MAX_SAVED_BIAS_RAD_S)):
+            bias = None
         log.info(
-            "resuming from the pose saved %.1f s ago by %s (σ widened to 0.12 m, 6°)", age, clock
+            "resuming from the pose saved %.1f s ago by %s (σ widened to %.2f m, %.0f°; %s)",
+            age,
+            clock,
+            RESUME_SIGMA_RESTART[0],
+            math.degrees(RESUME_SIGMA_RESTART[1]),
+            "the gyro bias it had"
+            if bias is not None
+            else "the gyro bias learnt again while the mower stands",
         )
-        return StartPose(pos, quat / np.linalg.norm(quat))
+        return StartPose(pos, quat / np.linalg.norm(quat), bias)
