@@ -114,8 +114,9 @@ def test_the_taught_map_knows_where_the_magnetic_field_points(taught):
 
 def test_a_prior_the_mower_has_left_gives_the_true_pose_or_none(taught):
     """A restart resumes from the pose saved when the daemon stopped; the mower may have
-    driven on and turned since (measured on the bench: 0.7 m and 122°, and the check near the
-    saved pose accepted a pose 0.25 m and 3° off, then permitted). One rendered frame, checked
+    driven on and turned since (measured on the bench: killed while turning on the spot, it
+    turned 18° more, and the check near the saved pose accepted a pose 0.25 m and 3° off,
+    then permitted). One rendered frame, checked
     near priors 0.3–0.9 m away and turned 30–130°: never a wrong pose; the true one from
     nearly all (nothing near such a prior explains the view, so the frame is judged as a
     search of the whole map — before: 4–5 inliers near the prior, no pose, for 3 s)."""

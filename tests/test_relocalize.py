@@ -87,8 +87,8 @@ def test_a_wrong_prior_gives_no_pose_when_another_place_explains_more() -> None:
 
 
 def test_a_prior_far_from_the_mower_says_nothing_and_the_whole_map_answers() -> None:
-    """A resumed pose the mower has since left (measured on the bench: it drove on and
-    turned 122° on the spot while the daemon restarted): no optimum within 1 m and 15° of
+    """A resumed pose the mower has since left (the daemon killed while the mower turned on
+    the spot, or drove on; on the bench it turned 18° more): no optimum within 1 m and 15° of
     the prior explains enough bearings, so the frame is judged as a search of the whole map
     — the true pose where one place explains the view (before: "3 inliers", no answer until
     the search widened 3 s later), no pose where a half-turned twin explains it as well

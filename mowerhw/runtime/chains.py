@@ -15,9 +15,9 @@ REBUILT_FRAMES = 10
 #: how far a resumed pose is widened: after a restart (the pose file is written at 10 Hz; σ
 #: under a third of the 0.4 m pane spacing of window landmarks, a wider prior locked onto the
 #: neighbouring corners on the bench) and after an estimator rebuilt within this run (from a
-#: pose at most 0.1 s old). The mower may have moved further meanwhile (on the bench: 0.7 m
-#: and a 122° turn on the spot while the daemon restarted): the relocalizer's check near the
-#: prior then finds nothing near it and judges the frame as a search of the whole map
+#: pose at most 0.1 s old). The mower may have moved on meanwhile (on the bench: killed while
+#: turning on the spot, it turned 18° more): the relocalizer's check near the prior takes only
+#: an optimum near it, and with none there judges the frame as a search of the whole map
 RESUME_SIGMA_RESTART = (0.12, math.radians(6.0))
 RESUME_SIGMA_REBUILT = (0.05, math.radians(3.0))
 
