@@ -626,3 +626,37 @@ def test_against_the_ground_the_pose_carries_the_map_frames_error(lawn_map):
     assert np.allclose(
         bare.ground_covariance(), bare.pose().covariance[np.ix_([0, 1, 5], [0, 1, 5])]
     )
+
+
+def test_one_near_landmark_paired_wrong_does_not_drag_a_loose_pose():
+    """A pose made loose (σ 6 cm: the mower standing, its ground speed silent) and a frame of
+    27 far landmarks seen right with one near one (3 m) paired 3° off — the bench's case, where
+    that one pulled the standing mower's pose 9 cm through the χ² gate. The update leaves that
+    bearing far off its own σ while the rest fit: it is refused and the pose does not move;
+    without ``own_sigma`` (the old update) it moves several centimetres. A frame whose
+    bearings all say the pose is 5 cm off still moves it there."""
+    from mowerhw.mow.ekf import LocalizerNoise, WorldPoseEKF
+
+    rng = np.random.default_rng(58)
+    ang = rng.uniform(-math.pi, math.pi, 28)
+    rng_m = np.r_[rng.uniform(6.0, 10.0, 27), 3.0]
+    pts = np.c_[rng_m * np.cos(ang), rng_m * np.sin(ang), rng.uniform(0.0, 1.5, 28)]
+    own = math.radians(0.23)
+
+    def update(truth: np.ndarray, wrong_deg: float, own_sigma: float | None) -> np.ndarray:
+        ekf = WorldPoseEKF(LocalizerNoise(), np.repeat(np.eye(3)[None] * 1e-6, 28, axis=0))
+        ekf.reset(np.zeros(3), np.array([1.0, 0, 0, 0]), 0.06, np.array([0.01, 0.01, 0.002]))
+        b = pts - truth
+        b /= np.linalg.norm(b, axis=1, keepdims=True)
+        b += rng.normal(0.0, math.radians(0.03), b.shape)
+        c, s = math.cos(math.radians(wrong_deg)), math.sin(math.radians(wrong_deg))
+        b[-1] = [c * b[-1, 0] - s * b[-1, 1], s * b[-1, 0] + c * b[-1, 1], b[-1, 2]]
+        b /= np.linalg.norm(b, axis=1, keepdims=True)
+        ekf.update(np.arange(28), pts, b, 2.0 * own, own_sigma=own_sigma)
+        return ekf.x[:2].copy()
+
+    here = np.zeros(3)
+    assert np.hypot(*update(here, 3.0, own)) < 0.01  # refused: the pose stays
+    assert np.hypot(*update(here, 3.0, None)) > 0.03  # the old update: dragged
+    off = np.array([0.05, 0.0, 0.0])  # every bearing says the mower is 5 cm along x
+    np.testing.assert_allclose(update(off, 0.0, own), off[:2], atol=0.01)

@@ -883,6 +883,7 @@ class Localizer:
             self._bearing_sigma(t),
             rate=rate,
             stamp_sigma=c.frame_stamp_sigma_s,
+            own_sigma=c.bearing_sigma_rad,
         )
         self.last_rejected = self.ids[rows[~out.accepted]]
         self.counters.bearings_used += out.used
