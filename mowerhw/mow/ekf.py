@@ -71,6 +71,20 @@ FAR_OFF_SHARE = 0.25
 _Gain = tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
 
 
+@dataclass(frozen=True)
+class _Linearised:
+    """A frame's bearings linearised for eq. (23): map rows, residuals (N, 2), ``H_x``,
+    ``H_L``, the bearing σ, and the stamp error's shared term (with its σ)."""
+
+    rows: NDArray[np.int64]
+    res: FloatArray
+    hx: FloatArray
+    hl: FloatArray
+    sigma: float
+    shared: FloatArray | None
+    stamp_sigma: float
+
+
 @dataclass
 class UpdateOutcome:
     accepted: NDArray[np.bool_]
@@ -314,9 +328,8 @@ class WorldPoseEKF:
         ok = np.isfinite(nis) & (nis <= self.gate)
         if not ok.any():
             return UpdateOutcome(ok, nis, 0, n)
-        ok, (dx, K, S, Hx, pll_hl) = self._fit(
-            ok, nis, rows, res, hx, hl, sigma, shared, stamp_sigma, own_sigma
-        )
+        frame = _Linearised(rows, res, hx, hl, sigma, shared, stamp_sigma)
+        ok, (dx, K, S, Hx, pll_hl) = self._fit(frame, ok, nis, own_sigma)
         out = UpdateOutcome(ok, nis, int(ok.sum()), int((~ok).sum()))
         self.P = self.P - K @ S @ K.T
         self.P = 0.5 * (self.P + self.P.T)
@@ -330,15 +343,9 @@ class WorldPoseEKF:
 
     def _fit(
         self,
+        frame: _Linearised,
         ok: NDArray[np.bool_],
         nis: FloatArray,
-        rows: NDArray[np.int64],
-        res: FloatArray,
-        hx: FloatArray,
-        hl: FloatArray,
-        sigma: float,
-        shared: FloatArray | None,
-        stamp_sigma: float,
         own_sigma: float | None,
     ) -> tuple[NDArray[np.bool_], _Gain]:
         """The bearings to update with and their :meth:`_gain`: every gated one, unless the
@@ -352,7 +359,7 @@ class WorldPoseEKF:
         pose 9 cm, and the standing frames after could not move it back). With no such
         subset, every gated bearing (the pose itself is off: the localizer's agreement
         rules judge that)."""
-        first = self._gain(ok, rows, res, hx, hl, sigma, shared, stamp_sigma)
+        first = self._gain(frame, ok)
         if own_sigma is None:
             return ok, first
         keep, fit = ok.copy(), first
@@ -360,7 +367,7 @@ class WorldPoseEKF:
         limit = POSTERIOR_GATE * own_sigma**2
         while True:
             dx, Hx = fit[0], fit[3]
-            post = res[keep] - (Hx @ dx).reshape(-1, 2)  # each residual after the update
+            post = frame.res[keep] - (Hx @ dx).reshape(-1, 2)  # each residual after it
             far = np.einsum("ni,ni->n", post, post) > limit
             if not far.any():
                 return keep, fit
@@ -370,21 +377,13 @@ class WorldPoseEKF:
             if out.size > room:
                 return ok, first
             keep[out] = False
-            fit = self._gain(keep, rows, res, hx, hl, sigma, shared, stamp_sigma)
+            fit = self._gain(frame, keep)
 
-    def _gain(
-        self,
-        ok: NDArray[np.bool_],
-        rows: NDArray[np.int64],
-        res: FloatArray,
-        hx: FloatArray,
-        hl: FloatArray,
-        sigma: float,
-        shared: FloatArray | None,
-        stamp_sigma: float,
-    ) -> _Gain:
+    def _gain(self, frame: _Linearised, ok: NDArray[np.bool_]) -> _Gain:
         """Eq. (23) for the bearings ``ok``: the correction, the gain, the innovation
         covariance, ``H_x`` and ``H_L P_LL`` (for the cross-covariance)."""
+        rows, res, hx, hl, sigma = frame.rows, frame.res, frame.hx, frame.hl, frame.sigma
+        shared, stamp_sigma = frame.shared, frame.stamp_sigma
         k = int(ok.sum())
         Hx = hx[ok].reshape(2 * k, N_ERR)
         # H_L as a dense (2k, 3·len(map)) matrix over the observed landmarks' columns only
