@@ -373,8 +373,7 @@ class RuntimeCore:
         saving = pipe.localizer.localized and not self.fault and not self.shutting_down
         if saving and now >= self._next_pose_save:
             self._next_pose_save = now + POSE_SAVE_PERIOD_S
-            p = pipe.localizer.pose()
-            self._pose_to_save = StartPose(p.position, p.quaternion, pipe.localizer.gyro_bias)
+            self._pose_to_save = pipe.last_good_pose()  # what a rebuild resumes from, too
         return containment
 
     def halt_sent(self, sent: float) -> None:
