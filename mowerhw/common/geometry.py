@@ -83,6 +83,20 @@ def quat_multiply(p: ArrayLike, q: ArrayLike) -> FloatArray:
     )
 
 
+def quat_multiply_unit(p: FloatArray, q: FloatArray) -> FloatArray:
+    """``quat_normalize(quat_multiply(p, q))`` for two single quaternions, without the
+    arrays between (the filters' per-sample attitude step)."""
+    pw, px, py, pz = p.tolist()
+    qw, qx, qy, qz = q.tolist()
+    w = pw * qw - px * qx - py * qy - pz * qz
+    x = pw * qx + px * qw + py * qz - pz * qy
+    y = pw * qy - px * qz + py * qw + pz * qx
+    z = pw * qz + px * qy - py * qx + pz * qw
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    n = -n if w < 0.0 else n
+    return np.array([w / n, x / n, y / n, z / n])
+
+
 def quat_to_rotmat(q: ArrayLike) -> FloatArray:
     """``R(q)`` for a unit quaternion, shape ``(..., 3, 3)``."""
     q = as_quat(q)

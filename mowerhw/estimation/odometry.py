@@ -32,15 +32,19 @@ class BodyMotion:
     """
 
     dq: FloatArray
-    c: FloatArray
     disp: FloatArray
     w: FloatArray
     dt: float
 
     @classmethod
     def of(cls, w: FloatArray, v: FloatArray, dt: float) -> BodyMotion:
-        dq = quat_exp(w * dt)
-        return cls(dq, quat_to_rotmat(dq), left_jacobian_times(w * dt, v * dt), w, dt)
+        phi = w * dt
+        return cls(quat_exp(phi), left_jacobian_times(phi, v * dt), w, dt)
+
+    @property
+    def c(self) -> FloatArray:
+        """``R(dq)`` (computed when asked: the world-centric filter does not need it)."""
+        return quat_to_rotmat(self.dq)
 
 
 def camera_velocity(

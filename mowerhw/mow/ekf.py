@@ -37,6 +37,7 @@ from mowerhw.common.geometry import (
     IDENTITY_QUAT,
     quat_exp,
     quat_multiply,
+    quat_multiply_unit,
     quat_normalize,
     quat_to_rotmat,
     skew,
@@ -278,13 +279,14 @@ class WorldPoseEKF:
         r = quat_to_rotmat(self.q)
         disp_w = r @ m.disp
         self.x = self.x + disp_w
-        self.q = quat_normalize(quat_multiply(self.q, m.dq))
+        self.q = quat_multiply_unit(self.q, m.dq)
         r_new = quat_to_rotmat(self.q)
         dt = m.dt
         phi = self._eye.copy()
-        phi[TH, BG] = -r_new * dt
-        phi[TH, K_] = -r_new[:, 2] * (m.w[2] * dt)  # the yaw rate's scale error
-        phi[X, TH] = -skew(disp_w)
+        phi[TH, BG] = r_new * -dt
+        phi[TH, K_] = r_new[:, 2] * -(float(m.w[2]) * dt)  # the yaw rate's scale error
+        dx, dy, dz = disp_w.tolist()
+        phi[X, TH] = ((0.0, dz, -dy), (-dz, 0.0, dx), (dy, -dx, 0.0))  # −[disp_w]×
         q = self._q_per_s * dt  # attitude, bias and scale random walks (diagonal)
         if not wheels_still:
             # the speed and slip densities are the noise of a mower that moves; a standing

@@ -62,7 +62,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from mowerhw.common.geometry import (
     quat_multiply,
-    quat_normalize,
+    quat_multiply_unit,
     quat_to_rotmat,
     quat_to_yaw,
     rotmat_to_quat,
@@ -476,11 +476,9 @@ class Localizer:
         self._injected += 1
 
     def is_finite(self) -> bool:
-        """Every number of the state and its covariance is finite."""
-        e = self.ekf
-        return bool(
-            np.all(np.isfinite(e.x)) and np.all(np.isfinite(e.q)) and np.all(np.isfinite(e.P))
-        )
+        """Every number of the state and its covariance is finite: the filter's own check,
+        the one each step's fault check makes (:meth:`WorldPoseEKF.finite`)."""
+        return self.ekf.finite()
 
     @property
     def version(self) -> tuple[Any, ...]:
@@ -1221,7 +1219,7 @@ class Localizer:
 def _move(s: EkfState | WorldPoseEKF, dq: FloatArray, dp: FloatArray) -> None:
     """Move a pose by a motion ``(dq, dp)`` given in its own body frame."""
     s.x = s.x + quat_to_rotmat(s.q) @ dp
-    s.q = quat_normalize(quat_multiply(s.q, dq))
+    s.q = quat_multiply_unit(s.q, dq)
 
 
 def _finite(s: EkfState) -> bool:
