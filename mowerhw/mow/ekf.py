@@ -115,6 +115,17 @@ class EkfState:
             self.x.copy(), self.q.copy(), self.bg.copy(), self.P.copy(), self.pxl.copy(), self.k
         )
 
+    def finite(self) -> bool:
+        """Every number of the state and its covariance is finite (:func:`_state_finite`)."""
+        return _state_finite(self)
+
+
+def _state_finite(s: EkfState | WorldPoseEKF) -> bool:
+    """The one finite check of a filter state: one sum per array — a NaN or an infinity
+    anywhere makes it non-finite (a sum that overflows from finite entries is as unusable)."""
+    total = s.x.sum() + s.q.sum() + s.P.sum() + s.bg.sum() + s.k
+    return math.isfinite(float(total))
+
 
 def _set_bias(s: EkfState | WorldPoseEKF, bias: FloatArray, var: float) -> None:
     s.bg = np.asarray(bias, dtype=np.float64).copy()
@@ -266,10 +277,8 @@ class WorldPoseEKF:
         return quat_to_rotmat(self.q)
 
     def finite(self) -> bool:
-        # one sum per array: a NaN or an infinity anywhere makes it non-finite (a sum that
-        # overflows from finite entries is as unusable)
-        total = self.x.sum() + self.q.sum() + self.P.sum() + self.bg.sum() + self.k
-        return math.isfinite(float(total))
+        """Every number of the state and its covariance is finite (:func:`_state_finite`)."""
+        return _state_finite(self)
 
     # -- eq. (21): propagation ------------------------------------------------------------------
 

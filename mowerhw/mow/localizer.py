@@ -1067,7 +1067,7 @@ class Localizer:
             return
         self.counters.faults += 1
         self._fault = "the estimator produced non-finite values and was restarted"
-        good = next((s.state for s in reversed(self._history) if _finite(s.state)), None)
+        good = next((s.state for s in reversed(self._history) if s.state.finite()), None)
         if good is not None:
             self.ekf.restore(good)
         if not self.ekf.finite():
@@ -1220,7 +1220,3 @@ def _move(s: EkfState | WorldPoseEKF, dq: FloatArray, dp: FloatArray) -> None:
     """Move a pose by a motion ``(dq, dp)`` given in its own body frame."""
     s.x = s.x + quat_to_rotmat(s.q) @ dp
     s.q = quat_multiply_unit(s.q, dq)
-
-
-def _finite(s: EkfState) -> bool:
-    return bool(np.all(np.isfinite(s.x)) and np.all(np.isfinite(s.P)))
