@@ -48,13 +48,13 @@ def test_product_is_composition(p, q, v):
     assert np.allclose(g.quat_rotate(g.quat_multiply(p, q), v), ref, atol=1e-9)
 
 
-
 @given(unit_quats(), unit_quats())
 def test_unit_product_is_the_normalised_product(p, q):
     # the filters' per-sample attitude step: the same numbers as the two steps it fuses
     fused = g.quat_multiply_unit(p, q)
     assert np.array_equal(fused, g.quat_normalize(g.quat_multiply(p, q)))
     assert fused[0] >= 0.0 and abs(np.linalg.norm(fused) - 1.0) < 1e-12
+
 
 @given(unit_quats())
 def test_rotmat_is_rotation_and_matches_scipy(q):
