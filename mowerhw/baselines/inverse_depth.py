@@ -27,8 +27,7 @@ from scipy.stats import chi2
 from mowerhw.common.geometry import (
     IDENTITY_QUAT,
     quat_exp,
-    quat_multiply,
-    quat_normalize,
+    quat_multiply_unit,
     quat_to_rotmat,
     skew,
     tangent_basis,
@@ -132,7 +131,7 @@ class InverseDepthEkfMapper:
         r = quat_to_rotmat(self.q)
         disp_w = r @ m.disp
         self.x = self.x + disp_w
-        self.q = quat_normalize(quat_multiply(self.q, m.dq))
+        self.q = quat_multiply_unit(self.q, m.dq)
         r_new = quat_to_rotmat(self.q)
         jr = right_jacobian(w * dt)[0]
         phi = np.eye(ROBOT)
@@ -225,7 +224,7 @@ class InverseDepthEkfMapper:
         ikh = np.eye(n_state) - K @ Hs
         self.P = ikh @ self.P @ ikh.T + K @ Rs @ K.T
         self.P = 0.5 * (self.P + self.P.T)
-        self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
+        self.q = quat_multiply_unit(quat_exp(dx[TH]), self.q)
         self.x = self.x + dx[X]
         self.bg = self.bg + dx[BG]
         self.lm = self.lm + dx[ROBOT:].reshape(-1, LM)

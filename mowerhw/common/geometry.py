@@ -85,7 +85,7 @@ def quat_multiply(p: ArrayLike, q: ArrayLike) -> FloatArray:
 
 def quat_multiply_unit(p: FloatArray, q: FloatArray) -> FloatArray:
     """``quat_normalize(quat_multiply(p, q))`` for two single quaternions, without the
-    arrays between (the filters' per-sample attitude step)."""
+    arrays between: the same numbers (the filters' attitude steps, each IMU sample's)."""
     pw, px, py, pz = p.tolist()
     qw, qx, qy, qz = q.tolist()
     w = pw * qw - px * qx - py * qy - pz * qz

@@ -36,7 +36,6 @@ from scipy.stats import chi2
 from mowerhw.common.geometry import (
     IDENTITY_QUAT,
     quat_exp,
-    quat_multiply,
     quat_multiply_unit,
     quat_normalize,
     quat_to_rotmat,
@@ -346,7 +345,7 @@ class WorldPoseEKF:
         self.P = 0.5 * (self.P + self.P.T)
         if self.pxl.shape[1]:
             self.pxl = self.pxl - K @ (Hx @ self.pxl + pll_hl)
-        self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
+        self.q = quat_multiply_unit(quat_exp(dx[TH]), self.q)
         self.x = self.x + dx[X]
         self.bg = self.bg + dx[BG]
         self.k = self.k + float(dx[K_])

@@ -33,8 +33,7 @@ from mowerhw.common.geometry import (
     IDENTITY_QUAT,
     quat_conjugate,
     quat_exp,
-    quat_multiply,
-    quat_normalize,
+    quat_multiply_unit,
     quat_to_rotmat,
     skew,
     tangent_basis,
@@ -121,7 +120,7 @@ class RobotCentricEKF:
         p_hat = self.p
         dt = m.dt
         self.p = m.c.T @ (p_hat - m.disp)
-        self.q = quat_normalize(quat_multiply(quat_conjugate(m.dq), self.q))
+        self.q = quat_multiply_unit(quat_conjugate(m.dq), self.q)
         phi, q = _transition(m.w.tolist(), p_hat.tolist(), dt, self.noise, self._qv_diag)
         self.P = phi @ self.P @ phi.T + q  # symmetrised at every update
         if self.pxa.shape[1]:
@@ -196,7 +195,7 @@ class RobotCentricEKF:
         self.P = ikh @ self.P @ ikh.T + K @ Rs @ K.T  # Joseph form
         self.P = 0.5 * (self.P + self.P.T)
         self.p = self.p + dx[P_]
-        self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
+        self.q = quat_multiply_unit(quat_exp(dx[TH]), self.q)
         self.bg = self.bg + dx[BG]
         return ok
 
@@ -319,7 +318,7 @@ class RobotCentricEKF:
         self.P = 0.5 * (self.P + self.P.T)
         self.pxa = self.pxa - K @ (H[sel] @ self.pxa + ha_full[sel] * self.pa_var)
         self.p = self.p + dx[P_]
-        self.q = quat_normalize(quat_multiply(quat_exp(dx[TH]), self.q))
+        self.q = quat_multiply_unit(quat_exp(dx[TH]), self.q)
         self.bg = self.bg + dx[BG]
         return ok
 
