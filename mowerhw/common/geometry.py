@@ -16,7 +16,7 @@ because they run at IMU rate on single quaternions, where scipy's object overhea
 from __future__ import annotations
 
 import math
-from typing import overload
+from typing import Any, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -42,10 +42,7 @@ def quat_normalize(q: ArrayLike) -> FloatArray:
     """Unit quaternion with a non-negative scalar part (the canonical sign)."""
     q = as_quat(q)
     if q.ndim == 1:
-        w, x, y, z = q.tolist()
-        n = math.sqrt(w * w + x * x + y * y + z * z)
-        n = -n if w < 0.0 else n
-        return np.array([w / n, x / n, y / n, z / n])
+        return _unit(*q.tolist())
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0.0, -q, q)
 
@@ -56,45 +53,37 @@ def quat_conjugate(q: ArrayLike) -> FloatArray:
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
+def _unit(w: float, x: float, y: float, z: float) -> FloatArray:
+    """A single quaternion's components scaled to unit length, scalar part ≥ 0."""
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    n = -n if w < 0.0 else n
+    return np.array([w / n, x / n, y / n, z / n])
+
+
+def _hamilton(
+    pw: Any, px: Any, py: Any, pz: Any, qw: Any, qx: Any, qy: Any, qz: Any
+) -> tuple[Any, Any, Any, Any]:
+    """The components of ``p ⊗ q`` from theirs (floats, or arrays broadcasting alike)."""
+    return (
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
+    )
+
+
 def quat_multiply(p: ArrayLike, q: ArrayLike) -> FloatArray:
     """Hamilton product ``p ⊗ q`` (so ``R(p ⊗ q) = R(p) R(q)``)."""
     p, q = as_quat(p), as_quat(q)
     if p.ndim == 1 and q.ndim == 1:  # the hot single-quaternion case, without broadcasting
-        pw, px, py, pz = p.tolist()
-        qw, qx, qy, qz = q.tolist()
-        return np.array(
-            [
-                pw * qw - px * qx - py * qy - pz * qz,
-                pw * qx + px * qw + py * qz - pz * qy,
-                pw * qy - px * qz + py * qw + pz * qx,
-                pw * qz + px * qy - py * qx + pz * qw,
-            ]
-        )
-    pw, px, py, pz = np.moveaxis(p, -1, 0)
-    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
+        return np.array(_hamilton(*p.tolist(), *q.tolist()))
+    return np.stack(_hamilton(*np.moveaxis(p, -1, 0), *np.moveaxis(q, -1, 0)), axis=-1)
 
 
 def quat_multiply_unit(p: FloatArray, q: FloatArray) -> FloatArray:
     """``quat_normalize(quat_multiply(p, q))`` for two single quaternions, without the
     arrays between: the same numbers (the filters' attitude steps, each IMU sample's)."""
-    pw, px, py, pz = p.tolist()
-    qw, qx, qy, qz = q.tolist()
-    w = pw * qw - px * qx - py * qy - pz * qz
-    x = pw * qx + px * qw + py * qz - pz * qy
-    y = pw * qy - px * qz + py * qw + pz * qx
-    z = pw * qz + px * qy - py * qx + pz * qw
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    n = -n if w < 0.0 else n
-    return np.array([w / n, x / n, y / n, z / n])
+    return _unit(*_hamilton(*p.tolist(), *q.tolist()))
 
 
 def quat_to_rotmat(q: ArrayLike) -> FloatArray:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,9 +42,10 @@ class BodyMotion:
         phi = w * dt
         return cls(quat_exp(phi), left_jacobian_times(phi, v * dt), w, dt)
 
-    @property
+    @cached_property
     def c(self) -> FloatArray:
-        """``R(dq)`` (computed when asked: the world-centric filter does not need it)."""
+        """``R(dq)``, computed once when first asked (the teach filter and its landmark
+        observers both read it; the world-centric filter does not need it)."""
         return quat_to_rotmat(self.dq)
 
 
