@@ -122,3 +122,24 @@ def test_a_yards_mower_is_configured_with_its_own_sensors():
     assert scenario_config("paper").mow.frame_stamp_sigma_s == 0.0
     assert scenario_config("paper").mow.bearing_sigma_rad == default
     assert scenario_config("U-sparse").mow.bearing_sigma_rad == pytest.approx(default * 5 / 3)
+
+
+def test_matched_noise_is_the_simulated_sensors_own():
+    """For a NEES that tests the filter (its models the truth's): the ground speed's white
+    noise and quantum as a density at its rate, sideways slip at the floor, the gyro scale
+    prior at its grade's (the simulated VN-100 has none: 0, not the shipped 0.5 % floor); what
+    a white density cannot stand for is listed; the teach section stays as shipped."""
+    import math
+
+    from mowerhw.evaluation.campaign import MATCHED_LATERAL_NOISE, matched_noise, scenario_config
+
+    shipped = scenario_config("paper")
+    cfg, unmatched = matched_noise(shipped, "paper")
+    assert cfg.mow.speed_noise == pytest.approx(math.sqrt(0.005**2 + 0.001**2 / 12) / math.sqrt(10))
+    assert cfg.mow.lateral_noise == MATCHED_LATERAL_NOISE < shipped.mow.lateral_noise
+    assert cfg.mow.gyro_scale_sigma == 0.0 < shipped.mow.gyro_scale_sigma
+    assert unmatched == []
+    assert cfg.teach == shipped.teach and cfg.mow.bearing_sigma_rad == shipped.mow.bearing_sigma_rad
+    slip, unmatched = matched_noise(scenario_config("slope-slip"), "slope-slip")
+    assert slip.mow.gyro_scale_sigma == 0.03  # its MPU-6050's ±3 %
+    assert len(unmatched) == 3 and any("slip" in u for u in unmatched)

@@ -5,6 +5,8 @@ Teaches the pixel-level map of ``--scenario``/``--seed`` (or loads ``--map``, a 
 teach saved: ``--save-map`` writes it), then ``--starts`` random starts with no prior and
 ``--kidnaps`` kidnaps mid-mow (:mod:`mowerhw.evaluation.recovery`). ``--no-lift``: the
 kidnaps do not show on the accelerometer or the lift switch (only the camera can tell).
+``--matched-noise``: the mow filter's process noise is the simulated sensors' own
+(:func:`mowerhw.evaluation.campaign.matched_noise`), not the shipped defaults' wider one.
 ``--per-run``: keep every run's figures in the JSON. ``--map-seeds 3-22``: teach each of
 those yards and make ``--starts`` starts and ``--kidnaps`` kidnaps on each (one map draws its
 errors once for all its runs; many maps let the Monte-Carlo draw them too), scores and NEES
@@ -22,7 +24,7 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
-from mowerhw.evaluation.campaign import scenario_config, seeds_of
+from mowerhw.evaluation.campaign import matched_noise, scenario_config, seeds_of
 from mowerhw.evaluation.pixel import pixel_map, yard_arguments
 from mowerhw.evaluation.recovery import (
     kidnap_runs,
@@ -54,6 +56,12 @@ def main() -> None:
     ap.add_argument("--per-run", action="store_true")
     ap.add_argument("--no-compass", action="store_true", help="the search without the magnetometer")
     ap.add_argument(
+        "--matched-noise",
+        action="store_true",
+        help="the mow filter's process noise set to the simulated sensors' (a consistency "
+        "test of the filter: the shipped defaults are wider on purpose); the teach as shipped",
+    )
+    ap.add_argument(
         "--map-seeds",
         metavar="SEEDS",
         help="e.g. 3-22: teach each of these yards and make --starts starts and --kidnaps "
@@ -61,13 +69,17 @@ def main() -> None:
     )
     args = ap.parse_args()
     cfg = scenario_config(args.scenario)  # the yard mower's own IMU grade
+    noise: dict[str, Any] = {}
+    if args.matched_noise:
+        cfg, unmatched = matched_noise(cfg, args.scenario)
+        noise = {"mow_noise_matched": {**_noise(cfg), "not_matched": unmatched}}
     if args.map_seeds:
-        _over_maps(args, cfg)
+        _over_maps(args, cfg, noise)
         return
     kidnaps = 20 if args.kidnaps is None else args.kidnaps
     t0 = time.perf_counter()
     lawn_map = pixel_map(args.scenario, args.seed, cfg, args.map, args.save_map)
-    out: dict[str, Any] = {"scenario": args.scenario, "seed": args.seed}
+    out: dict[str, Any] = {"scenario": args.scenario, "seed": args.seed, **noise}
     out["teach_s"] = round(time.perf_counter() - t0, 1)
     # the map's landmark covariances against their truth in the map's frame
     out["map_landmarks"] = map_landmark_nees(lawn_map)
@@ -103,7 +115,17 @@ def main() -> None:
     print(json.dumps(out))
 
 
-def _over_maps(args: argparse.Namespace, cfg: Any) -> None:
+def _noise(cfg: Any) -> dict[str, float]:
+    """The mow filter's process noise in ``cfg`` (for the JSON)."""
+    m = cfg.mow
+    return {
+        "speed_noise": round(m.speed_noise, 7),
+        "lateral_noise": round(m.lateral_noise, 7),
+        "gyro_scale_sigma": m.gyro_scale_sigma,
+    }
+
+
+def _over_maps(args: argparse.Namespace, cfg: Any, noise: dict[str, Any]) -> None:
     """``--map-seeds``: one pixel-level teach per yard seed, ``--starts`` starts and
     ``--kidnaps`` kidnaps on each."""
     try:
@@ -115,7 +137,7 @@ def _over_maps(args: argparse.Namespace, cfg: Any) -> None:
     taught = ((seed, pixel_map(args.scenario, seed, cfg)) for seed in seeds)  # in turn
     # starts and kidnaps both: each map taught once, kept for the second pool
     maps: Iterable[tuple[int, Any]] = list(taught) if args.starts and kidnaps else taught
-    out: dict[str, Any] = {"scenario": args.scenario, "map_seeds": seeds}
+    out: dict[str, Any] = {"scenario": args.scenario, "map_seeds": seeds, **noise}
     if args.starts:
         out["starts"] = start_runs_over_maps(
             maps,
