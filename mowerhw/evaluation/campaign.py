@@ -17,7 +17,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -201,15 +201,13 @@ def matched_noise(config: Any, scenario: str) -> tuple[Any, list[str]]:
     :data:`MATCHED_LATERAL_NOISE`, the scale prior at the gyro grade's own. Not matchable by a
     white density, and listed: a day-to-day speed scale change, wheel-slip events, a slope
     or bumps (the camera's mast sways sideways). The teach section is left as it is."""
-    import dataclasses
-
     from mowerhw.sim.scenarios import SCENARIOS
 
     yard = SCENARIOS[scenario]
     sensors = yard.sensors
     speed = sensors.speed
     per_sample = math.sqrt(speed.white**2 + speed.quantum**2 / 12.0)  # m/s, one reading
-    mow = dataclasses.replace(
+    mow = replace(
         config.mow,
         speed_noise=per_sample / math.sqrt(sensors.rates.speed_hz),  # m/s/√Hz
         lateral_noise=MATCHED_LATERAL_NOISE,
@@ -222,7 +220,7 @@ def matched_noise(config: Any, scenario: str) -> tuple[Any, list[str]]:
         unmatched.append(f"wheel slip events ({speed.slip_per_min:g} a minute)")
     if yard.slope_deg > 0.0 or yard.bumps_per_m2 > 0.0:
         unmatched.append("the mast's sideways sway on a slope or bumps")
-    return dataclasses.replace(config, mow=mow), unmatched
+    return replace(config, mow=mow), unmatched
 
 
 def with_bed_keepouts(lawn_map: Any, scenario: str, seed: int) -> Any:
