@@ -277,7 +277,7 @@ def test_bearing_errors_are_told_apart_into_what_stays_and_what_changes() -> Non
 
 
 def test_starts_over_several_maps_pool_their_scores_and_nees(monkeypatch) -> None:
-    """``start_runs_over_maps``: each map's starts scored on their own (``per_map``) and
+    """``runs_over_maps``, starts: each map's starts scored on their own (``per_map``) and
     together, every relocalization's NEES in one pool — one map's wrong answer shows in the
     pooled per-relocalization tail."""
     from mowerhw.evaluation import recovery as R
@@ -303,8 +303,12 @@ def test_starts_over_several_maps_pool_their_scores_and_nees(monkeypatch) -> Non
         return runs, log
 
     monkeypatch.setattr(R, "_starts", fake_starts)
-    out = R.start_runs_over_maps([(1, None), (2, None), (3, None)], "paper", 4)
-    assert out["maps"] == 3 and out["starts"] == 12
+    made: list[int] = []
+    out = R.runs_over_maps([1, 2, 3], made.append, "paper", 4, 0)
+    assert made == [1, 2, 3] and "kidnaps" not in out  # each map made once, in its task
+    assert out["maps"] == 3
+    out = out["starts"]
+    assert out["starts"] == 12
     assert [m["seed"] for m in out["per_map"]] == [1, 2, 3]
     assert [m["accepted_wrong_over_0.15m"] for m in out["per_map"]] == [0, 1, 0]
     assert (
@@ -318,7 +322,7 @@ def test_starts_over_several_maps_pool_their_scores_and_nees(monkeypatch) -> Non
 
 
 def test_kidnaps_over_several_maps_pool_their_scores_and_nees(monkeypatch) -> None:
-    """``kidnap_runs_over_maps``: each map's kidnaps scored on their own (``per_map``) and
+    """``runs_over_maps``, kidnaps: each map's kidnaps scored on their own (``per_map``) and
     together — a wrong relocalization permitted on one map counts in the pool, a run that
     was never kidnapped while mowing counts in neither."""
     from mowerhw.evaluation import recovery as R
@@ -345,8 +349,10 @@ def test_kidnaps_over_several_maps_pool_their_scores_and_nees(monkeypatch) -> No
         return out, log
 
     monkeypatch.setattr(R, "_kidnaps", fake_kidnaps)
-    out = R.kidnap_runs_over_maps([(1, None), (2, None), (3, None)], "paper", 4)
-    assert out["maps"] == 3 and out["runs"] == 12
+    out = R.runs_over_maps([1, 2, 3], lambda seed: None, "paper", 0, 4)
+    assert out["maps"] == 3 and "starts" not in out
+    out = out["kidnaps"]
+    assert out["runs"] == 12
     assert [m["seed"] for m in out["per_map"]] == [1, 2, 3]
     assert [m["kidnapped_while_mowing"] for m in out["per_map"]] == [4, 4, 3]
     assert [m["wrong_relocalizations_permitted"] for m in out["per_map"]] == [0, 1, 0]
@@ -354,3 +360,35 @@ def test_kidnaps_over_several_maps_pool_their_scores_and_nees(monkeypatch) -> No
     assert out["wrong_relocalizations_permitted"] == 1
     assert {r["seed"] for r in out["per_run"]} == {1, 2, 3}
     assert out["nees"]["per_relocalization"]["relocalizations"] == 11
+
+
+def test_pixel_maps_keep_a_taught_map_and_refuse_another_yards(monkeypatch, tmp_path, map_file):
+    """``PixelMaps`` with a folder: a map taught once is written there and loaded the next
+    time (not taught again); a file there that is another yard's map is refused by name."""
+    from mowerhw.evaluation import pixel
+    from mowerhw.map import load
+
+    taught: list[int] = []
+
+    def fake_pixel_map(scenario, seed, config, path=None, save=None):
+        taught.append(seed)
+        lawn_map = load(map_file)
+        lawn_map.teach["sim"] = {"scenario": scenario, "seed": seed, "level": "pixel"}
+        if save:
+            lawn_map.save(save)
+        return lawn_map
+
+    monkeypatch.setattr(pixel, "pixel_map", fake_pixel_map)
+    maps = pixel.PixelMaps("paper", object(), str(tmp_path / "kept"))  # type: ignore[arg-type]
+    first = maps(4)
+    again = maps(4)
+    assert taught == [4] and (tmp_path / "kept" / "paper_4.json").exists()
+    assert (
+        again.teach["sim"]
+        == first.teach["sim"]
+        == {"scenario": "paper", "seed": 4, "level": "pixel"}
+    )
+    (tmp_path / "kept" / "paper_4.json").rename(tmp_path / "kept" / "paper_5.json")
+    with pytest.raises(ValueError, match=r"paper_5\.json: kept map is of scenario 'paper', seed 4"):
+        maps(5)
+    assert taught == [4]

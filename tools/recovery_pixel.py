@@ -10,9 +10,13 @@ kidnaps do not show on the accelerometer or the lift switch (only the camera can
 ``--per-run``: keep every run's figures in the JSON. ``--map-seeds 3-22``: teach each of
 those yards and make ``--starts`` starts and ``--kidnaps`` kidnaps on each (one map draws its
 errors once for all its runs; many maps let the Monte-Carlo draw them too), scores and NEES
-pooled, each map's scores kept.
+pooled, each map's scores kept; ``--workers N`` runs N maps at a time (``--scheduler`` on a
+Dask cluster), ``--map-dir DIR`` keeps the taught maps for the next run. One run per map is
+the Monte-Carlo whose NEES the χ² bounds are for: a map's runs all share its errors.
 
     .venv/bin/python tools/recovery_pixel.py --scenario paper --seed 1 --starts 100 --kidnaps 20
+    .venv/bin/python tools/recovery_pixel.py --scenario look-alike --map-seeds 3-102 \
+        --starts 1 --kidnaps 0 --workers 2 --map-dir maps/look-alike
 """
 
 from __future__ import annotations
@@ -21,18 +25,11 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Iterable
 from typing import Any
 
 from mowerhw.evaluation.campaign import matched_noise, scenario_config, seeds_of
-from mowerhw.evaluation.pixel import pixel_map, yard_arguments
-from mowerhw.evaluation.recovery import (
-    kidnap_runs,
-    kidnap_runs_over_maps,
-    map_landmark_nees,
-    start_runs,
-    start_runs_over_maps,
-)
+from mowerhw.evaluation.pixel import PixelMaps, pixel_map, yard_arguments
+from mowerhw.evaluation.recovery import kidnap_runs, map_landmark_nees, runs_over_maps, start_runs
 
 
 def _progress(kind: str) -> Any:
@@ -67,7 +64,23 @@ def main() -> None:
         help="e.g. 3-22: teach each of these yards and make --starts starts and --kidnaps "
         "kidnaps on each (the Monte-Carlo draws the map too)",
     )
+    ap.add_argument(
+        "--map-dir",
+        metavar="DIR",
+        help="with --map-seeds: keep each taught map in DIR (<scenario>_<seed>.json) and "
+        "load it from there next time instead of teaching it again",
+    )
+    ap.add_argument(
+        "--workers", type=int, default=1, help="with --map-seeds: maps run at a time (processes)"
+    )
+    ap.add_argument(
+        "--scheduler",
+        metavar="ADDR",
+        help="with --map-seeds: a Dask scheduler (tcp://host:8786) runs the maps instead",
+    )
     args = ap.parse_args()
+    if args.workers < 1:
+        ap.error(f"--workers {args.workers}: expected 1 or more")
     cfg = scenario_config(args.scenario)  # the yard mower's own IMU grade
     noise: dict[str, Any] = {}
     if args.matched_noise:
@@ -126,41 +139,29 @@ def _noise(cfg: Any) -> dict[str, float]:
 
 
 def _over_maps(args: argparse.Namespace, cfg: Any, noise: dict[str, Any]) -> None:
-    """``--map-seeds``: one pixel-level teach per yard seed, ``--starts`` starts and
-    ``--kidnaps`` kidnaps on each."""
+    """``--map-seeds``: one pixel-level map per yard seed (taught, or kept in ``--map-dir``),
+    ``--starts`` starts and ``--kidnaps`` kidnaps on each, ``--workers`` maps at a time."""
     try:
         seeds = seeds_of(args.map_seeds)
     except ValueError:
         sys.exit(f"--map-seeds {args.map_seeds!r}: expected e.g. 3-22 or 3,5,9")
-    kidnaps = args.kidnaps or 0
     t0 = time.perf_counter()
-    taught = ((seed, pixel_map(args.scenario, seed, cfg)) for seed in seeds)  # in turn
-    # starts and kidnaps both: each map taught once, kept for the second pool
-    maps: Iterable[tuple[int, Any]] = list(taught) if args.starts and kidnaps else taught
-    out: dict[str, Any] = {"scenario": args.scenario, "map_seeds": seeds, **noise}
-    if args.starts:
-        out["starts"] = start_runs_over_maps(
-            maps,
-            args.scenario,
-            args.starts,
-            cfg,
-            progress=_progress("starts, map"),
-            compass=not args.no_compass,
-        )
-        if not args.per_run:
-            out["starts"].pop("runs")
-    if kidnaps:
-        out["kidnaps"] = kidnap_runs_over_maps(
-            maps,
-            args.scenario,
-            kidnaps,
-            cfg,
-            lifted=not args.no_lift,
-            progress=_progress("kidnaps, map"),
-            compass=not args.no_compass,
-        )
-        if not args.per_run:
-            out["kidnaps"].pop("per_run")
+    out = runs_over_maps(
+        seeds,
+        PixelMaps(args.scenario, cfg, args.map_dir),
+        args.scenario,
+        args.starts,
+        args.kidnaps or 0,
+        cfg,
+        lifted=not args.no_lift,
+        compass=not args.no_compass,
+        workers=args.workers,
+        scheduler=args.scheduler,
+    )
+    out = {**out, "map_seeds": seeds, **noise}
+    if not args.per_run:
+        out.get("starts", {}).pop("runs", None)
+        out.get("kidnaps", {}).pop("per_run", None)
     out["wall_s"] = round(time.perf_counter() - t0, 1)
     print(json.dumps(out))
 

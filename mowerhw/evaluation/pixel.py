@@ -334,3 +334,39 @@ def pixel_map(
     if save:
         lawn_map.save(save)
     return lawn_map
+
+
+@dataclass(frozen=True)
+class PixelMaps:
+    """The pixel-level map of each seed of the yard ``scenario`` (:func:`pixel_map`, taught
+    with ``config``), kept in ``folder`` as ``<scenario>_<seed>.json`` when one is given:
+    a map kept there is loaded instead of taught again (a pool re-run with other settings
+    draws the same maps; delete the folder after changing the teach), a map taught is
+    written there. A file there that is not this yard's pixel-level map of that seed is
+    refused. Picklable: a campaign's workers each make their own maps."""
+
+    scenario: str
+    config: Config
+    folder: str | None = None
+
+    def __call__(self, seed: int) -> Any:
+        from pathlib import Path
+
+        from mowerhw.map import load
+
+        if self.folder is None:
+            return pixel_map(self.scenario, seed, self.config)
+        path = Path(self.folder) / f"{self.scenario}_{seed}.json"
+        if not path.exists():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            return pixel_map(self.scenario, seed, self.config, save=str(path))
+        lawn_map = load(path)
+        sim = lawn_map.teach.get("sim") or {}
+        got = (sim.get("scenario"), sim.get("seed"), sim.get("level"))
+        if got != (self.scenario, seed, "pixel"):
+            raise ValueError(
+                f"{path}: kept map is of scenario {got[0]!r}, seed {got[1]!r}, level "
+                f"{got[2]!r}; expected {self.scenario!r}, seed {seed}, level 'pixel' "
+                "(a map from another yard cannot score this one: move it away)"
+            )
+        return lawn_map

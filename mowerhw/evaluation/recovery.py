@@ -22,7 +22,8 @@ that frame, so an error the whole map shares moves the boundary with the pose).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -281,52 +282,104 @@ def start_runs(
     }
 
 
-def _over_maps(
-    maps: Iterable[tuple[int, LawnMap]],
-    one_map: Callable[[int, LawnMap], tuple[Runs, _NeesLog]],
+@dataclass(frozen=True)
+class _MapRuns:
+    """One map's share of :func:`runs_over_maps` (a worker's task: it makes the map too)."""
+
+    seed: int
+    map_of: Callable[[int], LawnMap]
+    scenario: str
+    starts: int
+    kidnaps: int
+    config: Config | None
+    lifted: bool
+    compass: bool
+
+    def __call__(self) -> tuple[Runs, _NeesLog, Runs, _NeesLog]:
+        lawn_map = self.map_of(self.seed)
+        starts: tuple[Runs, _NeesLog] = ([], _NeesLog(None))
+        kidnaps: tuple[Runs, _NeesLog] = ([], _NeesLog(None))
+        if self.starts > 0:
+            starts = _starts(
+                lawn_map, self.scenario, self.seed, self.starts, self.config, START_S, None,
+                self.compass,
+            )  # fmt: skip
+        if self.kidnaps > 0:
+            kidnaps = _kidnaps(
+                lawn_map, self.scenario, self.seed, self.kidnaps, self.config, self.lifted,
+                None, self.compass,
+            )  # fmt: skip
+        return (*starts, *kidnaps)
+
+
+def _run_task(task: _MapRuns) -> tuple[Runs, _NeesLog, Runs, _NeesLog]:
+    return task()
+
+
+def runs_over_maps(
+    seeds: Sequence[int],
+    map_of: Callable[[int], LawnMap],
+    scenario: str,
+    starts_per_map: int,
+    kidnaps_per_map: int,
+    config: Config | None = None,
+    lifted: bool = True,
+    compass: bool = True,
+    workers: int = 1,
+    scheduler: Any = None,
+) -> dict[str, Any]:
+    """:func:`start_runs` and :func:`kidnap_runs` spread over independently taught maps, one
+    per yard seed (``map_of(seed)``, e.g. :class:`mowerhw.evaluation.pixel.PixelMaps`): the
+    Monte-Carlo then draws the map's errors too, where one map draws them once for all its
+    runs (its runs' NEES share that map's error, so a pool of few maps is a smaller sample
+    than its run count says; one run per map makes every run an independent draw). Each
+    map made and run in one task, ``workers`` local processes or a Dask ``scheduler``
+    (:func:`mowerhw.evaluation.campaign.parallel_map`). Scores and NEES pooled per kind
+    (``starts``, ``kidnaps``: a kind with no runs is left out), ``per_map`` each map's."""
+    from mowerhw.evaluation.campaign import parallel_map
+
+    tasks = [
+        _MapRuns(seed, map_of, scenario, starts_per_map, kidnaps_per_map, config, lifted, compass)
+        for seed in seeds
+    ]
+    done = parallel_map(_run_task, tasks, workers, scheduler, "maps")
+    out: dict[str, Any] = {"scenario": scenario, "maps": len(tasks)}
+    if starts_per_map > 0:
+        runs, pooled, per_map = _pool(seeds, [(d[0], d[1]) for d in done], _start_scores)
+        out["starts"] = {
+            **_start_scores(runs),
+            **pooled.summary(),
+            "per_map": per_map,
+            "runs": runs,
+        }
+    if kidnaps_per_map > 0:
+        runs, pooled, per_map = _pool(seeds, [(d[2], d[3]) for d in done], _kidnap_scores)
+        out["kidnaps"] = {
+            "runs": len(runs),
+            "lift_seen": lifted,
+            **_kidnap_scores(runs),
+            **pooled.summary(),
+            "per_map": per_map,
+            "per_run": runs,
+        }
+    return out
+
+
+def _pool(
+    seeds: Sequence[int],
+    each: Sequence[tuple[Runs, _NeesLog]],
     score: Callable[[Runs], dict[str, Any]],
-    progress: Callable[[int, dict[str, Any]], None] | None,
 ) -> tuple[Runs, _NeesLog, Runs]:
-    """``one_map``'s runs on each map (its seed in each run), their NEES pooled, and each
-    map's ``score``."""
+    """Each map's runs (its seed put in each run), their NEES pooled, and each map's
+    ``score``."""
     runs: Runs = []
     pooled = _NeesLog(None)
     per_map: Runs = []
-    for seed, lawn_map in maps:
-        mine, nees = one_map(seed, lawn_map)
+    for seed, (mine, nees) in zip(seeds, each, strict=True):
         pooled.extend(nees)
         per_map.append({"seed": seed, **score(mine)})
         runs += [{"seed": seed, **r} for r in mine]
-        if progress is not None:
-            progress(len(per_map) - 1, per_map[-1])
     return runs, pooled, per_map
-
-
-def start_runs_over_maps(
-    maps: Iterable[tuple[int, LawnMap]],
-    scenario: str,
-    starts_per_map: int,
-    config: Config | None = None,
-    progress: Callable[[int, dict[str, Any]], None] | None = None,
-    compass: bool = True,
-) -> dict[str, Any]:
-    """:func:`start_runs` spread over several independently taught maps (``maps``: the
-    yard's seed and its map): the Monte-Carlo then draws the map's errors too, where one map
-    draws them once for all its starts. Scores and NEES pooled; ``per_map`` each map's."""
-    runs, pooled, per_map = _over_maps(
-        maps,
-        lambda seed, m: _starts(m, scenario, seed, starts_per_map, config, START_S, None, compass),
-        _start_scores,
-        progress,
-    )
-    return {
-        "scenario": scenario,
-        "maps": len(per_map),
-        **_start_scores(runs),
-        **pooled.summary(),
-        "per_map": per_map,
-        "runs": runs,
-    }
 
 
 def _starts(
@@ -428,36 +481,6 @@ def kidnap_runs(
         **_kidnap_scores(out_runs),
         **nees.summary(),
         "per_run": out_runs,
-    }
-
-
-def kidnap_runs_over_maps(
-    maps: Iterable[tuple[int, LawnMap]],
-    scenario: str,
-    runs_per_map: int,
-    config: Config | None = None,
-    lifted: bool = True,
-    progress: Callable[[int, dict[str, Any]], None] | None = None,
-    compass: bool = True,
-) -> dict[str, Any]:
-    """:func:`kidnap_runs` spread over several independently taught maps (``maps``: the
-    yard's seed and its map), as :func:`start_runs_over_maps` does for the starts: scores
-    and NEES pooled; ``per_map`` each map's."""
-    runs, pooled, per_map = _over_maps(
-        maps,
-        lambda seed, m: _kidnaps(m, scenario, seed, runs_per_map, config, lifted, None, compass),
-        _kidnap_scores,
-        progress,
-    )
-    return {
-        "scenario": scenario,
-        "maps": len(per_map),
-        "runs": len(runs),
-        "lift_seen": lifted,
-        **_kidnap_scores(runs),
-        **pooled.summary(),
-        "per_map": per_map,
-        "per_run": runs,
     }
 
 
