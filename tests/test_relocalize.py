@@ -56,6 +56,7 @@ def test_a_place_that_looks_like_another_gives_no_pose() -> None:
     p, yaw = np.array([1.0, 0.5, 0.0]), 0.4
     res = GlobalRelocalizer(_map(pts)).locate(_view(pts, p, yaw, rng, 0.001))
     assert not res.ok and res.why.startswith("ambiguous"), res.why
+    assert "moving or turning the mower" in res.why  # what the operator can do about it
 
 
 def test_a_wrong_prior_gives_no_pose_when_another_place_explains_more() -> None:

@@ -862,7 +862,11 @@ class GlobalRelocalizer:
                     len(hyps),
                 )
         elif runner > self.ambiguity_ratio * n_best and n_best - runner < self.ambiguity_margin:
-            return done(f"ambiguous: {n_best} inliers here, {runner} at another place", len(hyps))
+            return done(
+                f"ambiguous: {n_best} inliers here, {runner} at another place (standing still "
+                "keeps the same view: moving or turning the mower may tell them apart)",
+                len(hyps),
+            )
         if rival > self.LOCAL_AMBIGUITY_RATIO and rival_pose is not None:
             moved = float(np.hypot(*(rival_pose[:2] - state[:2])))
             turn = math.degrees(abs(wrap_angle(float(rival_pose[2] - state[2]))))
