@@ -30,6 +30,7 @@ daemon's ``cpu_percent`` and ``peak_rss_mb`` from ``/proc``.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import logging
@@ -172,6 +173,10 @@ class Bench:
         self.web = web  # serve the status page, and measure it (bench.web_check)
         self.web_url = ""
         self._web: dict[str, Any] = {}
+        # a run cut short (its test failed, its thread abandoned) must not leave the daemon
+        # running past this process: in its own session it outlives us (one left behind by
+        # a failed test was still running when the next session's benches failed)
+        atexit.register(self._stop_daemon)
 
     # ----------------------------------------------------------------------------- set-up
 
