@@ -68,7 +68,8 @@ def main() -> None:
         "--map-dir",
         metavar="DIR",
         help="with --map-seeds: keep each taught map in DIR (<scenario>_<seed>.json) and "
-        "load it from there next time instead of teaching it again",
+        "load it from there next time instead of teaching it again (empty the folder after "
+        "changing the teach: a kept map is checked for its yard and seed, not for the code)",
     )
     ap.add_argument(
         "--workers", type=int, default=1, help="with --map-seeds: maps run at a time (processes)"
