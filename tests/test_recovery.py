@@ -392,3 +392,23 @@ def test_pixel_maps_keep_a_taught_map_and_refuse_another_yards(monkeypatch, tmp_
     with pytest.raises(ValueError, match=r"paper_5\.json: kept map is of scenario 'paper', seed 4"):
         maps(5)
     assert taught == [4]
+
+
+def test_the_nees_split_by_component_and_phase_names_the_over_sure_part() -> None:
+    """``component_summary``: x held at twice its σ while the mower stands (the first 2.5 s),
+    at its σ after; y at its σ throughout; the heading exact — each component's z² per
+    phase, and its rms error and σ in mm and degrees."""
+    from mowerhw.evaluation.recovery import component_summary
+
+    n, dt = 1000, 0.01
+    sigma = np.array([0.002, 0.003, math.radians(0.02)])
+    err = np.tile(sigma * [1.0, 1.0, 0.0], (n, 1))
+    err[:250, 0] *= 2.0
+    cov = np.tile(np.diag(sigma**2), (n, 1, 1))
+    rows = component_summary([(err, cov), (-err, cov)], dt)
+    assert [(r["from_s"], r["to_s"]) for r in rows] == [(0.0, 2.5), (2.5, 5.0), (5.0, 10.0)]
+    assert rows[0]["z2_x_y_heading"] == [4.0, 1.0, 0.0]
+    assert rows[1]["z2_x_y_heading"] == rows[2]["z2_x_y_heading"] == [1.0, 1.0, 0.0]
+    assert rows[0]["rms_error_mm_mm_deg"] == [4.0, 3.0, 0.0]
+    assert rows[2]["rms_sigma_mm_mm_deg"] == [2.0, 3.0, 0.02]
+    assert component_summary([(err[:100], cov[:100])], dt)[-1]["to_s"] == 2.5  # short: one phase

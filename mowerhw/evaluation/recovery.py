@@ -154,20 +154,69 @@ def map_landmark_nees(lawn_map: LawnMap) -> dict[str, Any] | None:
     }
 
 
-def _nees(out: MowOutcome, align: Alignment | None = None) -> list[FloatArray]:
-    """The NEES of (x, y, heading) over :data:`NEES_S` after each accepted relocalization,
-    against the truth with the covariance against the ground, or (``align``) against the
-    truth in the map's frame with the covariance against the map."""
+def _after_relocalizations(
+    out: MowOutcome, align: Alignment | None = None
+) -> list[tuple[FloatArray, FloatArray]]:
+    """The (x, y, heading) errors and covariances over :data:`NEES_S` after each accepted
+    relocalization: against the truth with the covariance against the ground, or
+    (``align``) against the truth in the map's frame with the covariance against the map."""
     err = _pose_errors(out, align)
     covs = out.cov_xy_yaw if align is not None else out.cov_xy_yaw_ground
     dt = float(out.t[1] - out.t[0])
     n = round(NEES_S / dt)
-    series = []
-    for k in np.flatnonzero(np.diff(out.relocalizations) > 0) + 1:
-        seg = slice(k, min(k + n, out.t.size))
-        e, cov = err[seg], covs[seg]
-        series.append(np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0]))
-    return series
+    segs = [
+        slice(k, min(k + n, out.t.size))
+        for k in np.flatnonzero(np.diff(out.relocalizations) > 0) + 1
+    ]
+    return [(err[seg], covs[seg]) for seg in segs]
+
+
+def _nees(out: MowOutcome, align: Alignment | None = None) -> list[FloatArray]:
+    """The NEES of (x, y, heading) after each accepted relocalization
+    (:func:`_after_relocalizations`)."""
+    return [
+        np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
+        for e, cov in _after_relocalizations(out, align)
+    ]
+
+
+#: the phases of :func:`component_summary` (s after acceptance): a relocalized mower stands
+#: for the first few seconds (a start: 5 s), then drives
+PHASES_S = ((0.0, 2.5), (2.5, 5.0), (5.0, NEES_S))
+
+
+def component_summary(
+    segments: list[tuple[FloatArray, FloatArray]], dt: float
+) -> list[dict[str, Any]]:
+    """Each component's share of the NEES, phase by phase (:data:`PHASES_S`): the mean of
+    its error² over its own variance (1 for an honest filter; the NEES of 3 split into x, y
+    and heading, correlations aside), its rms error and its rms σ (mm, mm, degrees). Where a
+    bin is over or under, this says which component and when (standing or driving)."""
+    rows = []
+    units = np.array([1e3, 1e3, math.degrees(1.0)])
+    for lo, hi in PHASES_S:
+        part = slice(round(lo / dt), round(hi / dt))
+        e = [s[0][part] for s in segments if s[0][part].size]
+        if not e:
+            continue
+        err = np.concatenate(e)
+        var = np.concatenate(
+            [np.diagonal(s[1][part], axis1=1, axis2=2) for s in segments if s[0][part].size]
+        )
+        rows.append(
+            {
+                "from_s": lo,
+                "to_s": hi,
+                "z2_x_y_heading": [round(float(v), 2) for v in np.mean(err**2 / var, axis=0)],
+                "rms_error_mm_mm_deg": [
+                    round(float(v), 3) for v in np.sqrt(np.mean(err**2, axis=0)) * units
+                ],
+                "rms_sigma_mm_mm_deg": [
+                    round(float(v), 3) for v in np.sqrt(np.mean(var, axis=0)) * units
+                ],
+            }
+        )
+    return rows
 
 
 class _NeesLog:
@@ -178,11 +227,14 @@ class _NeesLog:
         self.align = None if lawn_map is None else map_alignment(lawn_map)
         self.series: list[FloatArray] = []
         self.aligned: list[FloatArray] = []
+        #: per relocalization, in the map's frame: errors and covariances (component_summary)
+        self.components: list[tuple[FloatArray, FloatArray]] = []
         self.dt = 0.01
 
     def extend(self, other: _NeesLog) -> None:
         self.series += other.series
         self.aligned += other.aligned
+        self.components += other.components
         self.dt = other.dt
 
     def add(self, out: MowOutcome) -> None:
@@ -190,6 +242,7 @@ class _NeesLog:
         self.series += _nees(out)
         if self.align is not None:
             self.aligned += _nees(out, self.align)
+            self.components += _after_relocalizations(out, self.align)
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -199,6 +252,9 @@ class _NeesLog:
                 nees_summary(self.aligned, self.dt)
                 if self.align is not None or self.aligned
                 else None
+            ),
+            "components_in_map_frame": (
+                component_summary(self.components, self.dt) if self.components else None
             ),
         }
 
