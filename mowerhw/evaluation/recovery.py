@@ -171,12 +171,10 @@ def _after_relocalizations(
     return [(err[seg], covs[seg]) for seg in segs]
 
 
-def _nees(out: MowOutcome, align: Alignment | None = None) -> list[FloatArray]:
-    """The NEES of (x, y, heading) after each accepted relocalization
-    (:func:`_after_relocalizations`)."""
+def _nees(segments: list[tuple[FloatArray, FloatArray]]) -> list[FloatArray]:
+    """The NEES of (x, y, heading) of each segment (:func:`_after_relocalizations`)."""
     return [
-        np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
-        for e, cov in _after_relocalizations(out, align)
+        np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0]) for e, cov in segments
     ]
 
 
@@ -196,13 +194,11 @@ def component_summary(
     units = np.array([1e3, 1e3, math.degrees(1.0)])
     for lo, hi in PHASES_S:
         part = slice(round(lo / dt), round(hi / dt))
-        e = [s[0][part] for s in segments if s[0][part].size]
-        if not e:
+        inside = [(e[part], cov[part]) for e, cov in segments if e[part].size]
+        if not inside:
             continue
-        err = np.concatenate(e)
-        var = np.concatenate(
-            [np.diagonal(s[1][part], axis1=1, axis2=2) for s in segments if s[0][part].size]
-        )
+        err = np.concatenate([e for e, _ in inside])
+        var = np.concatenate([np.diagonal(cov, axis1=1, axis2=2) for _, cov in inside])
         rows.append(
             {
                 "from_s": lo,
@@ -239,10 +235,11 @@ class _NeesLog:
 
     def add(self, out: MowOutcome) -> None:
         self.dt = float(out.t[1] - out.t[0])
-        self.series += _nees(out)
+        self.series += _nees(_after_relocalizations(out))
         if self.align is not None:
-            self.aligned += _nees(out, self.align)
-            self.components += _after_relocalizations(out, self.align)
+            in_map_frame = _after_relocalizations(out, self.align)
+            self.aligned += _nees(in_map_frame)
+            self.components += in_map_frame
 
     def summary(self) -> dict[str, Any]:
         return {
