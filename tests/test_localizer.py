@@ -565,40 +565,71 @@ def test_after_an_imu_gap_the_relocalizer_checks_the_pose_near_where_it_was(lawn
 
 
 def test_frames_from_one_spot_are_worth_a_bounded_number_of_frames():
-    """The σ rule of frames from a standing mower (``spot_sigma_factor``): the first frame
-    counts in full; with a share f of each frame's variance common to the spot, k frames
-    add up to k / ((1 − f) + k f) frames' information — never more than 1/f, however long
-    the mower stands — and with nothing shared every frame counts in full."""
-    from mowerhw.mow.localizer import spot_sigma_factor
+    """A standing mower's frames (``SharedFrameError``, ρ = 1): the first frame counts in
+    full; with a share f of each frame's variance common to the spot, k frames add up to
+    k / ((1 − f) + k f) frames' information — never more than 1/f, however long the mower
+    stands — and with nothing shared every frame counts in full."""
+    from mowerhw.mow.spot import SharedFrameError
 
     for f in (0.25, 0.5, 0.75):
-        assert spot_sigma_factor(1.0, f) == pytest.approx(1.0)
-        info = np.cumsum([spot_sigma_factor(float(k), f) ** -2 for k in range(1, 2001)])
+        spot = SharedFrameError(f)
+        factors = []
+        for _ in range(2000):
+            spot.move_on(1.0)
+            factors.append(spot.frame())
+        assert factors[0] == pytest.approx(1.0)
+        info = np.cumsum(np.asarray(factors) ** -2)
         ks = np.arange(1, 2001)
         assert info == pytest.approx(ks / ((1 - f) + ks * f), rel=1e-9)
         assert info[-1] < 1.0 / f
-    assert spot_sigma_factor(7.0, 0.0) == pytest.approx(1.0)
+    free = SharedFrameError(0.0)
+    assert [free.frame() for _ in range(7)] == pytest.approx([1.0] * 7)
+    with pytest.raises(ValueError, match=r"\[0, 1\)"):
+        SharedFrameError(1.0)
 
 
-def test_frames_along_a_track_share_part_of_their_error():
-    """``Localizer.frames_sharing``: standing, each frame adds one to the frames that share
-    its error; driving, the earlier ones share less for each ``SPOT_M`` driven, so a mower
-    driving on counts ``1 / (1 − ρ)`` frames, not 1 (a corner's error changes slowly along a
-    track), each frame still adding information; far from where it stood, k is back to 1."""
-    from mowerhw.mow.localizer import Localizer, spot_sigma_factor
+def test_a_frames_worth_is_exact_for_an_error_shared_along_the_track():
+    """Driving, the common error keeps ρ of itself from frame to frame (an AR(1)): each
+    frame adds exactly the information the generalised least-squares mean of all frames so
+    far gains by it (checked against the full covariance on a random mix of standing and
+    driving), so the first frame after a long stand is worth what it is — the count rule
+    before (k ← 1 + ρk) gave it 0.04 of a lone frame where it is worth 0.31 — and a mower
+    driving on keeps a steady share (1 − ρ)/(1 + ρ)-ish, far from a standing frame's."""
+    from mowerhw.mow.localizer import Localizer
+    from mowerhw.mow.spot import SharedFrameError
 
-    assert Localizer.frames_sharing(3.0, 0.0, 0.0) == pytest.approx(4.0)
-    step = 0.1  # m between two frames
-    rho = math.exp(-step / Localizer.SPOT_M)
-    k = 40.0  # after a long stand
-    for _ in range(200):
-        k = Localizer.frames_sharing(k, step, 0.0)
-    assert k == pytest.approx(1.0 / (1.0 - rho), rel=1e-6)
-    factor = spot_sigma_factor(k, Localizer.SPOT_SHARED)
-    assert 1.0 < factor < 3.0  # 2.1 at 0.1 m a frame: a driving frame counts a fifth
-    turned = Localizer.frames_sharing(k, 0.0, math.radians(20.0))
-    assert 1.0 < turned < k  # a turn on the spot moves the view too
-    assert Localizer.frames_sharing(40.0, 10.0, 0.0) == pytest.approx(1.0, abs=1e-12)
+    f = Localizer.SPOT_SHARED
+    rng = np.random.default_rng(3)
+    rhos = np.where(rng.random(40) < 0.4, 1.0, rng.random(40))
+    cov = (1.0 - f) * np.eye(40)
+    for i in range(40):
+        for j in range(40):
+            a, b = min(i, j), max(i, j)
+            cov[i, j] += f * np.prod(rhos[a + 1 : b + 1])
+
+    def info(c: np.ndarray) -> float:
+        ones = np.ones(len(c))
+        return float(ones @ np.linalg.solve(c, ones)) if len(c) else 0.0
+
+    spot = SharedFrameError(f)
+    for n, rho in enumerate(rhos):
+        spot.move_on(float(rho))
+        gained = spot.frame() ** -2
+        assert gained == pytest.approx(info(cov[: n + 1, : n + 1]) - info(cov[:n, :n]), rel=1e-9)
+    # ten frames standing, then one that keeps 0.53 of the common error
+    spot = SharedFrameError(f)
+    for _ in range(10):
+        spot.move_on(1.0)
+        spot.frame()
+    spot.move_on(0.53)
+    assert spot.frame() ** -2 == pytest.approx(0.308, abs=1e-3)
+    # driving on for long: a steady worth, in (0, 1)
+    worth = [spot.frame() ** -2 for _ in range(500) if spot.move_on(0.53) is None]
+    assert worth[-1] == pytest.approx(worth[-2], rel=1e-9) and 0.3 < worth[-1] < 0.6
+    assert Localizer.shared_from_last(0.0, 0.0) == 1.0  # standing: the same view
+    assert Localizer.shared_from_last(Localizer.SPOT_M, 0.0) == pytest.approx(math.exp(-1.0))
+    assert 0.0 < Localizer.shared_from_last(0.0, math.radians(20.0)) < 1.0  # a turn moves it
+    assert Localizer.shared_from_last(math.inf, math.inf) == 0.0  # unknown motion
 
 
 def test_against_the_ground_the_pose_carries_the_map_frames_error(lawn_map):

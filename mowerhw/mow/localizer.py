@@ -96,6 +96,7 @@ from mowerhw.mow.recovery import (
     RelocalizationSearch,
     accepted_covariance,
 )
+from mowerhw.mow.spot import SharedFrameError
 
 FloatArray = NDArray[np.float64]
 
@@ -165,17 +166,6 @@ def _within(value: float, bound: float) -> float:
     return min(max(value, -bound), bound)
 
 
-def spot_sigma_factor(k: float, shared: float) -> float:
-    """σ of the ``k``-th frame from one spot over a lone frame's, when a share ``shared`` of
-    each frame's variance is common to all frames from that spot: ``k`` such frames are
-    worth ``I_k = k / ((1 − f) + k f)`` independent ones (never more than ``1/f``), and the
-    k-th adds ``I_k − I_(k−1) = (1 − f) / (((1 − f) + k f)((1 − f) + (k − 1) f))`` of a lone
-    frame's information (``Localizer._bearing_sigma``). ``k`` may be fractional (a mower
-    driving off, :data:`Localizer.SPOT_M`)."""
-    f = shared
-    return math.sqrt(((1.0 - f) + k * f) * ((1.0 - f) + (k - 1.0) * f) / (1.0 - f))
-
-
 class Localizer:
     """World-centric localization against a lawn map, and the containment decision."""
 
@@ -225,7 +215,7 @@ class Localizer:
         self._force_x: float | None = None
         self._carried_v: float | None = None
         self._t_last_frame: float | None = None  # time of the last frame's update
-        self._shared_frames = 1.0  # frames sharing this frame's error: one spot, one track
+        self._shared_error = SharedFrameError(self.SPOT_SHARED)  # the frames' common error
         self._standstill = StandstillCalibrator()
         self._resets = 0
         self._injected = 0
@@ -387,7 +377,8 @@ class Localizer:
         if accepted is None:
             search.widen(t)
             return False
-        now = accepted.compose(odometry_then.between(self._pose2d(self.ekf.snapshot_view())))
+        odometry_now = self._pose2d(self.ekf.snapshot_view())
+        now = accepted.compose(odometry_then.between(odometry_now))
         z = float(answer.p_wb[2])
         self.search = None
         self.t_fix = t  # the answer is a landmark fix
@@ -397,6 +388,9 @@ class Localizer:
             (np.array([now.x, now.y, z]), yaw_to_quat(now.yaw)),
             math.sqrt(max(planar[0, 0], planar[1, 1])),  # the height's; x, y, heading: planar
             planar_cov=planar,
+        )
+        self._answer_frame_shared(
+            odometry_then.distance(odometry_now), odometry_then.turn(odometry_now)
         )
         if answer.landmark_cross is not None:
             rows = self._rows_of([i for _, i in answer.inliers])
@@ -934,14 +928,16 @@ class Localizer:
 
     #: between two frames the mower moved less than this: it stands (the same view again)
     STILL_M, STILL_RAD = 0.01, math.radians(0.5)
-    #: once it moves, the frames before count less for each this far driven (or turned):
-    #: the next frames still see the same corners from nearly the same place. 0.2 m, chosen
-    #: with ``mow.bearing_sigma_rad`` 0.26° and every answer inlier seeded: NEES bins inside
-    #: 19/20 on both pixel lawns' start pools (0.25 m: the look-alike's driving bins 2.4–2.6,
-    #: under; 0.15 m: the paper's up to 3.6). Refitted in stop 54 with the answers' new
-    #: floors and ``mow.bearing_sigma_rad`` 0.23°: 0.12 m put the paper starts' last bins
-    #: over (3.6–3.7), 0.15 m came out as 0.20° at 0.2 m did (README): kept
-    SPOT_M, SPOT_RAD = 0.2, math.radians(10.0)
+    #: once it moves, the common part of a frame's error keeps exp(−away) of itself, ``away``
+    #: the distance driven over this (or the angle turned over that): the next frames still
+    #: see the same corners from nearly the same place. 0.35 m: a corner's rendered error
+    #: keeps 0.56–0.76 of itself from one frame to the next, 0.11 m on (measured, pixel
+    #: level), and exp(−0.11/0.35) = 0.73. With the exact model of
+    #: :class:`~mowerhw.mow.spot.SharedFrameError` (stop 63) the pixel start pools' NEES bins
+    #: inside their bounds: paper 18/20, look-alike 13/20 (its six misses the standing
+    #: answer's own σ); 0.2 m (fitted in stops 54–61 to the count rule before) 17 and 10/20,
+    #: the last driving bins over (3.6–4.0) (README, issue 18)
+    SPOT_M, SPOT_RAD = 0.35, math.radians(10.0)
     #: the share of a standing frame's bearing variance that every frame from that spot has
     #: too (a corner's detection bias, the same pixels rendered again); the rest is its own.
     #: Chosen, then measured against σ·√k on the same maps and runs (tools/recovery_pixel.py,
@@ -954,37 +950,43 @@ class Localizer:
     def _bearing_sigma(self, t: float) -> float:
         """The bearing σ of this frame's update. Frames from a mower standing still see the
         same corners from the same place: their errors (a corner's detection bias, the
-        map's) are partly the same each time, not independent. With a share ``f``
-        (:data:`SPOT_SHARED`) of each frame's variance σ² common to the spot, ``k`` frames
-        from it are worth ``k / ((1 − f) + k f)`` frames (at most ``1/f``, however long the
-        mower stands), so the k-th frame's variance is the inverse of what it adds,
-        σ²·((1 − f) + k f)((1 − f) + (k − 1) f) / (1 − f) (:func:`spot_sigma_factor`), and
-        a minute at the dock does not make the filter surer than a few frames can
-        (measured: NEES 7–11 for the 3 s a relocalized mower stands with every frame counted
-        in full; with σ·√k, whose information grows without bound, still 2.8 rising to 3.7
-        against a bound of 3.5 on the look-alike lawn). When it
-        drives off, the frames before share less with each new one, by ``ρ = exp(−away)``
+        map's) are partly the same each time, not independent. A share ``f``
+        (:data:`SPOT_SHARED`) of each frame's variance is common to nearby frames, an AR(1)
+        along the track: standing it stays, driving it keeps ``ρ = exp(−away)`` of itself
         for the distance driven and the angle turned since the last frame (:data:`SPOT_M`,
-        :data:`SPOT_RAD`): ``k ← 1 + ρ k`` (:meth:`frames_sharing`; standing, ρ = 1). A mower
-        that keeps moving keeps ``k`` near ``1 / (1 − ρ)``, not 1: a rendered corner's error
-        changes slowly along a track (measured, pixel level: next-frame correlation 0.56–0.76
-        of the part that does not stay with a landmark). Counting each driving frame in full
-        made the filter surer the longer it drove (NEES rising 2.1 → 3.1 over the 7 s after
-        a relocalized mower drove off, still rising) while too unsure standing (2.2 against a
-        bound of 2.54); with this rule it holds level (tools/recovery_pixel.py, README)."""
+        :data:`SPOT_RAD`; :meth:`shared_from_last`). The frame's σ is a lone frame's over the
+        square root of the information it adds (:class:`mowerhw.mow.spot.SharedFrameError`,
+        exact for that model): standing, ``k`` frames are worth ``k / ((1 − f) + k f)``
+        (at most ``1/f``, however long the mower stands), so a minute at the dock does not
+        make the filter surer than a few frames can (measured: NEES 7–11 for the 3 s a
+        relocalized mower stands with every frame counted in full). A mower that keeps
+        moving gets ``(1 − ρ)``-ish of a frame each time, not a lone frame's worth: a
+        rendered corner's error changes slowly along a track (measured, pixel level:
+        next-frame correlation 0.56–0.76 of the part that does not stay with a landmark)."""
         t_from, self._t_last_frame = self._t_last_frame, t
         moved, turned = self._motion_between(t_from, t)
-        self._shared_frames = self.frames_sharing(self._shared_frames, moved, turned)
-        return self.cfg.bearing_sigma_rad * spot_sigma_factor(self._shared_frames, self.SPOT_SHARED)
+        self._shared_error.move_on(self.shared_from_last(moved, turned))
+        return self.cfg.bearing_sigma_rad * self._shared_error.frame()
+
+    def _answer_frame_shared(self, moved: float, turned: float) -> None:
+        """An accepted answer is the first frame from its spot (:meth:`_bearing_sigma`): the
+        filter restarts with that frame's covariance, so the frames after it share its
+        error as they would a frame's (counted afresh, they counted the standing mower's
+        spot once more than it is worth). ``moved``, ``turned``: the odometry from the
+        answer's frame to now, where the filter restarts (its history begins here)."""
+        self._shared_error = SharedFrameError(self.SPOT_SHARED)
+        self._shared_error.frame()
+        self._shared_error.move_on(self.shared_from_last(moved, turned))
+        self._t_last_frame = self.t_imu
 
     @classmethod
-    def frames_sharing(cls, k: float, moved: float, turned: float) -> float:
-        """How many frames' worth share the next frame's error, when ``k`` shared the last
-        one and the mower moved ``moved`` m and turned ``turned`` rad in between
-        (:meth:`_bearing_sigma`): one more standing still, ``1 + exp(−away) k`` moving."""
+    def shared_from_last(cls, moved: float, turned: float) -> float:
+        """The share ρ of the last frame's common error the next one still has, when the
+        mower moved ``moved`` m and turned ``turned`` rad in between: 1 standing still,
+        ``exp(−(moved/SPOT_M + turned/SPOT_RAD))`` moving (0 for an unknown motion)."""
         if moved < cls.STILL_M and turned < cls.STILL_RAD:
-            return k + 1.0
-        return 1.0 + k * math.exp(-(moved / cls.SPOT_M + turned / cls.SPOT_RAD))
+            return 1.0
+        return math.exp(-(moved / cls.SPOT_M + turned / cls.SPOT_RAD))
 
     def _motion_between(self, t_from: float | None, t: float) -> tuple[float, float]:
         """Distance driven (m) and angle turned (rad) from ``t_from`` (the last frame's time)
