@@ -35,6 +35,11 @@ class Lease:
     decided_at: float  # host monotonic s (CLOCK_MONOTONIC is one clock for all processes)
     #: the newest IMU sample's specific force, body frame (m/s²; NaN if the IMU has none)
     accel: tuple[float, float, float] = (math.nan, math.nan, math.nan)
+    #: the samples' specific forces since the previous lease that went without one of their
+    #: own, oldest first, (t, fx, fy, fz): an unchanged decision renews the lease at most
+    #: every ``link.RENEW_S``, and the safety checks must see every sample (a collision is
+    #: one sample over its limit)
+    earlier_forces: tuple[tuple[float, float, float, float], ...] = ()
 
     @classmethod
     def of(
@@ -43,6 +48,7 @@ class Lease:
         pose_xyh: tuple[float, float, float],
         now: float,
         accel: tuple[float, float, float] = (math.nan, math.nan, math.nan),
+        earlier_forces: tuple[tuple[float, float, float, float], ...] = (),
     ) -> Lease:
         return cls(
             bool(d.permit),
@@ -53,6 +59,7 @@ class Lease:
             *pose_xyh,
             now,
             accel,
+            earlier_forces,
         )
 
     def wire(self) -> tuple[Any, ...]:
@@ -70,6 +77,7 @@ class Lease:
             self.heading,
             self.decided_at,
             self.accel,
+            self.earlier_forces,
         )
 
     @classmethod

@@ -19,6 +19,7 @@ import math
 import select
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
@@ -34,6 +35,8 @@ log = logging.getLogger("mowerhw.daemon")
 
 #: an unchanged decision renews the lease at most this often (s)
 RENEW_S = 0.02
+#: at most this many samples' forces wait for the next lease (at 50 Hz, 0.32 s of them)
+MAX_UNSENT_FORCES = 16
 
 
 class SupervisorLink:
@@ -45,6 +48,12 @@ class SupervisorLink:
         self.supervisor_status: dict[str, Any] = {}
         self.leases_sent = 0
         self.leases_deferred = 0  # the pipe was full: tried again with the next decision
+        #: forces of decisions that renewed no lease, for the next one (bounded: a pipe the
+        #: supervisor does not empty ends in an expired lease anyway)
+        self._unsent_forces: deque[tuple[float, float, float, float]] = deque(
+            maxlen=MAX_UNSENT_FORCES
+        )
+        self._last_force: tuple[float, float, float] | None = None
         self._sent_key: tuple[bool, str] | None = None
         self._sent_at = -math.inf
         self._permit = False
@@ -97,11 +106,24 @@ class SupervisorLink:
     ) -> bool:
         key = (bool(d.permit), d.reason)
         due = key != self._sent_key or time.monotonic() - self._sent_at >= RENEW_S
+        sent = False
         if due and not self._closed:
-            lease = Lease.of(d, pose_xyh, now, accel or (math.nan, math.nan, math.nan))
-            if self._send_if_room(("lease", lease.wire())):
+            lease = Lease.of(
+                d,
+                pose_xyh,
+                now,
+                accel or (math.nan, math.nan, math.nan),
+                tuple(self._unsent_forces),
+            )
+            sent = self._send_if_room(("lease", lease.wire()))
+            if sent:
                 self._sent_key, self._sent_at = key, time.monotonic()
                 self.leases_sent += 1
+                self._unsent_forces.clear()
+        fresh = accel is not None and accel != self._last_force  # a timer's repeats are not
+        if not sent and fresh and all(map(math.isfinite, accel)):
+            self._unsent_forces.append((now, *accel))
+        self._last_force = accel
         was, self._permit = self._permit, bool(d.permit)
         return was and not d.permit
 

@@ -487,7 +487,9 @@ class Supervisor:
                     lease = Lease.from_wire(body)
                     self.gate.renew(lease, now)
                     self.counts["leases"] += 1
-                    with self._safety_lock:
+                    with self._safety_lock:  # every sample's force, the lease's last
+                        for t, fx, fy, fz in lease.earlier_forces:
+                            self.safety.imu(t, (fx, fy, fz))
                         self.safety.imu(lease.decided_at, lease.accel)
                     if all(math.isfinite(a) for a in lease.accel):
                         self._arrival[FORCE] = now
