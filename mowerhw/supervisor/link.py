@@ -120,8 +120,8 @@ class SupervisorLink:
                 self._sent_key, self._sent_at = key, time.monotonic()
                 self.leases_sent += 1
                 self._unsent_forces.clear()
-        fresh = accel is not None and accel != self._last_force  # a timer's repeats are not
-        if not sent and fresh and all(map(math.isfinite, accel)):
+        new_sample = accel is not None and accel != self._last_force  # (a timer's repeats)
+        if not sent and accel is not None and new_sample and all(map(math.isfinite, accel)):
             self._unsent_forces.append((now, *accel))
         self._last_force = accel
         was, self._permit = self._permit, bool(d.permit)
