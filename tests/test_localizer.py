@@ -624,7 +624,10 @@ def test_a_frames_worth_is_exact_for_an_error_shared_along_the_track():
     spot.move_on(0.53)
     assert spot.frame() ** -2 == pytest.approx(0.308, abs=1e-3)
     # driving on for long: a steady worth, in (0, 1)
-    worth = [spot.frame() ** -2 for _ in range(500) if spot.move_on(0.53) is None]
+    worth = []
+    for _ in range(500):
+        spot.move_on(0.53)
+        worth.append(spot.frame() ** -2)
     assert worth[-1] == pytest.approx(worth[-2], rel=1e-9) and 0.3 < worth[-1] < 0.6
     assert Localizer.shared_from_last(0.0, 0.0) == 1.0  # standing: the same view
     assert Localizer.shared_from_last(Localizer.SPOT_M, 0.0) == pytest.approx(math.exp(-1.0))

@@ -120,8 +120,13 @@ class SupervisorLink:
                 self._sent_key, self._sent_at = key, time.monotonic()
                 self.leases_sent += 1
                 self._unsent_forces.clear()
-        new_sample = accel is not None and accel != self._last_force  # (a timer's repeats)
-        if not sent and accel is not None and new_sample and all(map(math.isfinite, accel)):
+        # a new sample's force (a timer's decision repeats the last one), if it has one
+        if (
+            not sent
+            and accel is not None
+            and accel != self._last_force
+            and all(map(math.isfinite, accel))
+        ):
             self._unsent_forces.append((now, *accel))
         self._last_force = accel
         was, self._permit = self._permit, bool(d.permit)
