@@ -412,3 +412,37 @@ def test_the_nees_split_by_component_and_phase_names_the_over_sure_part() -> Non
     assert rows[0]["rms_error_mm_mm_deg"] == [4.0, 3.0, 0.0]
     assert rows[2]["rms_sigma_mm_mm_deg"] == [2.0, 3.0, 0.02]
     assert component_summary([(err[:100], cov[:100])], dt)[-1]["to_s"] == 2.5  # short: one phase
+
+
+def test_a_kidnap_runs_nees_is_also_told_apart_for_its_start_and_its_kidnap() -> None:
+    """A kidnap run relocalizes at its start (then turns out of the dock) and again after
+    the kidnap: the pool's NEES is told apart for the two as well, each relocalization by
+    when it came (before or after the kidnap), each kind's bins its own."""
+    from types import SimpleNamespace
+
+    from mowerhw.evaluation import recovery as R
+
+    n, dt = 4000, 0.01
+    t = np.arange(n) * dt
+    relocs = np.zeros(n, np.int64)
+    relocs[25:] = 1  # accepted at 0.25 s: the start
+    relocs[2500:] = 2  # at 25 s, after a kidnap at 20 s
+    est = np.zeros((n, 7))
+    est[:, 3] = 1.0  # heading 0
+    true_xy = np.zeros((n, 2))
+    true_xy[:2500, 0] = 0.002  # 2 mm off before the kidnap's relocalization, 0 after it
+    cov = np.tile(np.diag([1e-6, 1e-6, 1e-6]), (n, 1, 1))
+    out = SimpleNamespace(
+        t=t, relocalizations=relocs, est=est, true_xy=true_xy, true_yaw=np.zeros(n),
+        cov_xy_yaw=cov, cov_xy_yaw_ground=cov,
+    )  # fmt: skip
+    log = R._NeesLog(None)
+    log.add(out, 20.0)  # type: ignore[arg-type]
+    assert log.kinds == [R.AT_THE_START, R.AFTER_THE_KIDNAP]
+    kinds = log.summary()["nees_by_kind"]
+    assert kinds[R.AT_THE_START]["nees"]["mean_nees"] == 4.0  # (2 mm / 1 mm)²
+    assert kinds[R.AFTER_THE_KIDNAP]["nees"]["mean_nees"] == 0.0
+    assert kinds[R.AT_THE_START]["nees_in_map_frame"] is None  # no map to align
+    plain = R._NeesLog(None)
+    plain.add(out)  # a start run: every relocalization is of one kind, no split
+    assert "nees_by_kind" not in plain.summary()

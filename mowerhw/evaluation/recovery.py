@@ -215,8 +215,14 @@ def component_summary(
     return rows
 
 
+#: what a relocalization in a kidnap run followed: the run's start at the dock (the mower
+#: turns out of it at once, its gyro's scale not yet learned) or the kidnap
+AT_THE_START, AFTER_THE_KIDNAP = "at_the_start", "after_the_kidnap"
+
+
 class _NeesLog:
-    """The NEES series of every run, against the truth and in the map's frame."""
+    """The NEES series of every run, against the truth and in the map's frame, each with
+    what its relocalization followed (:data:`AT_THE_START`, :data:`AFTER_THE_KIDNAP`)."""
 
     def __init__(self, lawn_map: LawnMap | None) -> None:
         """``lawn_map`` None: a pool of other logs (:meth:`extend`), each aligned its way."""
@@ -225,24 +231,53 @@ class _NeesLog:
         self.aligned: list[FloatArray] = []
         #: per relocalization, in the map's frame: errors and covariances (component_summary)
         self.components: list[tuple[FloatArray, FloatArray]] = []
+        self.kinds: list[str] = []  # per relocalization, what it followed
         self.dt = 0.01
 
     def extend(self, other: _NeesLog) -> None:
         self.series += other.series
         self.aligned += other.aligned
         self.components += other.components
+        self.kinds += other.kinds
         self.dt = other.dt
 
-    def add(self, out: MowOutcome) -> None:
+    def add(self, out: MowOutcome, kidnapped_at_s: float | None = None) -> None:
+        """``out``'s relocalizations; ``kidnapped_at_s``: those from then on followed the
+        kidnap, those before it the start."""
         self.dt = float(out.t[1] - out.t[0])
         self.series += _nees(_after_relocalizations(out))
+        at = out.t[np.flatnonzero(np.diff(out.relocalizations) > 0) + 1]
+        self.kinds += [
+            AFTER_THE_KIDNAP if kidnapped_at_s is not None and t >= kidnapped_at_s else AT_THE_START
+            for t in at.tolist()
+        ]
         if self.align is not None:
             in_map_frame = _after_relocalizations(out, self.align)
             self.aligned += _nees(in_map_frame)
             self.components += in_map_frame
 
+    def by_kind(self) -> dict[str, Any] | None:
+        """The NEES bins of each kind apart (kidnap runs: the start's and the kidnap's), or
+        None when every relocalization is of one kind."""
+        kinds = sorted(set(self.kinds))
+        if len(kinds) < 2:
+            return None
+        out = {}
+        for kind in kinds:
+            mine = [k == kind for k in self.kinds]
+            truth = [s for s, m in zip(self.series, mine, strict=True) if m]
+            aligned = len(self.aligned) == len(mine)  # every map had the truth to align
+            in_map = [s for s, m in zip(self.aligned, mine, strict=True) if m] if aligned else []
+            out[kind] = {
+                "nees": nees_summary(truth, self.dt),
+                "nees_in_map_frame": nees_summary(in_map, self.dt) if in_map else None,
+            }
+        return out
+
     def summary(self) -> dict[str, Any]:
+        by_kind = self.by_kind()
         return {
+            **({"nees_by_kind": by_kind} if by_kind is not None else {}),
             "nees": nees_summary(self.series, self.dt),
             "nees_in_map_frame": (
                 # a map without the truth to align adds none: a pool has them if any map did
@@ -618,7 +653,7 @@ def _kidnaps(
             "searches": out.metrics["localizer"]["searches"],
         }
         out_runs.append(run)
-        nees.add(out)
+        nees.add(out, t_k)
         if progress is not None:
             progress(i, run)
     return out_runs, nees
