@@ -164,11 +164,13 @@ def _after_relocalizations(
     covs = out.cov_xy_yaw if align is not None else out.cov_xy_yaw_ground
     dt = float(out.t[1] - out.t[0])
     n = round(NEES_S / dt)
-    segs = [
-        slice(k, min(k + n, out.t.size))
-        for k in np.flatnonzero(np.diff(out.relocalizations) > 0) + 1
-    ]
+    segs = [slice(k, min(k + n, out.t.size)) for k in _accepted_at(out)]
     return [(err[seg], covs[seg]) for seg in segs]
+
+
+def _accepted_at(out: MowOutcome) -> NDArray[np.intp]:
+    """The samples at which a relocalization was accepted, in order."""
+    return np.flatnonzero(np.diff(out.relocalizations) > 0) + 1
 
 
 def _nees(segments: list[tuple[FloatArray, FloatArray]]) -> list[FloatArray]:
@@ -246,7 +248,7 @@ class _NeesLog:
         kidnap, those before it the start."""
         self.dt = float(out.t[1] - out.t[0])
         self.series += _nees(_after_relocalizations(out))
-        at = out.t[np.flatnonzero(np.diff(out.relocalizations) > 0) + 1]
+        at = out.t[_accepted_at(out)]
         self.kinds += [
             AFTER_THE_KIDNAP if kidnapped_at_s is not None and t >= kidnapped_at_s else AT_THE_START
             for t in at.tolist()
@@ -262,11 +264,11 @@ class _NeesLog:
         kinds = sorted(set(self.kinds))
         if len(kinds) < 2:
             return None
+        aligned = len(self.aligned) == len(self.kinds)  # every map had the truth to align
         out = {}
         for kind in kinds:
             mine = [k == kind for k in self.kinds]
             truth = [s for s, m in zip(self.series, mine, strict=True) if m]
-            aligned = len(self.aligned) == len(mine)  # every map had the truth to align
             in_map = [s for s, m in zip(self.aligned, mine, strict=True) if m] if aligned else []
             out[kind] = {
                 "nees": nees_summary(truth, self.dt),
