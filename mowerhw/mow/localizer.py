@@ -930,9 +930,11 @@ class Localizer:
     STILL_M, STILL_RAD = 0.01, math.radians(0.5)
     #: once it moves, the common part of a frame's error keeps exp(−away) of itself, ``away``
     #: the distance driven over this (or the angle turned over that): the next frames still
-    #: see the same corners from nearly the same place. 0.35 m: a corner's rendered error
-    #: keeps 0.56–0.76 of itself from one frame to the next, 0.11 m on (measured, pixel
-    #: level), and exp(−0.11/0.35) = 0.73. With the exact model of
+    #: see the same corners from nearly the same place. 0.35 m: what is left of a corner's
+    #: rendered error beyond its landmark's own bias and the frame's shared part keeps
+    #: 0.56–0.76 of itself from one frame to the next, 0.11 m on (measured, pixel level,
+    #: tools/bearing_errors_pixel.py), and exp(−0.11/0.35) = 0.73; the whole error keeps far
+    #: more (0.94 at 0.1–0.15 m, 0.80 at 1 m: README, issue 18, stop 64). With the exact model of
     #: :class:`~mowerhw.mow.spot.SharedFrameError` (stop 63) the pixel start pools' NEES bins
     #: inside their bounds: paper 18/20, look-alike 13/20 (its six misses the standing
     #: answer's own σ); 0.2 m (fitted in stops 54–61 to the count rule before) 17 and 10/20,
@@ -962,7 +964,8 @@ class Localizer:
         relocalized mower stands with every frame counted in full). A mower that keeps
         moving gets ``(1 − ρ)``-ish of a frame each time, not a lone frame's worth: a
         rendered corner's error changes slowly along a track (measured, pixel level:
-        next-frame correlation 0.56–0.76 of the part that does not stay with a landmark)."""
+        next-frame correlation 0.56–0.76 of the part that stays neither with a landmark nor
+        with the frame)."""
         t_from, self._t_last_frame = self._t_last_frame, t
         moved, turned = self._motion_between(t_from, t)
         self._shared_error.move_on(self.shared_from_last(moved, turned))
