@@ -133,6 +133,14 @@ class ImuConfig:
         ge=0.0,
         le=0.2,
     )
+    gyro_scale_drift: float | None = opt(
+        None,
+        "1σ of how much the gyro's scale factor changes from the teach to a later mow "
+        "(temperature, ageing; fraction): a map's taught yaw-rate scale is trusted to within "
+        "this; null: the grade's",
+        ge=0.0,
+        le=0.2,
+    )
     gyro_source: str = opt(
         "auto",
         "where the angular rate comes from: angular_rate (Common/IMU AngularRate, "
@@ -489,6 +497,13 @@ class MowConfig(MotionNoiseConfig):
     )
     localized_after_frames: int = opt(
         3, "good frames needed after a (re)start to be localized", ge=1
+    )
+    gyro_scale_sigma_taught: float | None = opt(
+        None,
+        "prior σ of the yaw rate's scale error when the map carries the teach's estimate of "
+        "it (its change since); null: from the imu section (imu.gyro_scale_drift)",
+        ge=0.0,
+        le=0.2,
     )
     areas: tuple[str, ...] = opt(
         (),
@@ -1032,6 +1047,22 @@ def gyro_scale_sigma(imu: ImuConfig) -> float:
     return max(IMU_GRADES[imu.grade].scale_factor if given is None else given, 0.005)
 
 
+#: the teach's own estimate of the yaw-rate scale is off by about this much (0.025 % rms
+#: over 200 pixel-level teaches of a gyro with no scale error, stop 65)
+TAUGHT_SCALE_MIN_SIGMA = 0.0005
+
+
+def gyro_scale_drift(imu: ImuConfig) -> float:
+    """The prior σ of the yaw-rate scale error when a map carries the scale its teach learnt:
+    how much the unit's scale changes from one run to another (the config's, else its
+    grade's), at least :data:`TAUGHT_SCALE_MIN_SIGMA` (what the teach's estimate misses)."""
+    from mowerhw.imu.grades import IMU_GRADES
+
+    given = imu.gyro_scale_drift
+    drift = IMU_GRADES[imu.grade].scale_drift if given is None else given
+    return max(drift, TAUGHT_SCALE_MIN_SIGMA)
+
+
 def imu_noise(imu: ImuConfig) -> tuple[float, float, float]:
     """The gyro's Allan figures (noise density, bias instability, random walk): the config's
     own where given, else its grade's (:data:`mowerhw.imu.grades.IMU_GRADES`)."""
@@ -1064,13 +1095,16 @@ def stale_limits_s(cfg: Config | None = None) -> dict[str, float]:
 def with_imu_noise(section: Any, imu: ImuConfig | None = None) -> Any:
     """A teach or mow section with its null gyro process noise filled in from ``imu`` (the
     defaults' VN-100 when not given): the one place the estimators' gyro noise is decided."""
-    if None not in (section.gyro_noise, section.gyro_bias_walk, section.gyro_scale_sigma):
+    taught_missing = isinstance(section, MowConfig) and section.gyro_scale_sigma_taught is None
+    if None not in (section.gyro_noise, section.gyro_bias_walk, section.gyro_scale_sigma) and (
+        not taught_missing
+    ):
         return section
     from mowerhw.imu.grades import gyro_process_noise
 
     imu = imu or ImuConfig()
     white, walk = gyro_process_noise(*imu_noise(imu))
-    return dataclasses.replace(
+    out = dataclasses.replace(
         section,
         gyro_noise=white if section.gyro_noise is None else section.gyro_noise,
         gyro_bias_walk=walk if section.gyro_bias_walk is None else section.gyro_bias_walk,
@@ -1078,6 +1112,9 @@ def with_imu_noise(section: Any, imu: ImuConfig | None = None) -> Any:
         if section.gyro_scale_sigma is None
         else section.gyro_scale_sigma,
     )
+    if taught_missing:
+        out = dataclasses.replace(out, gyro_scale_sigma_taught=gyro_scale_drift(imu))
+    return out
 
 
 def _resolve_imu_noise(cfg: Config) -> Config:
@@ -1089,6 +1126,7 @@ def _resolve_imu_noise(cfg: Config) -> Config:
         gyro_bias_instability=b,
         gyro_random_walk=k,
         gyro_scale_error=gyro_scale_sigma(cfg.imu),
+        gyro_scale_drift=gyro_scale_drift(cfg.imu),
     )
     contact = tuple(float(v) for v in cfg.speed.contact_point_m)
     teach = dataclasses.replace(with_imu_noise(cfg.teach, imu), speed_contact_m=contact)

@@ -127,7 +127,8 @@ def test_a_yards_mower_is_configured_with_its_own_sensors():
 def test_matched_noise_is_the_simulated_sensors_own():
     """For a NEES that tests the filter (its models the truth's): the ground speed's white
     noise and quantum as a density at its rate, sideways slip at the floor, the gyro scale
-    prior at its grade's (the simulated VN-100 has none: 0, not the shipped 0.5 % floor); what
+    prior at its grade's (the simulated VN-100's only its change between runs, 0.1 %, not the
+    shipped 0.5 % floor; with a taught scale that change alone); what
     a white density cannot stand for is listed; the teach section stays as shipped."""
     import math
 
@@ -137,9 +138,11 @@ def test_matched_noise_is_the_simulated_sensors_own():
     cfg, unmatched = matched_noise(shipped, "paper")
     assert cfg.mow.speed_noise == pytest.approx(math.sqrt(0.005**2 + 0.001**2 / 12) / math.sqrt(10))
     assert cfg.mow.lateral_noise == MATCHED_LATERAL_NOISE < shipped.mow.lateral_noise
-    assert cfg.mow.gyro_scale_sigma == 0.0 < shipped.mow.gyro_scale_sigma
+    assert cfg.mow.gyro_scale_sigma == 0.001 < shipped.mow.gyro_scale_sigma
+    assert cfg.mow.gyro_scale_sigma_taught == 0.001
     assert unmatched == []
     assert cfg.teach == shipped.teach and cfg.mow.bearing_sigma_rad == shipped.mow.bearing_sigma_rad
     slip, unmatched = matched_noise(scenario_config("slope-slip"), "slope-slip")
-    assert slip.mow.gyro_scale_sigma == 0.03  # its MPU-6050's ±3 %
+    assert slip.mow.gyro_scale_sigma == pytest.approx(math.hypot(0.03, 0.003))  # ±3 %, and drift
+    assert slip.mow.gyro_scale_sigma_taught == 0.003  # its MPU-6050's change between runs
     assert len(unmatched) == 3 and any("slip" in u for u in unmatched)

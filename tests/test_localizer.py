@@ -221,6 +221,33 @@ def test_the_localizer_learns_a_mems_gyros_yaw_scale_error(lawn_map):
     assert np.linalg.norm(pos[:2] - plant.xy) < 0.05
 
 
+def test_a_taught_gyro_scale_is_trusted_to_within_its_change_between_runs(lawn_map):
+    """A map carries the yaw-rate scale its teach learnt: the mow filter starts from it,
+    as sure of it as the unit's scale changes from one run to another (the grade's
+    ``scale_drift``, at least what a teach's estimate misses), not the untaught prior; a map
+    without one starts from 0 at the untaught prior."""
+    from dataclasses import replace
+
+    from mowerhw.config import TAUGHT_SCALE_MIN_SIGMA, ImuConfig, MowConfig, with_imu_noise
+
+    vn100 = with_imu_noise(MowConfig(), ImuConfig(grade="vn100"))
+    assert (vn100.gyro_scale_sigma, vn100.gyro_scale_sigma_taught) == (0.005, 0.001)
+    bmi = with_imu_noise(MowConfig(), ImuConfig(grade="bmi088"))
+    assert (bmi.gyro_scale_sigma, bmi.gyro_scale_sigma_taught) == (0.01, 0.005)
+    exact = with_imu_noise(MowConfig(), ImuConfig(gyro_scale_drift=0.0))
+    assert exact.gyro_scale_sigma_taught == TAUGHT_SCALE_MIN_SIGMA
+
+    def scale_prior(teach: dict[str, float], cfg: MowConfig) -> tuple[float, float]:
+        loc = Localizer(replace(lawn_map, teach=teach), cfg)
+        return loc.ekf.k, math.sqrt(loc.ekf.P[9, 9])
+
+    assert scale_prior({"gyro_yaw_scale_error": 0.002}, vn100) == pytest.approx((0.002, 0.001))
+    assert scale_prior({"gyro_yaw_scale_error": 0.002}, bmi) == pytest.approx((0.002, 0.005))
+    assert scale_prior({}, vn100) == pytest.approx((0.0, 0.005))
+    garbled = {"gyro_yaw_scale_error": float("nan")}
+    assert scale_prior(garbled, vn100) == pytest.approx((0.0, 0.005))
+
+
 def test_a_frame_stamp_error_is_one_turn_all_its_bearings_share():
     """``mow.frame_stamp_sigma_s``: a frame stamped δt off shows every bearing turned by
     ω δt together — a heading error no number of landmarks averages away. With it, the

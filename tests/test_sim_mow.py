@@ -99,3 +99,30 @@ def test_the_plants_speed_reading_is_true_at_its_stamp():
     rolled = float(np.linalg.norm(plant.xy - start))
     assert rolled > 0.4
     assert abs(driven - rolled) < 5e-4, (driven, rolled)
+
+
+def test_the_mowers_gyro_is_its_teach_runs_unit_changed_by_its_drift():
+    """The simulated mower mows with the gyro it taught with: the teach run's scale per
+    axis (:func:`mower_gyro_scale`), changed by the grade's ``scale_drift`` — a new unit
+    each run would make a taught scale worthless (and the filter's trust in it wrong)."""
+    from dataclasses import replace
+
+    from mowerhw.imu.grades import IMU_GRADES
+    from mowerhw.sim import make_world
+    from mowerhw.sim.plant import MowerPlant
+    from mowerhw.sim.scenarios import SCENARIOS
+    from mowerhw.sim.sensors import Gyro, mower_gyro_scale
+
+    world = make_world("paper", 1)
+    grade = IMU_GRADES["mpu6050"]
+    sensors = replace(SCENARIOS["paper"].sensors, imu=grade)
+    taught = mower_gyro_scale(sensors, 4)
+    teach_unit = Gyro(grade, np.random.default_rng([4, 2]), sensors.rates.imu_hz)
+    assert np.array_equal(taught, teach_unit.scale) and np.any(np.abs(taught - 1.0) > 0.005)
+    changes = []
+    for seed in range(40):
+        plant = MowerPlant(world, seed, sensors=sensors, gyro_scale=taught)
+        changes.append(plant.gyro.scale / taught - 1.0)
+    assert np.std(changes) == pytest.approx(grade.scale_drift, rel=0.25)
+    still = replace(sensors, imu=replace(grade, scale_drift=0.0))
+    assert np.array_equal(MowerPlant(world, 1, sensors=still, gyro_scale=taught).gyro.scale, taught)

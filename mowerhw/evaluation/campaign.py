@@ -198,7 +198,9 @@ def matched_noise(config: Any, scenario: str) -> tuple[Any, list[str]]:
     prior at least 0.5 %, :func:`mowerhw.config.gyro_scale_sigma`, where the simulated
     VN-100 has none), so with them the NEES also measures that margin. Matched: the ground
     speed's white noise and quantum as a density at its sample rate, sideways slip at
-    :data:`MATCHED_LATERAL_NOISE`, the scale prior at the gyro grade's own. Not matchable by a
+    :data:`MATCHED_LATERAL_NOISE`, the scale prior at the gyro grade's own (a unit's
+    tolerance and its change between runs; with a taught scale, the change alone). Not
+    matchable by a
     white density, and listed: a day-to-day speed scale change, wheel-slip events, a slope
     or bumps (the camera's mast sways sideways). The teach section is left as it is."""
     from mowerhw.sim.scenarios import SCENARIOS
@@ -211,7 +213,8 @@ def matched_noise(config: Any, scenario: str) -> tuple[Any, list[str]]:
         config.mow,
         speed_noise=per_sample / math.sqrt(sensors.rates.speed_hz),  # m/s/√Hz
         lateral_noise=MATCHED_LATERAL_NOISE,
-        gyro_scale_sigma=sensors.imu.scale_factor,
+        gyro_scale_sigma=math.hypot(sensors.imu.scale_factor, sensors.imu.scale_drift),
+        gyro_scale_sigma_taught=sensors.imu.scale_drift,
     )
     unmatched = []
     if speed.day_sigma > 0.0:

@@ -46,7 +46,7 @@ from mowerhw.sim.controller import BangBangMower
 from mowerhw.sim.handling import HandlingEvent, Kidnap, handled
 from mowerhw.sim.plant import MowerPlant
 from mowerhw.sim.render import OmniRenderer
-from mowerhw.sim.sensors import mower_speed_scale
+from mowerhw.sim.sensors import mower_gyro_scale, mower_speed_scale
 from mowerhw.vision import MowVision
 
 FloatArray = NDArray[np.float64]
@@ -111,6 +111,7 @@ def run_mow(
         world,
         run_seed * 7919 + 13,
         speed_scale=mower_speed_scale(world.scenario.sensors, seed),
+        gyro_scale=mower_gyro_scale(world.scenario.sensors, seed),
         frame_latency_s=frame_latency_s,
         vision_dropout=vision_dropout,
         renderer=renderer,

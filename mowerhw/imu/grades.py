@@ -26,7 +26,10 @@ class ImuGrade:
     ``noise_density`` rad/s/√Hz (angle random walk); ``bias_instability`` rad/s, the flat
     floor of the Allan deviation (as datasheets quote in-run bias stability), simulated as
     flicker noise (:data:`FLICKER_TIMES_S`); ``rate_random_walk`` rad/s/√s; ``turn_on_bias``
-    rad/s, constant per run and axis; ``scale_factor`` fraction, per run and axis.
+    rad/s, constant per run and axis; ``scale_factor`` fraction, per unit and axis (the
+    spread from one unit to another); ``scale_drift`` fraction, how much one unit's scale
+    changes from one run to a later one (temperature, ageing) — what a scale a teach run
+    learnt is still off when the same mower mows days later.
     """
 
     name: str
@@ -35,6 +38,7 @@ class ImuGrade:
     rate_random_walk: float
     turn_on_bias: float
     scale_factor: float
+    scale_drift: float
     source: str = ""
 
 
@@ -47,6 +51,7 @@ IMU_GRADES: dict[str, ImuGrade] = {
         rate_random_walk=2e-6,  # ≈ 25 °/h/√h: the 10 °/h in-run stability over ~10 min
         turn_on_bias=2e-3,  # removed by the start-up standstill
         scale_factor=0.0,  # factory-calibrated
+        scale_drift=0.001,  # assumed: the factory calibration spans the temperature range
         source="VN-100 datasheet: noise 0.0035 °/s/√Hz, in-run bias stability < 10 °/h",
     ),
     "bmi088": ImuGrade(
@@ -56,6 +61,7 @@ IMU_GRADES: dict[str, ImuGrade] = {
         rate_random_walk=4e-7,  # ≈ 5 °/h/√h, assumed (not in the datasheet)
         turn_on_bias=1.0 * DPS,  # zero-rate offset ±1 °/s
         scale_factor=0.01,  # sensitivity tolerance ±1 %
+        scale_drift=0.005,  # assumed: sensitivity drift ±0.03 %/K over ~15 K between runs
         source="BMI088 datasheet (BST-BMI088-DS001): noise 0.014 °/s/√Hz, ZRO ±1 °/s, "
         "sensitivity ±1 %; bias stability 2 °/h (Bosch); random walk assumed",
     ),
@@ -66,6 +72,7 @@ IMU_GRADES: dict[str, ImuGrade] = {
         rate_random_walk=2e-6,  # ≈ 25 °/h/√h, assumed
         turn_on_bias=20.0 * DPS,  # initial ZRO tolerance ±20 °/s
         scale_factor=0.03,  # sensitivity scale factor tolerance ±3 %
+        scale_drift=0.003,  # sensitivity change ±2 % over −40…85 °C: ~0.3 % over ~20 K
         source="MPU-6000/6050 product specification rev 3.4: noise 0.005 °/s/√Hz, initial "
         "ZRO ±20 °/s, sensitivity ±3 %; bias instability 20 °/h and random walk assumed",
     ),

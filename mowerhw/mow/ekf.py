@@ -248,6 +248,15 @@ class WorldPoseEKF:
         cols = (3 * rows[:, None] + np.arange(3)[None, :]).reshape(-1)
         self.pxl[np.ix_(pose, cols)] = c
 
+    def set_scale(self, k: float, sigma: float) -> None:
+        """The yaw rate's scale error known out of band (what the teach learnt), with σ
+        ``sigma`` (its change since) and no correlation with the rest."""
+        self.k = float(k)
+        self.P[SC, :] = 0.0
+        self.P[:, SC] = 0.0
+        self.P[K_, K_] = sigma**2
+        self.pxl[SC, :] = 0.0
+
     def set_bias(self, bias: FloatArray, var: float) -> None:
         """As :meth:`EkfState.set_bias`."""
         _set_bias(self, bias, var)

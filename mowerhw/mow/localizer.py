@@ -190,10 +190,12 @@ class Localizer:
         g_noise, g_walk, g_scale = c.gyro()
         noise = LocalizerNoise(g_noise, g_walk, c.speed_noise, c.lateral_noise, g_scale)
         self.ekf = WorldPoseEKF(noise, self.map.landmark_covariances(), c.gate_probability)
-        # the gyro's yaw-rate scale error as teaching found it (the same unit, most likely)
+        # the gyro's yaw-rate scale error as teaching found it (the same unit, most likely):
+        # known to within what a unit's scale changes from one run to another
         taught_k = self.map.teach.get("gyro_yaw_scale_error") if self.map.teach else None
         if isinstance(taught_k, int | float) and math.isfinite(taught_k) and abs(taught_k) < 0.2:
-            self.ekf.k = float(taught_k)
+            taught = c.gyro_scale_sigma_taught
+            self.ekf.set_scale(float(taught_k), g_scale if taught is None else min(g_scale, taught))
         self.counters = LocalizerCounters()
         self._speeds = SpeedTrack()
         self._history: deque[_Step] = deque()

@@ -73,13 +73,16 @@ class MowerPlant:
         max_yaw_accel: float = 4.0,
         renderer: Any = None,
         speed_scale: float | None = None,
+        gyro_scale: FloatArray | None = None,
     ) -> None:
         """With a ``renderer`` (:class:`mowerhw.sim.render.OmniRenderer`) the camera delivers
         rendered images (:class:`PixelFrame`, pixel level); without, noisy bearings of known
         landmark ids (bearing level). ``start_xy``/``start_yaw``: the start pose in the world
         frame (the dock is the origin); ``frame_latency_s`` overrides the scenario's;
         ``speed_scale``: the scale of this mower's ground-speed sensor (its teach run's),
-        changed by the model's day-to-day σ (default: drawn for this run)."""
+        changed by the model's day-to-day σ (default: drawn for this run); ``gyro_scale``
+        the same for the gyro's scale per axis (its teach run's, changed by the grade's
+        ``scale_drift``)."""
         self.world = world
         self.renderer = renderer
         self.max_accel = max_accel  # m/s²: a mower cannot stop or start in no time
@@ -101,7 +104,12 @@ class MowerPlant:
         self.rng = np.random.default_rng([seed, 20])
         self.cam_rng = np.random.default_rng([seed, 21])
         self.timing_rng = np.random.default_rng([seed, 22])
-        self.gyro = Gyro(self.sensors.imu, np.random.default_rng([seed, 23]), self.rates.imu_hz)
+        if gyro_scale is not None and self.sensors.imu.scale_drift:
+            drift = np.random.default_rng([seed, 25]).normal(0.0, self.sensors.imu.scale_drift, 3)
+            gyro_scale = np.asarray(gyro_scale, dtype=np.float64) * (1.0 + drift)
+        self.gyro = Gyro(
+            self.sensors.imu, np.random.default_rng([seed, 23]), self.rates.imu_hz, gyro_scale
+        )
         speed_rng = np.random.default_rng([seed, 24])
         if speed_scale is not None and self.sensors.speed.day_sigma:
             speed_scale *= 1.0 + speed_rng.normal(0.0, self.sensors.speed.day_sigma)

@@ -43,12 +43,21 @@ class Gyro:
     """A gyro of one grade, sampled at ``rate_hz``; ``measure`` gives the reading and the true
     bias (everything but the white noise and the scale error) for the evaluation."""
 
-    def __init__(self, grade: ImuGrade, rng: np.random.Generator, rate_hz: float) -> None:
+    def __init__(
+        self,
+        grade: ImuGrade,
+        rng: np.random.Generator,
+        rate_hz: float,
+        scale: FloatArray | None = None,
+    ) -> None:
+        """``scale``: this unit's scale per axis (another run of it: :func:`mower_gyro_scale`);
+        default: one drawn for this unit from the grade's tolerance."""
         self.grade = grade
         self.rng = rng
         self.dt = 1.0 / rate_hz
         self.turn_on = rng.normal(0.0, grade.turn_on_bias, 3) if grade.turn_on_bias else np.zeros(3)
-        self.scale = 1.0 + (rng.normal(0.0, grade.scale_factor, 3) if grade.scale_factor else 0.0)
+        drawn = 1.0 + (rng.normal(0.0, grade.scale_factor, 3) if grade.scale_factor else 0.0)
+        self.scale = drawn if scale is None else np.asarray(scale, dtype=np.float64)
         self._flicker_sigma = grade.bias_instability / FLICKER_ALLAN
         self._phi = np.exp(-self.dt / np.asarray(FLICKER_TIMES_S))[:, None]  # (M, 1)
         self.flicker = (
@@ -305,6 +314,13 @@ def mower_speed_scale(sensors: SensorSuite, seed: int) -> float:
     """The scale of the ground-speed sensor of yard ``seed``'s mower, as its teach run has
     it (the same tyres mow the lawn later)."""
     return Speedometer(sensors.speed, np.random.default_rng([seed, 4])).scale
+
+
+def mower_gyro_scale(sensors: SensorSuite, seed: int) -> FloatArray:
+    """The scale per axis of the gyro of yard ``seed``'s mower, as its teach run has it (the
+    same unit mows the lawn later)."""
+    unit = Gyro(sensors.imu, np.random.default_rng([seed, 2]), sensors.rates.imu_hz)
+    return np.broadcast_to(unit.scale, (3,)).copy()
 
 
 def simulate_sensors(
