@@ -248,6 +248,32 @@ def test_a_taught_gyro_scale_is_trusted_to_within_its_change_between_runs(lawn_m
     assert scale_prior(garbled, vn100) == pytest.approx((0.0, 0.005))
 
 
+def test_a_scale_that_changed_more_than_the_taught_prior_says_is_still_learnt(lawn_map):
+    """A map's taught scale trusted to 0.3 % (an MPU-6050's drift between runs) while the
+    unit now reads its yaw rate 1.5 % high: the small prior does not trap the filter — it
+    learns the scale while the mower turns, and the heading and position stay right."""
+    from dataclasses import replace
+
+    from mowerhw.config import ImuConfig, MowConfig, with_imu_noise
+    from mowerhw.imu.grades import IMU_GRADES
+    from mowerhw.sim.sensors import Gyro, SensorSuite
+
+    world = make_world("paper", 6)
+    grade = replace(IMU_GRADES["vn100"], scale_factor=0.0)
+    plant = MowerPlant(world, 22, sensors=SensorSuite(imu=grade))
+    plant.gyro = Gyro(grade, np.random.default_rng(4), 100.0)
+    plant.gyro.scale = np.array([1.0, 1.0, 1.015])
+    taught = replace(lawn_map, teach={**lawn_map.teach, "gyro_yaw_scale_error": 0.0})
+    cfg = with_imu_noise(MowConfig(), ImuConfig(grade="mpu6050"))
+    assert cfg.gyro_scale_sigma_taught == 0.003
+    loc = Localizer(taught, cfg)
+    turns = [(0, 0, 2.0)] + [(0.3, 0.8, 4.0), (0.3, -0.8, 4.0)] * 6
+    drive(loc, plant, turns)
+    assert loc.ekf.k == pytest.approx(0.015, abs=0.004)
+    _, pos, _, _ = loc.pose()
+    assert np.linalg.norm(pos[:2] - plant.xy) < 0.05
+
+
 def test_a_frame_stamp_error_is_one_turn_all_its_bearings_share():
     """``mow.frame_stamp_sigma_s``: a frame stamped δt off shows every bearing turned by
     ω δt together — a heading error no number of landmarks averages away. With it, the
