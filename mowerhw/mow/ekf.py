@@ -257,6 +257,11 @@ class WorldPoseEKF:
         self.P[K_, K_] = sigma**2
         self.pxl[SC, :] = 0.0
 
+    def reopen_scale(self, sigma: float) -> None:
+        """Make the yaw rate's scale error at least ``sigma`` uncertain again (a larger
+        variance on the diagonal: the covariance stays positive semi-definite)."""
+        self.P[K_, K_] = max(float(self.P[K_, K_]), sigma**2)
+
     def set_bias(self, bias: FloatArray, var: float) -> None:
         """As :meth:`EkfState.set_bias`."""
         _set_bias(self, bias, var)
