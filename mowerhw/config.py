@@ -551,6 +551,15 @@ class MowConfig(MotionNoiseConfig):
         le=0.1,
     )
 
+    def taught_scale_sigma(self) -> float:
+        """The prior σ of the yaw rate's scale error when the map carries the teach's
+        estimate of it: :attr:`gyro_scale_sigma_taught`, never above the untaught prior
+        (:meth:`gyro`). The section must have been through :func:`with_imu_noise`."""
+        taught, untaught = self.gyro_scale_sigma_taught, self.gyro()[2]
+        if taught is None:
+            raise ValueError("gyro noise not resolved: pass the section through with_imu_noise")
+        return min(taught, untaught)
+
 
 @dataclass(frozen=True)
 class ContainmentConfig:
@@ -1096,9 +1105,8 @@ def with_imu_noise(section: Any, imu: ImuConfig | None = None) -> Any:
     """A teach or mow section with its null gyro process noise filled in from ``imu`` (the
     defaults' VN-100 when not given): the one place the estimators' gyro noise is decided."""
     taught_missing = isinstance(section, MowConfig) and section.gyro_scale_sigma_taught is None
-    if None not in (section.gyro_noise, section.gyro_bias_walk, section.gyro_scale_sigma) and (
-        not taught_missing
-    ):
+    resolved = None not in (section.gyro_noise, section.gyro_bias_walk, section.gyro_scale_sigma)
+    if resolved and not taught_missing:
         return section
     from mowerhw.imu.grades import gyro_process_noise
 

@@ -194,8 +194,7 @@ class Localizer:
         # known to within what a unit's scale changes from one run to another
         taught_k = self.map.teach.get("gyro_yaw_scale_error") if self.map.teach else None
         if isinstance(taught_k, int | float) and math.isfinite(taught_k) and abs(taught_k) < 0.2:
-            taught = c.gyro_scale_sigma_taught
-            self.ekf.set_scale(float(taught_k), g_scale if taught is None else min(g_scale, taught))
+            self.ekf.set_scale(float(taught_k), c.taught_scale_sigma())
         self.counters = LocalizerCounters()
         self._speeds = SpeedTrack()
         self._history: deque[_Step] = deque()

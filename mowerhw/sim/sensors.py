@@ -56,6 +56,7 @@ class Gyro:
         self.rng = rng
         self.dt = 1.0 / rate_hz
         self.turn_on = rng.normal(0.0, grade.turn_on_bias, 3) if grade.turn_on_bias else np.zeros(3)
+        # drawn even when given: the draws after it (the flicker) stay the same either way
         drawn = 1.0 + (rng.normal(0.0, grade.scale_factor, 3) if grade.scale_factor else 0.0)
         self.scale = drawn if scale is None else np.asarray(scale, dtype=np.float64)
         self._flicker_sigma = grade.bias_instability / FLICKER_ALLAN
