@@ -433,6 +433,47 @@ def test_heartbeat_sequence_and_isb_counter_on_the_wire():
         rx.shutdown()
 
 
+def test_a_change_goes_out_at_once_and_the_periodic_frames_stay_together():
+    """ISB, status and heartbeat of one period leave in one tick (one wake-up of the loop),
+    also after changes at odd times; a change is sent at once, between the periods."""
+    ch = fresh_channel()
+    tx, rx = open_bus("virtual", ch), open_bus("virtual", ch)
+    try:
+        sender = PermitSender(tx, source_address=0x90, period_s=0.1, heartbeat_period_s=0.1)
+        sent_at: list[tuple[float, int]] = []
+        changes = {1.037: True, 2.561: False, 2.604: True, 4.299: False}
+        for k in range(600):  # 6 s of a loop ticking every 10 ms, the changes between ticks
+            now = k * 0.01
+            for t_change, permit in list(changes.items()):
+                if t_change <= now:
+                    del changes[t_change]
+                    before = sender.stats.isb_sent
+                    assert sender.set(permit, t_change)
+                    assert sender.stats.isb_sent == before + 1  # at once
+                    sent_at.extend((t_change, m.arbitration_id) for m in drain(rx))
+            if now >= sender.next_due():
+                sender.tick(now)
+                sent_at.extend((now, m.arbitration_id) for m in drain(rx))
+        periodic = {}
+        for t, arb in sent_at:
+            if round(t, 3) not in (1.037, 2.561, 2.604, 4.299):
+                periodic.setdefault(round(t, 3), set()).add(parse_id(arb).pgn)
+        assert len(periodic) == 60  # one tick a period, every frame in it
+        assert all(pgns == {PGN_ISB, PGN_HEARTBEAT, 0xFF10} for pgns in periodic.values())
+        ticks = sorted(periodic)
+        assert all(abs(b - a - 0.1) < 1e-6 for a, b in itertools.pairwise(ticks))
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+
+
+def drain(bus: can.BusABC) -> list[can.Message]:
+    out = []
+    while (msg := bus.recv(timeout=0.0)) is not None:
+        out.append(msg)
+    return out
+
+
 @pytest.mark.skipif(not Path("/sys/class/net/vcan0").exists(), reason="no vcan0 on this kernel")
 def test_permit_over_socketcan_vcan0():  # pragma: no cover - needs the vcan kernel module
     tx, rx = open_bus("socketcan", "vcan0"), open_bus("socketcan", "vcan0")

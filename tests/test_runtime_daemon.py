@@ -277,3 +277,58 @@ def test_a_frame_not_of_the_calibrations_size_is_refused_naming_why(tmp_path: Pa
     good = np.zeros((cfg.camera.height, cfg.camera.width), np.uint8)
     daemon._on_frame(FrameSample(t=now, image=good, sequence=2))
     assert core.last_arrival["camera"] is not None and "camera" not in core.stream_notes
+
+
+def test_the_ticker_runs_with_an_imu_sample_and_on_its_own_when_the_imu_is_silent(
+    tmp_path: Path,
+) -> None:
+    """While IMU samples come, the ticker's work runs in the loop's wake-up for a sample (no
+    wake-up of its own); when the IMU is silent it still runs, at most ``TICK_SLACK_S`` late."""
+    from mowerhw.runtime.daemon import TICK_S, TICK_SLACK_S
+
+    channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
+    cfg = _config(tmp_path, channel)
+    imu = MockVn100(tmp_path / "vn100").start()
+    daemon = Daemon(cfg, "idle")
+    imu_times: list[float] = []
+    ticks: list[tuple[float, float]] = []  # (when, the newest IMU sample's handling then)
+    on_imu, sample = daemon._on_imu, daemon.live_view.sample
+
+    def counted_imu(s: Any) -> None:
+        imu_times.append(time.monotonic())
+        on_imu(s)
+
+    def counted_tick(core: Any, now: float) -> None:
+        ticks.append((time.monotonic(), imu_times[-1] if imu_times else -1.0))
+        sample(core, now)
+
+    daemon._on_imu = counted_imu  # type: ignore[method-assign]
+    daemon.live_view.sample = counted_tick  # type: ignore[method-assign]
+
+    async def scenario() -> tuple[int, int]:
+        task = asyncio.create_task(daemon.run())
+        await _until(lambda: len(imu_times) > 10, 20, "IMU data")
+        n0 = len(ticks)
+        await asyncio.sleep(2.0)
+        with_imu = ticks[n0:]
+        imu.stop()
+        await asyncio.sleep(0.3)
+        n1 = len(ticks)
+        await asyncio.sleep(1.0)
+        silent = ticks[n1:]
+        daemon.request_stop("test")
+        await asyncio.wait_for(task, 20)
+        # with the IMU: about one tick a period, each in the wake-up of a sample's handling
+        assert 2.0 / (TICK_S + 0.02) - 1 <= len(with_imu) <= 2.0 / TICK_S + 1, with_imu
+        in_a_samples_wakeup = [t - t_imu < 0.002 for t, t_imu in with_imu]
+        assert sum(in_a_samples_wakeup) >= len(with_imu) - 1, with_imu
+        # silent: the ticker's own timer, every period plus the slack
+        gaps = np.diff([t for t, _ in silent])
+        assert len(silent) >= 1.0 / (TICK_S + TICK_SLACK_S) - 1, silent
+        assert np.all(gaps < TICK_S + TICK_SLACK_S + 0.02), gaps
+        return len(with_imu), len(silent)
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        imu.stop()

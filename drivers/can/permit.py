@@ -3,7 +3,11 @@
 * **ISB**, PGN 64770 ("stop all implement operations"), priority 3: bytes 0–5 0xFF, byte 6 the
   transition counter (incremented on every change of state), byte 7 bits 1–2 ``00`` stop,
   ``01`` permit (the other bits 1). Sent on every change and every ``period_s`` (100 ms, not
-  ISO's 1 s: a deck moving at 0.5 m/s must not run on for seconds).
+  ISO's 1 s: a deck moving at 0.5 m/s must not run on for seconds). A change goes out at once
+  and leaves the periodic grid where it was: with equal periods the ISB, status and heartbeat
+  frames of a period go out together, one wake-up of the sender's loop a period (a change
+  moving the ISB's grid put them half a period apart for good, two wake-ups — and on a bus
+  that echoes them, two more of its receiver).
 * **Heartbeat**, PGN 61668, every ``heartbeat_period_s``: sequence 251 first, then 0…250
   cycling; 254 error; 255 shutting down (ISO: "not available").
 * **Status**, Proprietary B (PGN 0xFF00–0xFFFF, ``status_pgn``), for the mower's own
@@ -200,7 +204,6 @@ class PermitSender:
     def _send_isb(self, now: float) -> None:
         self._send(PGN_ISB, encode_isb(self.counter, self.permit))
         self.stats.isb_sent += 1
-        self._next_isb = now + self.period_s
         self.last_isb_time = now
 
     @staticmethod
@@ -215,8 +218,8 @@ class PermitSender:
         return nxt if nxt > now else now + period
 
     def set(self, permit: bool, now: float, status: Status | None = None) -> bool:
-        """The decision for now; a change goes out at once (with the counter incremented).
-        Returns whether it changed."""
+        """The decision for now; a change goes out at once (with the counter incremented),
+        the periodic frames stay on their grid. Returns whether it changed."""
         if status is not None:
             self.status = status
         changed = bool(permit) != self.permit

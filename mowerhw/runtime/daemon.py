@@ -13,7 +13,9 @@ Everything that decides lives in the core; this module moves data between it and
   staleness deadline, when a CAN frame is due, or 40 ms after the last decision (an IMU that
   keeps time leaves it nothing to do, and the loop does not wake for it);
 * a ticker (every 0.1 s) feeds the status page, the recording, watches the map file,
-  finishes a taught loop, pings systemd's watchdog.
+  finishes a taught loop, pings systemd's watchdog; it runs with the first IMU sample after
+  its period is up (the loop is awake for that sample anyway) and wakes the loop itself only
+  when none comes within ``TICK_SLACK_S``.
 """
 
 from __future__ import annotations
@@ -64,6 +66,11 @@ log = logging.getLogger("mowerhw.daemon")
 DECIDE_MAX_S = 0.04
 #: the ticker's period: the status page's samples, the recording, the map file, systemd
 TICK_S = 0.1
+#: how long after its period the ticker waits for an IMU sample to run with before it wakes
+#: the loop itself: a sample comes every 20 ms, so a running IMU saves the loop 10 wake-ups a
+#: second (on a computer whose caches go cold while it sleeps each costs ~0.4 ms: README,
+#: issue 15, stop 65); the loop's lag is measured from this deadline
+TICK_SLACK_S = 0.03
 
 
 class Daemon:
@@ -114,6 +121,8 @@ class Daemon:
         self.exit_status = 0
         self._next_map_check = self._next_record = 0.0
         self._started = time.monotonic()
+        self._tick_due = float("inf")  # the ticker's period is up then (an IMU sample runs it)
+        self._tick_now: asyncio.Event | None = None
 
     # ------------------------------------------------------------------------- lifecycle
 
@@ -227,6 +236,9 @@ class Daemon:
     def _on_imu(self, s: ImuSample) -> None:
         now = time.monotonic()
         self._send(self.core.imu(s, now), time.monotonic())
+        if now >= self._tick_due and self._tick_now is not None:
+            self._tick_due = float("inf")
+            self._tick_now.set()  # the ticker runs in this wake-up of the loop
 
     def _on_frame(self, frame: FrameSample) -> None:
         problem = self._frame_problem(frame)
@@ -438,11 +450,16 @@ class Daemon:
 
     async def _ticker(self) -> None:
         self._arm_decision_timer(time.monotonic())
+        self._tick_now = tick_now = asyncio.Event()
         while True:
             due = time.monotonic() + TICK_S
-            await asyncio.sleep(TICK_S)
+            tick_now.clear()
+            self._tick_due = due
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(tick_now.wait(), TICK_S + TICK_SLACK_S)
+            self._tick_due = float("inf")
             now = time.monotonic()
-            self.loop_lag.woke(due, now)
+            self.loop_lag.woke(due + TICK_SLACK_S, now)
             if self.estimator_delay_s and now >= self._next_delay:
                 # fault injection: the estimation side blocked this long every 200 ms (a
                 # computer too slow for it): its decisions come late, the leases run out

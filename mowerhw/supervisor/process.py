@@ -58,6 +58,10 @@ log = logging.getLogger("mowerhw.supervisor")
 TICK_MAX_S = 0.1  # the watchdog, the status down to the child, the web process
 STATUS_PERIOD_S = 0.5  # the supervisor's status, down to the child (for `mowerhw ctl status`)
 LATENCIES_KEPT = 2000  # the newest latencies its status gives percentiles of
+#: the CAN receive thread's longest wait for a frame: how soon it sees a stop or a bus
+#: reopened under it (the shutdown waits 0.5 s for it). Each wait that ends empty is a
+#: wake-up for nothing (0.05 s woke it about 10 times a second between 10-Hz speed frames)
+RX_WAIT_S = 0.25
 #: the stream of the IMU's specific force, as the leases carry it (its halt names it)
 FORCE = "imu specific force"
 NO_FORCE = (
@@ -252,7 +256,7 @@ class Supervisor:
                 time.sleep(0.05)
                 continue
             try:
-                msg = bus.recv(timeout=0.05)
+                msg = bus.recv(timeout=RX_WAIT_S)
             except Exception as exc:
                 if self.port.bus is bus:  # not the one just closed on purpose
                     self.port.failed(time.monotonic(), f"receive failed ({exc})")
@@ -610,7 +614,7 @@ class Supervisor:
                 self.child.kill()
                 self.child.join(timeout=1.0)
         if self._rx is not None:  # before the bus closes under it (no "receive failed")
-            self._rx.join(timeout=0.5)  # it sees stop_requested within its receive timeout
+            self._rx.join(timeout=2 * RX_WAIT_S)  # it sees stop_requested within RX_WAIT_S
         if self.port.bus is not None:
             with contextlib.suppress(Exception):
                 self.port.bus.shutdown()
