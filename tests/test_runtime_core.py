@@ -106,6 +106,11 @@ def test_frames_the_front_end_does_not_take_keep_the_camera_alive(camera: Any) -
     core.camera_frame(1.4)
     core.camera_alive(1.5)
     assert not late(1.6)
+    # a dropped frame's time read after a newer frame arrived (the runtime reads it at its
+    # next decision) does not move the camera's liveness back
+    core.camera_frame(1.7)
+    core.camera_alive(1.65)
+    assert core.last_arrival["camera"] == 1.7
 
 
 def test_a_chain_built_for_a_request_that_was_overtaken_is_not_installed(camera: Any) -> None:

@@ -332,3 +332,39 @@ def test_the_ticker_runs_with_an_imu_sample_and_on_its_own_when_the_imu_is_silen
         asyncio.run(scenario())
     finally:
         imu.stop()
+
+
+def test_the_frames_the_camera_drops_keep_it_alive_read_at_each_decision(tmp_path: Path) -> None:
+    """``camera.device_fps`` 20 above ``camera.fps`` 2: the frames dropped between the front
+    end's are read by the loop before each decision (no wake-up of its own for each), so the
+    camera's liveness the gate judges is never older than a few of the camera's periods."""
+    channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
+    raw = config_to_dict(_config(tmp_path, channel))
+    raw["camera"].update(fps=2, device_fps=20, stale_after_s=0.25)
+    cfg = config_from_dict(raw, tmp_path, "test config")
+    imu = MockVn100(tmp_path / "vn100").start()
+    daemon = Daemon(cfg, "idle")
+    ages: list[float] = []
+    on_imu = daemon._on_imu
+
+    def judged(s: Any) -> None:
+        on_imu(s)
+        last = daemon.core.last_arrival["camera"]
+        if last is not None:
+            ages.append(time.monotonic() - last)
+
+    daemon._on_imu = judged  # type: ignore[method-assign]
+
+    async def scenario() -> None:
+        task = asyncio.create_task(daemon.run())
+        await _until(lambda: len(ages) > 10, 20, "IMU data and camera frames")
+        await asyncio.sleep(2.0)
+        daemon.request_stop("test")
+        await asyncio.wait_for(task, 20)
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        imu.stop()
+    assert daemon.camera is not None and daemon.camera.stats.skipped >= 25
+    assert max(ages[5:]) < 0.15, max(ages[5:])  # the front end's frames alone: up to 0.5 s

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -58,31 +59,31 @@ class FrameRate:
 
 
 class CameraSource(ThreadedDevice, ABC):
-    """A source of timestamped frames, delivered from its own thread to ``on_frame``; a
-    frame dropped by :class:`FrameRate` is told to ``on_alive`` (the camera is alive)."""
+    """A source of timestamped frames, delivered from its own thread to ``on_frame``; when
+    the newest frame :class:`FrameRate` dropped came is :attr:`alive_at` (the camera is alive
+    between the frames delivered: its liveness is judged at its own rate, not the front
+    end's)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.thread_name = type(self).__name__
         self.stats = CameraStats()
         self.on_frame: Callable[[FrameSample], None] | None = None
-        self.on_alive: Callable[[], None] | None = None
+        #: host monotonic time (s) of the newest frame dropped by the rate, None before one:
+        #: read by the consumer when it decides (one float, written by this thread only) —
+        #: not pushed to it, which woke its loop for every dropped frame (26 a second for a
+        #: 30-fps camera and a 4-fps front end)
+        self.alive_at: float | None = None
 
-    def start(
-        self,
-        on_frame: Callable[[FrameSample], None],
-        on_alive: Callable[[], None] | None = None,
-    ) -> None:
-        """Deliver frames to ``on_frame``; ``on_alive`` (optional) hears of every frame the
-        rate drops, so the camera's liveness is judged at its own rate, not the front end's."""
-        self.on_frame, self.on_alive = on_frame, on_alive
+    def start(self, on_frame: Callable[[FrameSample], None]) -> None:
+        """Deliver frames to ``on_frame`` (from this device's thread)."""
+        self.on_frame = on_frame
         self._start_thread()
 
     def _skipped(self) -> None:
         """A frame came before its turn (:class:`FrameRate`) and was dropped undecoded."""
         self.stats.skipped += 1
-        if self.on_alive is not None:
-            self.on_alive()
+        self.alive_at = time.monotonic()
 
     @abstractmethod
     def _run(self) -> None: ...

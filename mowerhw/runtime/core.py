@@ -241,8 +241,9 @@ class RuntimeCore:
         ``camera.fps``), dropped undecoded: the camera is alive, unless the last one decoded
         was refused (the frames between are of the same mode)."""
         self._log("camera_alive", now=now)
-        if "camera" not in self.stream_notes:
-            self.last_arrival["camera"] = now
+        last = self.last_arrival["camera"]
+        if "camera" not in self.stream_notes and (last is None or now > last):
+            self.last_arrival["camera"] = now  # (read late, it may be older than a frame)
 
     def camera_refused(self, now: float, why: str) -> None:
         """A frame that cannot be used at all (not the calibration's size): not a fresh frame;

@@ -123,6 +123,7 @@ class Daemon:
         self._started = time.monotonic()
         self._tick_due = float("inf")  # the ticker's period is up then (an IMU sample runs it)
         self._tick_now: asyncio.Event | None = None
+        self._camera_alive_seen: float | None = None
 
     # ------------------------------------------------------------------------- lifecycle
 
@@ -153,12 +154,10 @@ class Daemon:
             loop,
         )
         # the camera is alive when its frames arrive, whatever the front end does with them
-        # (a frame searched for the pose can take a second there)
+        # (a frame searched for the pose can take a second there); the frames it drops
+        # between are read at each decision (:meth:`_camera_alive`)
         arrived = self._handler(self._on_frame, "camera frame")
-        alive = threadsafe(loop, self._handler(self._on_camera_alive, "camera"))
-        self.camera = open_camera(
-            self.cfg, asyncio_sink(loop, self._frames, arrived), lambda: alive(None)
-        )
+        self.camera = open_camera(self.cfg, asyncio_sink(loop, self._frames, arrived))
         await self.set_mode(self.start_mode)
         self._timer_fired = self._handler(self._decision_timer_fired, "decision timer")
         tasks = [self._spawn(self._ticker(), "ticker"), self._spawn(self._frame_task(), "frontend")]
@@ -234,6 +233,7 @@ class Daemon:
     # --------------------------------------------------------------------------- inputs
 
     def _on_imu(self, s: ImuSample) -> None:
+        self._camera_alive()
         now = time.monotonic()
         self._send(self.core.imu(s, now), time.monotonic())
         if now >= self._tick_due and self._tick_now is not None:
@@ -247,8 +247,14 @@ class Daemon:
         else:
             self.core.camera_frame(time.monotonic())
 
-    def _on_camera_alive(self, _: None) -> None:
-        self.core.camera_alive(time.monotonic())
+    def _camera_alive(self) -> None:
+        """The newest frame the camera dropped between the front end's, if it is news:
+        read before each decision (the decision that needs it sees it; the loop does not
+        wake for each)."""
+        alive_at = None if self.camera is None else self.camera.alive_at
+        if alive_at is not None and alive_at != self._camera_alive_seen:
+            self._camera_alive_seen = alive_at
+            self.core.camera_alive(alive_at)
 
     def _frame_problem(self, frame: FrameSample) -> str:
         """Why a frame cannot be used at all, or "": its size must be the calibration's (a
@@ -331,6 +337,7 @@ class Daemon:
                 await fut
 
     def _decide(self, now: float) -> Decision:
+        self._camera_alive()
         d = self.core.decide(now)
         self._send(d, time.monotonic())
         return d

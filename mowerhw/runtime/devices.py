@@ -68,10 +68,9 @@ def open_imu(
 def open_camera(
     cfg: Config,
     on_frame: Callable[[FrameSample], None],
-    on_alive: Callable[[], None] | None = None,
 ) -> CameraSource:
     """The camera driver ``camera.driver`` names, started: frames at ``camera.fps`` to
-    ``on_frame``, and the camera's other frames (``camera.device_fps``) to ``on_alive``."""
+    ``on_frame``; the camera's other frames (``camera.device_fps``) are its ``alive_at``."""
     c = cfg.camera
     camera: CameraSource
     if c.driver == "stream":
@@ -92,7 +91,7 @@ def open_camera(
             pixel_format=c.pixel_format,
             clock=FrameClock(c.timestamps),
         )
-    camera.start(on_frame, on_alive)
+    camera.start(on_frame)
     return camera
 
 
