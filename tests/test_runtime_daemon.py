@@ -368,3 +368,27 @@ def test_the_frames_the_camera_drops_keep_it_alive_read_at_each_decision(tmp_pat
         imu.stop()
     assert daemon.camera is not None and daemon.camera.stats.skipped >= 25
     assert max(ages[5:]) < 0.15, max(ages[5:])  # the front end's frames alone: up to 0.5 s
+
+
+def test_a_threadsafe_callback_runs_at_once_on_the_loop_and_is_scheduled_from_a_thread() -> None:
+    """What a reader the loop polls hands over is handled before the poll returns (so it is
+    in the decision after it); from a device thread it waits for the loop."""
+    import threading
+
+    from mowerhw.runtime.callbacks import threadsafe
+
+    async def main() -> tuple[list[str], list[str]]:
+        got: list[str] = []
+        cb = threadsafe(asyncio.get_running_loop(), got.append)
+        cb("on the loop")
+        at_once = list(got)
+        t = threading.Thread(target=cb, args=("from a thread",))
+        t.start()
+        t.join()
+        before_the_loop_ran = list(got)
+        await asyncio.sleep(0.01)
+        return at_once + before_the_loop_ran, got
+
+    early, final = asyncio.run(main())
+    assert early == ["on the loop", "on the loop"]
+    assert final == ["on the loop", "from a thread"]

@@ -292,7 +292,8 @@ def test_every_samples_force_reaches_the_safety_checks_not_only_the_leases(
 
 def test_the_link_reads_the_supervisor_on_the_event_loop() -> None:
     """In the estimation process the supervisor's messages are read on the daemon's event
-    loop (no reader thread): a ground-speed frame reaches the daemon's callback, a lift
+    loop (no reader thread), when it polls before a decision — not by a wake-up of their
+    own: a ground-speed frame reaches the daemon's callback before the poll returns, a lift
     notice too, and the supervisor's stop — or its pipe closing — ends the process."""
     import asyncio
     import multiprocessing
@@ -314,18 +315,16 @@ def test_the_link_reads_the_supervisor_on_the_event_loop() -> None:
         can_id, data = encode_speed(0.42)
         theirs.send(("can", (time.monotonic(), can_id, data, True)))
         theirs.send(("lifted", True))
-        for _ in range(100):
-            await asyncio.sleep(0.01)
-            if got["speed"] and got["lifted"]:
-                break
+        await asyncio.sleep(0.05)
+        assert not got["speed"] and not got["lifted"]  # the loop did not wake for them
+        link.poll()  # a decision's
+        assert got["speed"] and got["lifted"]  # handled within the poll: in the decision
         if stop_by == "stop":
             theirs.send(("stop", None))
         else:
             theirs.close()
-        for _ in range(100):
-            await asyncio.sleep(0.01)
-            if got["lost"]:
-                break
+        await asyncio.sleep(0.01)
+        link.poll()
 
     asyncio.run(main("stop"))
     assert [round(s.speed_mps, 2) for s in got["speed"]] == [0.42]

@@ -45,9 +45,18 @@ class HandlerCosts:
 
 
 def threadsafe(loop: asyncio.AbstractEventLoop, fn: Callable[[Any], None]) -> Callable[[Any], None]:
-    """``fn`` called on ``loop``, from a device thread."""
+    """``fn`` called on ``loop``: from a device thread through ``call_soon_threadsafe``, at
+    once when called on the loop itself (a reader the loop polls before a decision: what it
+    read is in that decision)."""
 
     def call(arg: Any) -> None:
+        try:
+            on_the_loop = asyncio.get_running_loop() is loop
+        except RuntimeError:  # a device thread: no loop of its own
+            on_the_loop = False
+        if on_the_loop:
+            fn(arg)
+            return
         with contextlib.suppress(RuntimeError):  # the loop is closing
             loop.call_soon_threadsafe(fn, arg)
 

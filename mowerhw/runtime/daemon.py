@@ -4,8 +4,10 @@ Everything that decides lives in the core; this module moves data between it and
 
 * the VN-100 is read on the event loop itself (its thread only opens and reopens the port);
   other device threads (CAN receive, camera) hand samples over with ``call_soon_threadsafe``;
-  each IMU sample goes into the core, which decides at once, and the decision goes out — a
-  halt leaves within the IMU period of the sample revealing it;
+  the supervisor's messages (the ground speed among them) and the camera's liveness between
+  the front end's frames are read before each decision instead, without a wake-up of their
+  own; each IMU sample goes into the core, which decides at once, and the decision goes out
+  — a halt leaves within the IMU period of the sample revealing it;
 * camera frames wait in a one-slot queue (the oldest is dropped); the front end tracks one
   frame at a time in its own process (``frontend_worker``) and the tracks go into the core;
 * estimator chains are built off the loop when the core asks for one;
@@ -155,7 +157,7 @@ class Daemon:
         )
         # the camera is alive when its frames arrive, whatever the front end does with them
         # (a frame searched for the pose can take a second there); the frames it drops
-        # between are read at each decision (:meth:`_camera_alive`)
+        # between are read at each decision (:meth:`_read_before_deciding`)
         arrived = self._handler(self._on_frame, "camera frame")
         self.camera = open_camera(self.cfg, asyncio_sink(loop, self._frames, arrived))
         await self.set_mode(self.start_mode)
@@ -233,7 +235,7 @@ class Daemon:
     # --------------------------------------------------------------------------- inputs
 
     def _on_imu(self, s: ImuSample) -> None:
-        self._camera_alive()
+        self._read_before_deciding()
         now = time.monotonic()
         self._send(self.core.imu(s, now), time.monotonic())
         if now >= self._tick_due and self._tick_now is not None:
@@ -247,10 +249,13 @@ class Daemon:
         else:
             self.core.camera_frame(time.monotonic())
 
-    def _camera_alive(self) -> None:
-        """The newest frame the camera dropped between the front end's, if it is news:
-        read before each decision (the decision that needs it sees it; the loop does not
-        wake for each)."""
+    def _read_before_deciding(self) -> None:
+        """What is read at each decision, not woken for: the supervisor's messages (the
+        ground speed among them), and the newest frame the camera dropped between the
+        front end's, if it is news. Decisions come with every IMU sample, and at least every
+        ``DECIDE_MAX_S`` without (the decision timer)."""
+        if self.can is not None:
+            self.can.poll()
         alive_at = None if self.camera is None else self.camera.alive_at
         if alive_at is not None and alive_at != self._camera_alive_seen:
             self._camera_alive_seen = alive_at
@@ -337,7 +342,7 @@ class Daemon:
                 await fut
 
     def _decide(self, now: float) -> Decision:
-        self._camera_alive()
+        self._read_before_deciding()
         d = self.core.decide(now)
         self._send(d, time.monotonic())
         return d

@@ -171,6 +171,7 @@ class DecisionOutput(Protocol):
 
     def open(self) -> bool: ...
     def retry(self, now: float) -> None: ...
+    def poll(self) -> None: ...
     def send_decision(
         self,
         d: Decision,
@@ -284,6 +285,9 @@ class CanLink(ThreadedDevice):
             "permit_sender": vars(self.sender.stats) if self.sender else {},
             "can_address": self.claim.status() if self.claim is not None else None,
         }
+
+    def poll(self) -> None:
+        """Nothing to read before a decision: the receive thread hands the speed over."""
 
     def retry(self, now: float) -> None:
         """Try to open a bus that failed, about once a second."""

@@ -5,10 +5,12 @@ made: a changed decision at once, an unchanged one renewed at most every ``RENEW
 loop never waits on the pipe: a lease goes only while the pipe has room (a pipe the
 supervisor does not empty is a supervisor that will halt on an expired lease anyway; the
 lease is tried again with the next decision). Ground-speed frames the supervisor reads from
-CAN come down; so do its status and the request to stop — read on the daemon's event loop
-when it has one (the loop wakes once for a message; a reader thread woke, then woke the loop),
-else on a thread of its own. If the pipe breaks (the supervisor died) the estimation process
-stops: it must never run without its supervisor.
+CAN come down; so do its status, a lift and the request to stop — read on the daemon's event
+loop before each of its decisions (:meth:`SupervisorLink.poll`: at least every 40 ms, with
+every IMU sample while they come; the loop does not wake for a message of its own — the
+speed's 10 a second were a tenth of its wake-ups — and a speed sample read before a decision
+is in it), else on a thread of its own. If the pipe breaks (the supervisor died) the
+estimation process stops: it must never run without its supervisor.
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ class SupervisorLink:
         self._frames: CanFrames | None = None
         self._on_lost: Callable[[str], None] | None = None
         self._on_lifted: Callable[[bool], None] | None = None
+        self._polled = False  # read by :meth:`poll` (on an event loop), not by a thread
 
     def output(
         self,
@@ -85,14 +88,28 @@ class SupervisorLink:
     # ------------------------------------------------------------------ DecisionOutput
 
     def open(self) -> bool:
+        """Start; without a running event loop a thread reads the supervisor's messages,
+        with one the loop's owner calls :meth:`poll` before each decision."""
         try:
-            loop = asyncio.get_running_loop()
+            asyncio.get_running_loop()
         except RuntimeError:
             threading.Thread(target=self._read, name="supervisor-rx", daemon=True).start()
         else:
-            loop.add_reader(self.conn.fileno(), self._readable, loop)
+            self._polled = True
         self.send(("ready", None))
         return True
+
+    def poll(self) -> None:
+        """Every whole message the supervisor has sent, handled now (on the loop's thread;
+        its callbacks run before this returns)."""
+        if not self._polled or self._closed:
+            return
+        try:
+            while self.conn.poll(0):
+                if not self._receive():
+                    return
+        except (OSError, EOFError, ValueError) as exc:
+            self._lost(f"the supervisor's pipe closed ({type(exc).__name__})")
 
     def retry(self, now: float) -> None:
         return None
@@ -180,17 +197,6 @@ class SupervisorLink:
     def _read(self) -> None:
         while self._receive():
             pass
-
-    def _readable(self, loop: asyncio.AbstractEventLoop) -> None:
-        """The pipe has data (on the event loop): every whole message waiting."""
-        try:
-            while self.conn.poll(0):
-                if not self._receive():
-                    loop.remove_reader(self.conn.fileno())
-                    return
-        except (OSError, EOFError, ValueError) as exc:
-            loop.remove_reader(self.conn.fileno())
-            self._lost(f"the supervisor's pipe closed ({type(exc).__name__})")
 
     def _receive(self) -> bool:
         """One message from the supervisor, handled; False once the pipe is done with."""
