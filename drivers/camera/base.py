@@ -59,10 +59,10 @@ class FrameRate:
 
 
 class CameraSource(ThreadedDevice, ABC):
-    """A source of timestamped frames, delivered from its own thread to ``on_frame``; when
-    the newest frame :class:`FrameRate` dropped came is :attr:`alive_at` (the camera is alive
-    between the frames delivered: its liveness is judged at its own rate, not the front
-    end's)."""
+    """A source of timestamped frames, delivered from its own thread to ``on_frame``. The
+    arrival of the newest frame :class:`FrameRate` dropped is :attr:`alive_at`: the camera
+    is alive between the frames delivered, and its liveness is judged at its own rate, not
+    the front end's."""
 
     def __init__(self) -> None:
         super().__init__()

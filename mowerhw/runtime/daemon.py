@@ -69,9 +69,9 @@ DECIDE_MAX_S = 0.04
 #: the ticker's period: the status page's samples, the recording, the map file, systemd
 TICK_S = 0.1
 #: how long after its period the ticker waits for an IMU sample to run with before it wakes
-#: the loop itself: a sample comes every 20 ms, so a running IMU saves the loop 10 wake-ups a
-#: second (on a computer whose caches go cold while it sleeps each costs ~0.4 ms: README,
-#: issue 15, stop 65); the loop's lag is measured from this deadline
+#: the loop itself: a sample comes every 20 ms, so while the IMU runs the ticker adds no
+#: wake-up of its own (10 a second before; README, issue 15, stop 66: fewer wake-ups, though
+#: not a measurably lower CPU); the loop's lag is measured from this deadline
 TICK_SLACK_S = 0.03
 
 
