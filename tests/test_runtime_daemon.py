@@ -392,3 +392,31 @@ def test_a_threadsafe_callback_runs_at_once_on_the_loop_and_is_scheduled_from_a_
     early, final = asyncio.run(main())
     assert early == ["on the loop", "on the loop"]
     assert final == ["on the loop", "from a thread"]
+
+
+def test_a_deadline_that_runs_out_while_deciding_is_due_at_once(tmp_path: Path) -> None:
+    """The decision timer is armed after the decision went out: a staleness limit that ran
+    out between the decision (not yet stale) and the arming is due at once, not skipped
+    until the next IMU sample (the bench: the estimation side's speed halt 20 ms late)."""
+    channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
+    daemon = Daemon(_config(tmp_path, channel), "idle")
+    fired: list[float] = []
+
+    async def main() -> tuple[float, float]:
+        daemon.loop = asyncio.get_running_loop()
+        daemon._timer_fired = lambda _: fired.append(time.monotonic())
+        decided = time.monotonic()
+        limit = daemon.core.gate.stale_limits_s["speed"]
+        # the speed's limit runs out 0.2 ms after the decision, 0.3 ms before the arming
+        daemon.core.last_arrival.update(imu=decided, camera=decided, speed=decided - limit + 2e-4)
+        daemon._arm_decision_timer(decided + 5e-4, decided)
+        with_decision_time = daemon._decision_due
+        daemon._arm_decision_timer(decided + 5e-4)  # counted from the arming, as before
+        skipped = daemon._decision_due
+        assert daemon._decision_timer is not None
+        daemon._decision_timer.cancel()
+        return with_decision_time - decided, skipped - decided
+
+    due_s, skipped_s = asyncio.run(main())
+    assert due_s == pytest.approx(3e-4, abs=1e-6)  # at the limit (+0.1 ms): at once
+    assert skipped_s > 0.03  # the next limit or DECIDE_MAX_S: the speed's was passed over
