@@ -305,7 +305,7 @@ def test_the_ticker_runs_with_an_imu_sample_and_on_its_own_when_the_imu_is_silen
     daemon._on_imu = counted_imu  # type: ignore[method-assign]
     daemon.live_view.sample = counted_tick  # type: ignore[method-assign]
 
-    async def scenario() -> tuple[int, int]:
+    async def scenario() -> None:
         task = asyncio.create_task(daemon.run())
         await _until(lambda: len(imu_times) > 10, 20, "IMU data")
         n0 = len(ticks)
@@ -326,7 +326,6 @@ def test_the_ticker_runs_with_an_imu_sample_and_on_its_own_when_the_imu_is_silen
         gaps = np.diff([t for t, _ in silent])
         assert len(silent) >= 1.0 / (TICK_S + TICK_SLACK_S) - 1, silent
         assert np.all(gaps < TICK_S + TICK_SLACK_S + 0.02), gaps
-        return len(with_imu), len(silent)
 
     try:
         asyncio.run(scenario())
@@ -400,11 +399,10 @@ def test_a_deadline_that_runs_out_while_deciding_is_due_at_once(tmp_path: Path) 
     until the next IMU sample (the bench: the estimation side's speed halt 20 ms late)."""
     channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
     daemon = Daemon(_config(tmp_path, channel), "idle")
-    fired: list[float] = []
 
     async def main() -> tuple[float, float]:
         daemon.loop = asyncio.get_running_loop()
-        daemon._timer_fired = lambda _: fired.append(time.monotonic())
+        daemon._timer_fired = lambda _: None  # only where it is armed matters here
         decided = time.monotonic()
         limit = daemon.core.gate.stale_limits_s["speed"]
         # the speed's limit runs out 0.2 ms after the decision, 0.3 ms before the arming
