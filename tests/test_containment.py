@@ -2,9 +2,10 @@
 
 import numpy as np
 import pytest
+import shapely
 
 from mowerhw.config import ContainmentConfig
-from mowerhw.mow.containment import Containment, LawnGeometry, Reason, State
+from mowerhw.mow.containment import Containment, LawnGeometry, NearestEdge, Reason, State
 
 SQUARE = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
 CFG = ContainmentConfig(
@@ -121,6 +122,35 @@ def test_signed_distances_vectorised_match():
     pts = np.random.default_rng(0).uniform(-2, 12, size=(200, 2))
     one = np.array([g.signed_distance(x, y) for x, y in pts])
     assert np.allclose(g.signed_distances(pts), one)
+
+
+@pytest.mark.parametrize(
+    "outline",
+    [
+        SQUARE,
+        # a 200-gon of 40 m: its centre's cells have every segment as a candidate (measured
+        # in numpy), and a large lawn's cells are larger than the smallest
+        np.column_stack([np.cos(a := np.linspace(0, 2 * np.pi, 200, endpoint=False)), np.sin(a)])
+        * 20.0,
+        # a long thin strip with a notch: candidates on both sides of a narrow lawn
+        np.array([[0, 0], [60, 0], [60, 3], [31, 3], [30, 1.5], [29, 3], [0, 3]], float),
+    ],
+    ids=["square", "circle", "strip"],
+)
+def test_the_nearest_edge_grid_gives_the_distance_to_every_segment(outline):
+    """The per-sample distance (:class:`NearestEdge`: a few candidate segments per grid
+    cell) is the distance to the nearest of all the edges, on and off the grid, against
+    shapely's distance to the boundary."""
+    pond = np.array([[4, 1], [6, 1], [6, 2], [4, 2]], float)
+    g = LawnGeometry(outline, [("pond", pond)])
+    grid: NearestEdge = g._nearest
+    lo, hi = outline.min(axis=0) - 3.0, outline.max(axis=0) + 3.0
+    pts = np.random.default_rng(5).uniform(lo, hi, size=(3000, 2))
+    ours = np.array([grid.distance(x, y) for x, y in pts])
+    theirs = shapely.distance(g.edges, shapely.points(pts))
+    assert np.allclose(ours, theirs, atol=1e-9)
+    inner = sum(c is None for c in grid._cells)
+    assert (inner > 0) == (len(outline) == 200)  # only the 200-gon's centre falls back
 
 
 def test_signed_distance_along_a_path_keeps_the_right_side():
