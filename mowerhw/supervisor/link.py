@@ -26,6 +26,7 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
+from mowerhw.common.fdwait import FdWaiter
 from mowerhw.common.samples import SpeedSample
 from mowerhw.config import Config
 from mowerhw.mow.gate import Decision
@@ -61,10 +62,7 @@ class SupervisorLink:
         self._permit = False
         self._room = select.poll()
         self._room.register(conn.fileno(), select.POLLOUT)
-        #: :meth:`poll`'s readiness test: one ``poll`` system call (``Connection.poll`` builds
-        #: a selector each time: ~10 times the CPU, paid before every decision)
-        self._news = select.poll()
-        self._news.register(conn.fileno(), select.POLLIN)
+        self._news = FdWaiter([conn.fileno()])  # before every decision: one system call
         self._send_lock = threading.Lock()
         self._closed = False
         self._frames: CanFrames | None = None
@@ -109,7 +107,7 @@ class SupervisorLink:
         if not self._polled or self._closed:
             return
         try:
-            while self._news.poll(0):
+            while self._news.ready_now():
                 if not self._receive():
                     return
         except (OSError, EOFError, ValueError) as exc:

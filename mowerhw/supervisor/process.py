@@ -30,7 +30,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Collection
-from multiprocessing.connection import Connection, wait
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +39,7 @@ from drivers.can.isobus import parse_id, pgn_filters
 from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
 from drivers.can.switches import decode_switches
+from mowerhw.common.fdwait import FdWaiter
 from mowerhw.common.reasons import Reason
 from mowerhw.config import Config
 from mowerhw.estimation.safety import SafetyMonitor
@@ -191,6 +192,8 @@ class Supervisor:
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
+        #: the estimation process's pipe, readable now? (:meth:`_drain`: per lease)
+        self._conn_news: tuple[int, FdWaiter] | None = None
         self._next_status = 0.0
         self._status_permit = False  # the permit of the last status sent down
         self._lifted_told = False  # what the estimation side was last told about a lift
@@ -397,6 +400,8 @@ class Supervisor:
         if self.web is not None:
             self.web.start()
         assert self.conn is not None and self.child is not None
+        conn_fd, child_fd = self.conn.fileno(), self.child.sentinel
+        waiter = FdWaiter((conn_fd, child_fd, self._wake_r))
         started = time.monotonic()
         status = 0
         while True:
@@ -412,10 +417,8 @@ class Supervisor:
             if self.lease_mow():
                 due = min(due, self.stream_gate.next_stale_deadline(now, self._arrival) + 1e-4)
             listener = self.status_socket.listener(now)
-            waits: list[Any] = [self.conn, self.child.sentinel, self._wake_r]
-            if listener is not None:
-                waits.append(listener)
-            ready = wait(waits, max(0.0005, due - now))
+            listener_fd = None if listener is None else listener.fileno()
+            ready = waiter.wait(max(0.0005, due - now), listener_fd)
             before, now = now, time.monotonic()
             if now - before > 1.0:
                 # this process itself did not run for a second (the computer paused): the
@@ -429,9 +432,9 @@ class Supervisor:
                 self.max_loop_lag_ms = max(self.max_loop_lag_ms, lag_ms)
                 if lag_ms > 20.0:
                     self.counts["loop_stalls_over_20ms"] += 1
-            if self.conn in ready:
+            if conn_fd in ready:
                 self._drain(now)
-            if self.child.sentinel in ready or not self.child.is_alive():
+            if child_fd in ready or not self.child.is_alive():
                 self.child.join(timeout=1.0)  # for its exit code
                 if not self.stop_requested:
                     log.error(
@@ -474,7 +477,7 @@ class Supervisor:
                 status = 1
                 break
             self._decide(now)
-            if listener is not None and listener in ready:  # after the decision: it says it
+            if listener_fd is not None and listener_fd in ready:  # after the decision: it says it
                 self.status_socket.serve(lambda: self.socket_status(time.monotonic()))
             if self.web is not None:
                 self.web.check(now)
@@ -484,7 +487,10 @@ class Supervisor:
     def _drain(self, now: float) -> None:
         assert self.conn is not None
         try:
-            while self.conn.poll():
+            fd = self.conn.fileno()
+            if self._conn_news is None or self._conn_news[0] != fd:
+                self._conn_news = (fd, FdWaiter((fd,)))
+            while self._conn_news[1].ready_now():
                 kind, body = self.conn.recv()
                 self._child_heard = now
                 if kind == "lease":
