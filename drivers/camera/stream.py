@@ -56,13 +56,14 @@ def decode_header(raw: bytes | bytearray) -> tuple[int, float, int, int, int]:
     return seq, t, w, h, ch
 
 
-def _read_exact(sock: socket.socket, n: int) -> bytearray:
-    """``n`` bytes from ``sock`` (the buffer itself: a frame's 2.4 MB are not copied again)."""
-    buf = bytearray(n)
+def _read_exact(sock: socket.socket, n: int, into: bytearray | None = None) -> bytearray:
+    """``n`` bytes from ``sock`` (the buffer itself: a frame's 2.4 MB are not copied again),
+    into a new buffer or, for bytes no one keeps, the start of ``into`` (at least ``n``)."""
+    buf = bytearray(n) if into is None else into
     view = memoryview(buf)
     got = 0
     while got < n:
-        k = sock.recv_into(view[got:], n - got)
+        k = sock.recv_into(view[got:n], n - got)
         if k == 0:
             raise ConnectionError("camera stream closed")
         got += k
@@ -106,16 +107,23 @@ class StreamCamera(CameraSource):
             backoff = 0.05
             log.info("camera: stream %s connected", self.path)
             rate = None if self.fps is None else FrameRate(self.fps)
+            scratch = bytearray()  # a skipped frame's pixels, read and let go
             try:
                 while not self._stop.is_set():
                     seq, t, w, h, ch = decode_header(_read_exact(sock, HEADER.size))
-                    pixels = _read_exact(sock, w * h * ch)
+                    size = w * h * ch
                     if rate is not None:
                         host_s = time.monotonic()
                         if rate.skip(host_s):
-                            self._skipped()  # read (it is on the wire), not handed on
+                            # read (it is on the wire), not handed on: into one buffer
+                            # kept for it, not a new 2.4 MB each time (page faults)
+                            if len(scratch) < size:
+                                scratch = bytearray(size)
+                            _read_exact(sock, size, scratch)
+                            self._skipped()
                             continue
                         rate.taken(host_s)
+                    pixels = _read_exact(sock, size)
                     shape = (h, w) if ch == 1 else (h, w, ch)
                     img = np.frombuffer(pixels, np.uint8).reshape(shape)
                     img.flags.writeable = False  # as every frame a source hands out
