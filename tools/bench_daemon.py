@@ -11,6 +11,9 @@
 * memory: the daemon's RSS every 10 s (a soak: ``--duration 3600``).
 
     .venv/bin/python tools/bench_daemon.py --duration 600 --halt-every 20
+
+A trade-off is measured with ``--config``: e.g. the VN-100 at 25 Hz (``imu.rate_hz``), what
+a slower computer could run (README, issue 15, stop 67).
 """
 
 from __future__ import annotations
@@ -32,6 +35,12 @@ def main() -> None:
     ap.add_argument("--map", type=Path, help="a map of the yard (default: pixel-level sim teach)")
     ap.add_argument("--out", type=Path)
     ap.add_argument("--load", type=int, default=0, help="CPU hogs beside the daemon")
+    ap.add_argument(
+        "--config",
+        type=Path,
+        help="run the daemon with this config's rates, limits and thresholds (default: "
+        "configs/bench.yaml); the bench's mock devices, bus and files replace its own",
+    )
     args = ap.parse_args()
     map_path = args.map
     if map_path is None:
@@ -50,6 +59,7 @@ def main() -> None:
         faults=faults,
         map_path=map_path,
         load=args.load,
+        config_path=args.config,
     )
     r = bench.run()
     mowing_log = _lines_until(bench.daemon_log, bench.mow_end[1])
