@@ -7,7 +7,7 @@ import os
 import socket
 import time
 
-from mowerhw.common.fdwait import FdWaiter
+from mowerhw.supervisor.fdwait import FdWaiter
 
 
 def test_ready_descriptors_timeouts_hang_ups_and_a_changing_extra() -> None:

@@ -26,12 +26,12 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
-from mowerhw.common.fdwait import FdWaiter
 from mowerhw.common.samples import SpeedSample
 from mowerhw.config import Config
 from mowerhw.mow.gate import Decision
 from mowerhw.recording.mcap import Recorder
 from mowerhw.runtime.devices import CanFrames
+from mowerhw.supervisor.fdwait import FdWaiter
 from mowerhw.supervisor.lease import Lease
 
 log = logging.getLogger("mowerhw.daemon")

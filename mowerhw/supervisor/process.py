@@ -39,13 +39,13 @@ from drivers.can.isobus import parse_id, pgn_filters
 from drivers.can.permit import PermitSender, Status
 from drivers.can.speed import SpeedReader
 from drivers.can.switches import decode_switches
-from mowerhw.common.fdwait import FdWaiter
 from mowerhw.common.reasons import Reason
 from mowerhw.config import Config
 from mowerhw.estimation.safety import SafetyMonitor
 from mowerhw.mow.gate import PermitGate
 from mowerhw.runtime.sdnotify import Notifier
 from mowerhw.supervisor.canport import CanPort, address_claim, permit_sender
+from mowerhw.supervisor.fdwait import FdWaiter
 from mowerhw.supervisor.lease import Lease, SupervisorGate
 from mowerhw.supervisor.status_socket import StatusSocket
 from mowerhw.supervisor.web_child import web_child_main
