@@ -5,6 +5,7 @@ on CAN by the mock mower controller; and the run's journal replayed gives the sa
 from __future__ import annotations
 
 import asyncio
+import math
 import tempfile
 import time
 import uuid
@@ -24,7 +25,7 @@ from mowerhw.config import config_from_dict, config_to_dict, default_config
 from mowerhw.map import Landmark, LawnMap
 from mowerhw.recording.replay import replay_decisions
 from mowerhw.runtime.callbacks import HandlerCosts, crash_only
-from mowerhw.runtime.daemon import Daemon
+from mowerhw.runtime.daemon import DECIDE_MAX_S, Daemon
 
 
 def _lawn_map() -> LawnMap:
@@ -418,3 +419,62 @@ def test_a_deadline_that_runs_out_while_deciding_is_due_at_once(tmp_path: Path) 
     due_s, skipped_s = asyncio.run(main())
     assert due_s == pytest.approx(3e-4, abs=1e-6)  # at the limit (+0.1 ms): at once
     assert skipped_s > 0.03  # the next limit or DECIDE_MAX_S: the speed's was passed over
+
+
+def test_the_lease_is_renewed_by_its_own_deadline_not_only_a_decisions(tmp_path: Path) -> None:
+    """A decision within ``RENEW_S`` of the last lease sends none; with the IMU held up the
+    next decision came ``DECIDE_MAX_S`` after that decision — up to 60 ms between leases,
+    and under two CPU hogs an 80-ms lease ran out (README, issue 15, stop 67). The decision
+    timer is now due at the latest ``RENEW_BY_S`` after the last lease; while the IMU's
+    samples come, a lease goes first; a pipe with no room is tried again then, not at once
+    (no spin)."""
+    import multiprocessing
+
+    from mowerhw.mow.gate import Decision
+    from mowerhw.supervisor.link import RENEW_BY_S, RENEW_S, SupervisorLink
+
+    channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
+    daemon = Daemon(_config(tmp_path, channel), "idle")
+    ours, theirs = multiprocessing.Pipe(duplex=True)
+    link = SupervisorLink(ours)
+    mowing = Decision(True, "INSIDE", "", "", 1.0)
+    pose = (0.0, 0.0, 0.0)
+
+    async def main() -> tuple[float, float, float, float]:
+        daemon.loop = asyncio.get_running_loop()
+        daemon._timer_fired = lambda _: None  # only where it is armed matters here
+        daemon.can = link
+        assert link.next_due() == math.inf  # nothing sent yet: the daemon's own timer
+        link.send_decision(mowing, pose, time.monotonic())  # a lease
+        sent = link._sent_at
+        decided = sent + 0.9 * RENEW_S
+        while time.monotonic() < decided:
+            await asyncio.sleep(0.001)
+        decided = time.monotonic()
+        link.send_decision(mowing, pose, decided)  # within RENEW_S: no lease
+        assert link.leases_sent == 1
+        daemon._arm_decision_timer(decided)
+        renew_by = daemon._decision_due - sent
+        without = decided + DECIDE_MAX_S - sent  # the decision's own timer alone
+
+        class FullPipe:
+            def poll(self, timeout: int) -> list[tuple[int, int]]:
+                return []
+
+        link._room = FullPipe()  # type: ignore[assignment]  # a pipe with no room
+        while time.monotonic() < sent + RENEW_S:
+            await asyncio.sleep(0.001)
+        tried = time.monotonic()
+        link.send_decision(mowing, pose, tried)
+        assert link.leases_deferred == 1
+        retry = link.next_due() - tried
+        assert daemon._decision_timer is not None
+        daemon._decision_timer.cancel()
+        return renew_by, without, retry, RENEW_BY_S
+
+    renew_by, without, retry, renew_by_s = asyncio.run(main())
+    ours.close()
+    theirs.close()
+    assert renew_by == pytest.approx(renew_by_s, abs=1e-3)  # from the lease: 50 ms
+    assert without > renew_by_s  # from the decision: later (up to 60 ms)
+    assert 0.0 < retry <= renew_by_s + 1e-3  # a full pipe: later, not at once
