@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import select
 import socket
 import time
 
@@ -41,6 +42,8 @@ def test_ready_descriptors_timeouts_hang_ups_and_a_changing_extra() -> None:
     finally:
         listener.close()
         other.close()
+    room = FdWaiter((w,), select.POLLOUT)  # for writing: an empty pipe has room
+    assert room.ready_now() and not FdWaiter((w,)).ready_now()
     os.close(w)  # the writer gone: a hang-up is ready too (the reader finds EOF)
     assert waiter.wait(1.0) == {r}
     b.close()

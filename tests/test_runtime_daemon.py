@@ -458,8 +458,8 @@ def test_the_lease_is_renewed_by_its_own_deadline_not_only_a_decisions(tmp_path:
         without = decided + DECIDE_MAX_S - sent  # the decision's own timer alone
 
         class FullPipe:
-            def poll(self, timeout: int) -> list[tuple[int, int]]:
-                return []
+            def ready_now(self) -> bool:
+                return False
 
         link._room = FullPipe()  # type: ignore[assignment]  # a pipe with no room
         while time.monotonic() < sent + RENEW_S:

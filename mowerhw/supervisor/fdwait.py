@@ -17,12 +17,14 @@ from collections.abc import Iterable
 
 class FdWaiter:
     """The descriptors ``fds`` (fixed), and at most one more that may change between waits
-    (a listening socket that is not always listened on)."""
+    (a listening socket that is not always listened on), ready for reading — or, with
+    ``events=select.POLLOUT``, for writing (a pipe with room)."""
 
-    def __init__(self, fds: Iterable[int]) -> None:
+    def __init__(self, fds: Iterable[int], events: int = select.POLLIN) -> None:
+        self._events = events
         self._poll = select.poll()
         for fd in fds:
-            self._poll.register(fd, select.POLLIN)
+            self._poll.register(fd, events)
         self._extra: int | None = None
 
     def wait(self, timeout_s: float, extra: int | None = None) -> set[int]:
@@ -32,7 +34,7 @@ class FdWaiter:
             if self._extra is not None:
                 self._poll.unregister(self._extra)
             if extra is not None:
-                self._poll.register(extra, select.POLLIN)
+                self._poll.register(extra, self._events)
             self._extra = extra
         return {fd for fd, _ in self._poll.poll(math.ceil(max(0.0, timeout_s) * 1e3))}
 

@@ -68,8 +68,7 @@ class SupervisorLink:
         self._sent_at = -math.inf
         self._tried_at = -math.inf  # the last lease sent, or tried with the pipe full
         self._permit = False
-        self._room = select.poll()
-        self._room.register(conn.fileno(), select.POLLOUT)
+        self._room = FdWaiter([conn.fileno()], select.POLLOUT)
         self._news = FdWaiter([conn.fileno()])  # before every decision: one system call
         self._send_lock = threading.Lock()
         self._closed = False
@@ -199,7 +198,7 @@ class SupervisorLink:
         reported writable while at most a quarter of its send buffer is in use, and a lease
         is a few hundred bytes)."""
         try:
-            if not self._room.poll(0):
+            if not self._room.ready_now():
                 self.leases_deferred += 1
                 return False
         except OSError as exc:
