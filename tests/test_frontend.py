@@ -4,9 +4,14 @@ import cv2
 import numpy as np
 import pytest
 
-from mowerhw.common.geometry import rotmat_exp
+from mowerhw.common.geometry import rotmat_exp, tangent_basis
 from mowerhw.frontend import FrontEnd, RotationHistory
-from mowerhw.frontend.association import Candidates, associate, isotropic_candidates
+from mowerhw.frontend.association import (
+    Candidates,
+    associate,
+    isotropic_candidates,
+    mahalanobis,
+)
 from mowerhw.frontend.descriptors import OrbDescriber, hamming, min_hamming, stack_sets
 from mowerhw.frontend.epipolar import epipolar_inliers
 from mowerhw.sim import make_world
@@ -228,6 +233,34 @@ def test_association_by_gate_and_descriptor():
     assert associate(off, desc[:1], np.ones(1, bool), cand, 13.8, 50) == []
     # undescribed features are never associated
     assert associate(meas, desc, np.zeros(3, bool), cand, 13.8, 50) == []
+
+
+def test_the_gate_prunes_only_pairs_that_cannot_be_inside_it():
+    """``mahalanobis(within=gate)`` leaves out (inf) only the pairs too far apart to be
+    within the gate; the pairs it computes are the full computation's to the bit, so the
+    feasible pairs are the same. Its bound, a whole factor 2 under what it prunes at, checked
+    on pairs placed just inside and outside the gate along each covariance's long axis."""
+    rng = np.random.default_rng(11)
+    n_l = 40
+    b = unit(rng.normal(size=(n_l, 3)))
+    a = rng.normal(size=(n_l, 2, 2)) * 0.004
+    cov = a @ a.transpose(0, 2, 1) + 1e-6 * np.eye(2)
+    cand = Candidates(np.arange(n_l), b, cov, np.zeros((n_l, 32), np.uint8), np.arange(n_l))
+    gate = 9.21
+    basis = tangent_basis(b)
+    w, v = np.linalg.eigh(cov)
+    near = []
+    for k in range(n_l):  # at 0.99 and 1.01 of the gate along the long axis
+        for f in (0.99, 1.01):
+            step = np.sqrt(f * gate * w[k, 1]) * (basis[k] @ v[k, :, 1])
+            near.append(b[k] + step)
+    meas = unit(np.vstack([np.array(near), rng.normal(size=(30, 3))]))
+    full, pruned = mahalanobis(meas, cand), mahalanobis(meas, cand, within=gate)
+    assert np.array_equal(full <= gate, pruned <= gate)
+    kept = np.isfinite(pruned)
+    assert np.array_equal(pruned[kept], full[kept])
+    assert kept.sum() < 0.2 * kept.size  # most pairs are never computed
+    assert (full <= gate).sum() >= n_l  # the pairs just inside are found
 
 
 def test_ambiguous_associations_are_not_made():

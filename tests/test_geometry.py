@@ -189,3 +189,23 @@ def test_bad_quaternion_shape_is_a_clear_error():
         assert "4 components" in str(exc)
     else:
         raise AssertionError("a 3-vector was accepted as a quaternion")
+
+
+def test_tangent_basis_and_cross_rows_are_np_cross_to_the_bit():
+    """The written-out products are np.cross's own, so the residual bases are the same to the
+    last bit (a replayed recording gives the same decisions), on both sides of the helper's
+    switch (|u_x| = 0.9); the basis is orthonormal and right-handed with u."""
+    rng = np.random.default_rng(7)
+    u = rng.normal(size=(500, 3))
+    u[:100, 0] *= 20.0  # near ±x̂: the ŷ helper
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    helper = np.where(np.abs(u[:, [0]]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(helper, u)
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    want = np.stack([e1, np.cross(u, e1)], axis=-1)
+    got = g.tangent_basis(u)
+    assert np.array_equal(got, want)
+    assert np.allclose(np.einsum("nki,nkj->nij", got, got), np.eye(2), atol=1e-12)
+    assert np.allclose(np.cross(got[:, :, 0], got[:, :, 1]), u, atol=1e-12)
+    a, b = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    assert np.array_equal(g.cross_rows(a, b), np.cross(a, b))

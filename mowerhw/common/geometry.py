@@ -278,11 +278,31 @@ def tangent_basis(u: ArrayLike) -> FloatArray:
     """(N, 3, 2): two orthonormal vectors ⊥ each unit vector of ``u`` (N, 3), right-handed
     with it (``e1 × e2 = u``): the 2D residual space of a bearing."""
     u = np.asarray(u, dtype=np.float64)
-    helper = np.where(np.abs(u[:, [0]]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    e1 = np.cross(helper, u)
+    ux, uy, uz = u[:, 0], u[:, 1], u[:, 2]
+    # e1 = helper × u, helper x̂ (|u_x| < 0.9) or ŷ: (0, −u_z, u_y) or (u_z, 0, −u_x); written
+    # out, as np.cross computes it (the same values), without its generality's cost (a
+    # quarter of a frame update's bearing model)
+    use_x = np.abs(ux) < 0.9
+    zero = np.zeros_like(ux)
+    e1 = np.empty_like(u)
+    e1[:, 0] = np.where(use_x, zero, uz)
+    e1[:, 1] = np.where(use_x, -uz, zero)
+    e1[:, 2] = np.where(use_x, uy, -ux)
     e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
-    e2 = np.cross(u, e1)
-    return np.stack([e1, e2], axis=-1)
+    out = np.empty((u.shape[0], 3, 2))
+    out[:, :, 0] = e1
+    out[:, :, 1] = cross_rows(u, e1)
+    return out
+
+
+def cross_rows(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row by row ``a × b`` of two (n, 3) arrays: np.cross's arithmetic (the same values)
+    without its generic axis handling, which costs more than the products for small n."""
+    out = np.empty_like(b)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
 
 
 def frame_jacobian(points: FloatArray) -> FloatArray:

@@ -34,19 +34,30 @@ class Candidates:
     owner: NDArray[np.int64]  # (K,) index into ``ids`` of each descriptor
 
 
-def mahalanobis(meas: FloatArray, cand: Candidates) -> FloatArray:
-    """(M, L) squared Mahalanobis distance of each measured bearing from each prediction,
-    in the tangent plane of the prediction."""
-    if meas.shape[0] == 0 or cand.ids.size == 0:
-        return np.zeros((meas.shape[0], cand.ids.size))
-    basis = tangent_basis(cand.bearings)  # (L, 3, 2)
-    diff = meas[:, None, :] - cand.bearings[None, :, :]  # (M, L, 3)
-    r = np.einsum("mlk,lkj->mlj", diff, basis)  # (M, L, 2)
-    s_inv = np.linalg.inv(cand.covariance)  # (L, 2, 2)
-    d2 = np.einsum("mli,lij,mlj->ml", r, s_inv, r)
-    # a bearing on the far side of the sphere is not near its tangent-plane image
-    behind = np.einsum("mk,lk->ml", meas, cand.bearings) <= 0.0
-    return np.where(behind, np.inf, d2)
+def mahalanobis(meas: FloatArray, cand: Candidates, within: float | None = None) -> FloatArray:
+    """(M, L) squared Mahalanobis distance of each measured unit bearing from each
+    prediction, in the tangent plane of the prediction. ``within``: only the pairs that can
+    be that close are computed, the others are ``inf`` — a unit bearing ``θ`` from the
+    prediction is ``sin θ`` from it in the tangent plane, so at least ``sin²θ / λ_max(S)``
+    away in d² (pruned only beyond twice that: rounding never decides it)."""
+    m, n_l = meas.shape[0], cand.ids.size
+    if m == 0 or n_l == 0:
+        return np.zeros((m, n_l))
+    cos = meas @ cand.bearings.T  # (M, L); a bearing behind its prediction is never near it
+    pairs = cos > 0.0
+    if within is not None:
+        s = cand.covariance
+        half_trace = 0.5 * (s[:, 0, 0] + s[:, 1, 1])
+        spread = np.hypot(0.5 * (s[:, 0, 0] - s[:, 1, 1]), s[:, 0, 1])
+        pairs &= 1.0 - cos * cos <= 2.0 * within * (half_trace + spread)[None, :]
+    mi, li = np.nonzero(pairs)
+    d2 = np.full((m, n_l), np.inf)
+    if mi.size:
+        basis = tangent_basis(cand.bearings)  # (L, 3, 2)
+        r = np.einsum("pk,pkj->pj", meas[mi] - cand.bearings[li], basis[li])  # (P, 2)
+        s_inv = np.linalg.inv(cand.covariance)  # (L, 2, 2)
+        d2[mi, li] = np.einsum("pi,pij,pj->p", r, s_inv[li], r)
+    return d2
 
 
 def associate(
@@ -70,7 +81,7 @@ def associate(
         return []
     if assignable is None:
         assignable = np.ones(m, bool)
-    d2 = mahalanobis(meas_bearings, cand)
+    d2 = mahalanobis(meas_bearings, cand, within=gate)
     ham = min_hamming(meas_descriptors, cand.descriptors, cand.owner, n_l)
     feasible = (d2 <= gate) & (ham <= max_hamming) & meas_described[:, None]
     unique = feasible & (feasible.sum(axis=0) == 1)[None, :] & (feasible.sum(axis=1) == 1)[:, None]

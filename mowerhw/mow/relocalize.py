@@ -78,7 +78,7 @@ from scipy.ndimage import maximum_filter
 from scipy.optimize import least_squares
 from scipy.stats import chi2
 
-from mowerhw.common.geometry import wrap_angle, yaw_rotation
+from mowerhw.common.geometry import cross_rows, wrap_angle, yaw_rotation
 from mowerhw.common.relocalization import Relocalization
 from mowerhw.map import LawnMap
 
@@ -92,16 +92,6 @@ DISTINCT_RAD = math.radians(15.0)
 COMPASS_MIN_TOLERANCE_RAD = math.radians(30.0)
 #: … and a compass less sure than this is not used at all
 COMPASS_MAX_TOLERANCE_RAD = math.radians(60.0)
-
-
-def _cross_rows(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Row by row a × b of two (n, 3) arrays: np.cross's arithmetic without its generic
-    axis handling (a quarter of the search's time went into that)."""
-    out = np.empty_like(b)
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
 
 
 def _cross_rows_jac(a: FloatArray, db: FloatArray) -> FloatArray:
@@ -313,7 +303,7 @@ class GlobalRelocalizer:
     ) -> FloatArray:
         """(n, 3): each pair's angular residual, observed bearing ``obs[rows]`` × the one
         predicted at ``state`` of its landmark at ``points`` (world frame)."""
-        return _cross_rows(obs[rows], self._predict(*self._pose(state), points=points))
+        return cross_rows(obs[rows], self._predict(*self._pose(state), points=points))
 
     def _fit(
         self, obs: FloatArray, rows: NDArray[np.int64], cols: NDArray[np.int64], x0: FloatArray
@@ -427,7 +417,7 @@ class GlobalRelocalizer:
         dd[:, :, 1] = -r_wb[1]
         dd[:, 0, 2], dd[:, 1, 2] = d[:, 1], -d[:, 0]
         dp = (dd - p[:, :, None] * np.einsum("nk,nki->ni", p, dd)[:, None, :]) / norm[:, None, None]
-        return _cross_rows(o, p), _cross_rows_jac(o, dp)
+        return cross_rows(o, p), _cross_rows_jac(o, dp)
 
     #: the local search around the chosen place: ± this far and turned, in these steps
     POLISH_M, POLISH_STEP_M = 0.5, 0.05
