@@ -66,7 +66,9 @@ class MowVision(VisionBase):
             for lm in lms
         ]
         self._has_desc = np.array([s.shape[0] > 0 for s in sets], dtype=bool)
-        self._desc_sets = sets
+        # every landmark's descriptors stacked once, with the landmark (row) of each: a
+        # frame's candidates take theirs by a mask, not by stacking them again
+        self._desc_all, self._desc_row = stack_sets(sets)
         self.landmark_of: dict[int, int] = {}  # live track id → map landmark id
         self._refusals: dict[int, int] = {}  # track id → consecutive χ² refusals
         self._banned: dict[tuple[int, int], float] = {}  # pair → when it was refused
@@ -181,7 +183,9 @@ class MowVision(VisionBase):
         if not ok.any():
             return
         sel = np.flatnonzero(ok)
-        stacked, owner = stack_sets([self._desc_sets[k] for k in sel.tolist()])
+        mine = ok[self._desc_row]
+        position = np.cumsum(ok) - 1  # a landmark row's index among ``sel``
+        stacked, owner = self._desc_all[mine], position[self._desc_row[mine]]
         cand = Candidates(ids[sel], pred[sel], cov[sel], stacked, owner)
         # every track takes part (for ambiguity); only free ones may be paired
         desc, has = self._track_descriptors(tracks)
