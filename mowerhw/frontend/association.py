@@ -35,11 +35,12 @@ class Candidates:
 
 
 def mahalanobis(meas: FloatArray, cand: Candidates, within: float | None = None) -> FloatArray:
-    """(M, L) squared Mahalanobis distance of each measured unit bearing from each
+    """(M, L) squared Mahalanobis distance of each measured bearing from each (unit)
     prediction, in the tangent plane of the prediction. ``within``: only the pairs that can
-    be that close are computed, the others are ``inf`` — a unit bearing ``θ`` from the
-    prediction is ``sin θ`` from it in the tangent plane, so at least ``sin²θ / λ_max(S)``
-    away in d² (pruned only beyond twice that: rounding never decides it)."""
+    be that close are computed, the others are ``inf`` — a bearing ``m`` at ``θ`` from the
+    prediction ``b`` is ``|m| sin θ`` from it in the tangent plane, ``|m|² − (m·b)²`` squared,
+    so at least that over ``λ_max(S)`` away in d² (pruned only beyond twice the bound:
+    rounding never decides it)."""
     m, n_l = meas.shape[0], cand.ids.size
     if m == 0 or n_l == 0:
         return np.zeros((m, n_l))
@@ -49,7 +50,8 @@ def mahalanobis(meas: FloatArray, cand: Candidates, within: float | None = None)
         s = cand.covariance
         half_trace = 0.5 * (s[:, 0, 0] + s[:, 1, 1])
         spread = np.hypot(0.5 * (s[:, 0, 0] - s[:, 1, 1]), s[:, 0, 1])
-        pairs &= 1.0 - cos * cos <= 2.0 * within * (half_trace + spread)[None, :]
+        norm2 = np.einsum("mk,mk->m", meas, meas)
+        pairs &= norm2[:, None] - cos * cos <= 2.0 * within * (half_trace + spread)[None, :]
     mi, li = np.nonzero(pairs)
     d2 = np.full((m, n_l), np.inf)
     if mi.size:
