@@ -25,6 +25,7 @@ from mowerhw.config import config_from_dict, config_to_dict, default_config
 from mowerhw.map import Landmark, LawnMap
 from mowerhw.recording.replay import replay_decisions
 from mowerhw.runtime.callbacks import HandlerCosts, crash_only
+from mowerhw.runtime.core import RuntimeCore
 from mowerhw.runtime.daemon import DECIDE_MAX_S, Daemon
 
 
@@ -155,6 +156,12 @@ def test_daemon_in_process_on_the_virtual_bus(
         assert r["decisions"] > 100 and r["gaps"] == 0
         assert r["live_sha256"] == r["replay_sha256"]
     assert replays[0]["replay_sha256"] == replays[1]["replay_sha256"]
+    # tools/bench_core_replay.py times the core's handlers on the same replay, decisions kept
+    imu_handler = RuntimeCore.imu
+    timing = load_tool("bench_core_replay").measure(record, repeat=1)
+    assert RuntimeCore.imu is imu_handler  # the core's own handlers back
+    assert timing["same_as_live"] and timing["replay_sha256"] == replays[0]["replay_sha256"]
+    assert timing["calls"]["imu"] > 100 and timing["handlers_us_per_call_best"]["imu"] > 0.0
 
 
 def test_replay_of_a_recording_without_journal_says_so(tmp_path: Path) -> None:
