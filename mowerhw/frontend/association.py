@@ -38,20 +38,20 @@ def mahalanobis(meas: FloatArray, cand: Candidates, within: float | None = None)
     """(M, L) squared Mahalanobis distance of each measured bearing from each (unit)
     prediction, in the tangent plane of the prediction. ``within``: only the pairs that can
     be that close are computed, the others are ``inf`` — a bearing ``m`` at ``θ`` from the
-    prediction ``b`` is ``|m| sin θ`` from it in the tangent plane, ``|m|² − (m·b)²`` squared,
-    so at least that over ``λ_max(S)`` away in d² (pruned only beyond twice the bound:
-    rounding never decides it)."""
+    prediction ``b`` is ``|m| sin θ`` from it in the tangent plane (squared: ``|m|² −
+    (m·b)²``), so at least that squared distance over ``λ_max(S)`` away in d² (pruned only
+    beyond twice the bound: rounding never decides it)."""
     m, n_l = meas.shape[0], cand.ids.size
     if m == 0 or n_l == 0:
         return np.zeros((m, n_l))
-    cos = meas @ cand.bearings.T  # (M, L); a bearing behind its prediction is never near it
-    pairs = cos > 0.0
+    dot = meas @ cand.bearings.T  # (M, L) m·b; a bearing behind its prediction is never near
+    pairs = dot > 0.0
     if within is not None:
         s = cand.covariance
         half_trace = 0.5 * (s[:, 0, 0] + s[:, 1, 1])
         spread = np.hypot(0.5 * (s[:, 0, 0] - s[:, 1, 1]), s[:, 0, 1])
         norm2 = np.einsum("mk,mk->m", meas, meas)
-        pairs &= norm2[:, None] - cos * cos <= 2.0 * within * (half_trace + spread)[None, :]
+        pairs &= norm2[:, None] - dot * dot <= 2.0 * within * (half_trace + spread)[None, :]
     mi, li = np.nonzero(pairs)
     d2 = np.full((m, n_l), np.inf)
     if mi.size:

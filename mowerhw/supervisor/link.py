@@ -38,12 +38,13 @@ log = logging.getLogger("mowerhw.daemon")
 
 #: an unchanged decision renews the lease at most this often (s)
 RENEW_S = 0.02
-#: and at the latest this long after the last lease sent: the daemon's decision timer is due
-#: then (:meth:`SupervisorLink.next_due`). While the IMU's samples come (every 20 ms) a lease
-#: goes every 20–40 ms and this never fires. Without it, with the samples held up, the timer
-#: was due ``DECIDE_MAX_S`` (40 ms) after the last *decision*, which may have sent no lease
-#: (within ``RENEW_S`` of one): up to 60 ms between leases, 20 ms short of the 80-ms lease —
-#: under two CPU hogs one ran out (README, issue 15, stop 67)
+#: and at the latest this long after the last lease sent or tried (the pipe full): the
+#: daemon's decision timer is due then (:meth:`SupervisorLink.next_due`). While the IMU's
+#: samples come (every 20 ms) a lease goes every 20–40 ms and this never fires. Without it,
+#: with the samples held up, the timer was due ``DECIDE_MAX_S`` (40 ms) after the last
+#: *decision*, which may have sent no lease (within ``RENEW_S`` of one): up to 60 ms between
+#: leases, 20 ms short of the 80-ms lease — under two CPU hogs one ran out (README, issue 15,
+#: stop 67)
 RENEW_BY_S = 0.05
 #: at most this many samples' forces wait for the next lease (at 50 Hz, 0.32 s of them)
 MAX_UNSENT_FORCES = 16
@@ -163,7 +164,8 @@ class SupervisorLink:
         return None  # every decision renews the lease; the supervisor sends the frames
 
     def next_due(self) -> float:
-        """When a decision must renew the lease (:data:`RENEW_BY_S` after the last sent)."""
+        """When a decision must renew the lease (:data:`RENEW_BY_S` after the last lease
+        sent or tried)."""
         if self._closed or self._tried_at == -math.inf:
             return math.inf  # the daemon's own timer until the first lease
         return self._tried_at + RENEW_BY_S  # (a full pipe: tried again then, no sooner)
