@@ -421,7 +421,7 @@ class Vn100Parser:
             return 1  # resume at the byte after the false sync
         if found is None:
             return 0
-        total, spans = found
+        total = found.total
         if total > _BINARY_MAX:
             self.stats.bad_binary_header += 1
             return 1
@@ -435,7 +435,7 @@ class Vn100Parser:
         if crc16(memoryview(buf)[i + 1 : i + total]) != 0:  # CRC over all after 0xFA is 0
             self.stats.bad_crc += 1
             return 1
-        out.append(binary.parse_packet(buf, i, total, spans))
+        out.append(binary.parse_packet(buf, i, found))
         self.stats.packets_ok += 1
         self.stats.binary_ok += 1
         return total
@@ -456,7 +456,7 @@ class Vn100Parser:
                     found = binary.layout(buf, j, end)
                 except binary.LayoutError:
                     found = None
-                size = found[0] if found is not None else end + 1
+                size = found.total if found is not None else end + 1
                 if size <= end - j and crc16(memoryview(buf)[j + 1 : j + size]) == 0:
                     return True
             else:

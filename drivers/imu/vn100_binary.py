@@ -26,6 +26,7 @@ import math
 import struct
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -282,12 +283,23 @@ class LayoutError(ValueError):
         self.unknown = unknown
 
 
-def layout(
-    buf: bytes | bytearray, start: int, end: int
-) -> tuple[int, dict[str, tuple[int, int]]] | None:
-    """The length of the packet starting at ``buf[start] == 0xFA`` and its fields' payload
-    spans, or None if more bytes are needed (``end``: bytes available). Raises
-    :class:`LayoutError` for a header that cannot be a packet."""
+@dataclass(frozen=True)
+class Layout:
+    """Where a binary packet's parts are: its length (sync byte to CRC), its header's
+    (group byte and field masks), the masks, and each field's span in the payload."""
+
+    total: int
+    head: int
+    masks: tuple[int, ...]
+    offsets: Mapping[str, tuple[int, int]]
+
+
+def layout(buf: bytes | bytearray, start: int, end: int) -> Layout | None:
+    """The layout of the packet starting at ``buf[start] == 0xFA``, or None if more bytes
+    are needed (``end``: bytes available). Raises :class:`LayoutError` for a header that
+    cannot be a packet. A header whose fields all have a fixed size is worked out once
+    (the sensor sends the same one at its output rate); a GNSS list's size is read from
+    the packet's own bytes."""
     if end - start < 2:
         return None
     groups = buf[start + 1]
@@ -295,13 +307,32 @@ def layout(
         raise LayoutError("no group")
     if groups & ~VALID_GROUPS:
         raise LayoutError(f"group byte 0x{groups:02X} names a group no manual defines")
-    active = [g for g in range(len(GROUP_NAMES)) if groups >> g & 1]
-    head = 2 + 2 * len(active)
+    head = 2 + 2 * bin(groups).count("1")
     if end - start < head:
         return None
-    masks = struct.unpack_from(f"<{len(active)}H", buf, start + 2)
-    spans: dict[str, tuple[int, int]] = {}
-    pos = start + head  # absolute position in buf
+    header = bytes(buf[start + 1 : start + head])
+    fixed = _fixed_layout(header)
+    if fixed is not None:
+        return fixed
+    return _walk(header, buf, start + head, end)
+
+
+@functools.lru_cache(maxsize=16)
+def _fixed_layout(header: bytes) -> Layout | None:
+    """:func:`_walk` of a header whose fields all have a fixed size; None for one with a
+    variable-size field (its layout depends on the payload)."""
+    return _walk(header, None, 0, 0)
+
+
+def _walk(header: bytes, buf: bytes | bytearray | None, pos: int, end: int) -> Layout | None:
+    """The fields of ``header`` (group byte and masks) laid out from ``pos``, the payload's
+    start in ``buf`` (``end``: bytes available). ``buf`` None: fixed-size fields only (None
+    at a variable-size one)."""
+    groups = header[0]
+    active = [g for g in range(len(GROUP_NAMES)) if groups >> g & 1]
+    masks = struct.unpack_from(f"<{len(active)}H", header, 1)
+    offsets: dict[str, tuple[int, int]] = {}
+    first = pos
     for g, mask in zip(active, masks, strict=True):
         if mask == 0:
             raise LayoutError(f"group {GROUP_NAMES[g]} with an empty field mask")
@@ -313,33 +344,29 @@ def layout(
             if not mask >> bit & 1:
                 continue
             spec = FIELDS[(g, bit)]
+            if spec.variable and buf is None:
+                return None
             if spec.variable == "satinfo":
                 if end - pos < 1:
                     return None
-                size = _SATINFO_HEAD + _SATINFO_EACH * buf[pos]
+                size = _SATINFO_HEAD + _SATINFO_EACH * buf[pos]  # type: ignore[index]
             elif spec.variable == "rawmeas":
                 if end - pos < 11:
                     return None
-                size = _RAWMEAS_HEAD + _RAWMEAS_EACH * buf[pos + 10]
+                size = _RAWMEAS_HEAD + _RAWMEAS_EACH * buf[pos + 10]  # type: ignore[index]
             else:
                 size = spec.size
-            spans[f"{GROUP_NAMES[g]}.{spec.name}"] = (pos, pos + size)
+            offsets[f"{GROUP_NAMES[g]}.{spec.name}"] = (pos - first, pos - first + size)
             pos += size
-    total = pos + 2 - start
-    return total, spans
+    head = 1 + len(header)
+    total = head + (pos - first) + 2
+    return Layout(total, head, tuple(masks), MappingProxyType(offsets))
 
 
-def parse_packet(
-    buf: bytes | bytearray, start: int, total: int, spans: dict[Any, Any]
-) -> BinaryPacket:
+def parse_packet(buf: bytes | bytearray, start: int, lay: Layout) -> BinaryPacket:
     """A :class:`BinaryPacket` from a packet whose layout and CRC were checked."""
-    groups = buf[start + 1]
-    n = bin(groups).count("1")
-    masks = struct.unpack_from(f"<{n}H", buf, start + 2)
-    head = start + 2 + 2 * n
-    payload = bytes(buf[head : start + total - 2])
-    offsets = {name: (a - head, b - head) for name, (a, b) in spans.items()}
-    return BinaryPacket(groups, tuple(masks), payload, offsets)
+    payload = bytes(buf[start + lay.head : start + lay.total - 2])
+    return BinaryPacket(buf[start + 1], lay.masks, payload, lay.offsets)
 
 
 def encode_packet(fields: Mapping[str, bytes]) -> bytes:

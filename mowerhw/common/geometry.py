@@ -241,7 +241,7 @@ def quat_distance(p: ArrayLike, q: ArrayLike) -> FloatArray:
 
 def tuple3(v: ArrayLike) -> tuple[float, float, float]:
     """A 3-vector as a tuple of Python floats (for messages between processes)."""
-    x, y, z = (float(c) for c in np.asarray(v, dtype=np.float64).reshape(3))
+    x, y, z = np.asarray(v, dtype=np.float64).reshape(3).tolist()
     return x, y, z
 
 

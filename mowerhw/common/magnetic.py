@@ -52,7 +52,8 @@ def field_in_body(mag_t: ArrayLike, accel: ArrayLike | None = None) -> FieldRead
     if float(np.linalg.norm(x_h)) < 0.1:  # the body's x axis points (nearly) up: on its end
         return None
     x_h /= np.linalg.norm(x_h)
-    y_h = np.cross(up, x_h)
+    (ux, uy, uz), (xx, xy, xz) = up.tolist(), x_h.tolist()
+    y_h = np.array([uy * xz - uz * xy, uz * xx - ux * xz, ux * xy - uy * xx])  # up × x_h
     alpha = math.atan2(float(m_h @ y_h), float(m_h @ x_h))
     dip = math.asin(max(-1.0, min(1.0, -float(m @ up) / strength)))
     return FieldReading(alpha, strength, dip)

@@ -282,7 +282,7 @@ class Containment:
             self._soft = self._clear = 0
             self.last = unknown(halt[0], halt[1], t, sigma)
             return self.last
-        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(sigma)):
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(sigma)):
             self.last = unknown(Reason.FAULT, "non-finite position estimate", t, sigma)
             return self.last
         if sigma > c.sigma_max_m:

@@ -121,9 +121,11 @@ class EkfState:
 
 def _state_finite(s: EkfState | WorldPoseEKF) -> bool:
     """The one finite check of a filter state: one sum per array — a NaN or an infinity
-    anywhere makes it non-finite (a sum that overflows from finite entries is as unusable)."""
-    total = s.x.sum() + s.q.sum() + s.P.sum() + s.bg.sum() + s.k
-    return math.isfinite(float(total))
+    anywhere makes it non-finite (a sum that overflows from finite entries is as unusable).
+    Checked twice an IMU sample: the small vectors summed as Python floats, the covariance
+    by the ufunc's own reduce (without ``ndarray.sum``'s wrapper)."""
+    total = float(np.add.reduce(s.P, None)) + sum(s.x.tolist()) + sum(s.q.tolist())
+    return math.isfinite(total + sum(s.bg.tolist()) + s.k)
 
 
 def _set_bias(s: EkfState | WorldPoseEKF, bias: FloatArray, var: float) -> None:

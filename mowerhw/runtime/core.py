@@ -146,7 +146,8 @@ class RuntimeCore:
         arrival = sample.host_time_ns * 1e-9 if sample.host_time_ns is not None else now
         d = self._decide(now, arrival)
         self._longest_undecided_s = 0.0  # the next silence is timed from this decision
-        self._log("imu_out", out=decision_key(d))
+        if self.journal is not None:
+            self._log("imu_out", out=decision_key(d))
         return d
 
     def _note_imu_gap(self, sample: ImuSample, now: float) -> None:
