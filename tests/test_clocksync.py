@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mowerhw.common.clocksync import ClockSync
+from mowerhw.common.clocksync import ClockSync, _lower_hull
 
 MIN_LATENCY = 0.0008
 
@@ -90,3 +90,27 @@ def test_error_bounded_for_any_drift_and_jitter(drift_ppm, jitter_ms, seed):
     # Bounded by a fraction of the jitter, never by the stalls.
     assert np.percentile(np.abs(err), 95) < max(0.5e-3, 0.5 * jitter_ms * 1e-3)
     assert np.all(mapped <= arr + 1e-12)
+
+
+def test_the_lower_hull_keeps_exactly_the_points_no_segment_passes_under():
+    """The fit's lower envelope (:func:`_lower_hull`): a point is a vertex exactly when it
+    lies strictly below the segment of its neighbours on the hull; every point is on or
+    above the hull, and points on a segment are not vertices."""
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        n = int(rng.integers(2, 40))
+        x = np.cumsum(rng.uniform(0.01, 1.0, n)) + 1e4
+        y = 1.00002 * x + rng.exponential(1e-3, n)
+        hx, hy = _lower_hull(x, y)
+        assert hx[0] == x[0] and hx[-1] == x[-1] and np.all(np.diff(hx) > 0)
+        below = np.interp(x, hx, hy)
+        assert np.all(y >= below - 1e-9)  # nothing under the hull
+        # each inner vertex is strictly below the chord of its neighbours: a convex chain
+        for k in range(1, hx.size - 1):
+            chord = hy[k - 1] + (hy[k + 1] - hy[k - 1]) * (hx[k] - hx[k - 1]) / (
+                hx[k + 1] - hx[k - 1]
+            )
+            assert hy[k] < chord
+    # collinear points: only the ends
+    hx, hy = _lower_hull(np.array([0.0, 1.0, 2.0, 3.0]), np.array([0.0, 1.0, 2.0, 3.0]))
+    assert hx.tolist() == [0.0, 3.0] and hy.tolist() == [0.0, 3.0]

@@ -160,13 +160,15 @@ class ClockSync:
 
 
 def _lower_hull(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lower convex hull (monotone chain) of points sorted by strictly increasing x."""
+    """Lower convex hull (monotone chain) of points sorted by strictly increasing x (the
+    tests on Python floats: the same IEEE products as on numpy's scalars, without them)."""
+    xs, ys = x.tolist(), y.tolist()
     hull: list[int] = []
-    for i in range(x.size):
+    for i in range(len(xs)):
         while len(hull) >= 2:
             a, b = hull[-2], hull[-1]
             # Drop b if it lies on or above the segment a → i.
-            if (y[b] - y[a]) * (x[i] - x[a]) >= (y[i] - y[a]) * (x[b] - x[a]):
+            if (ys[b] - ys[a]) * (xs[i] - xs[a]) >= (ys[i] - ys[a]) * (xs[b] - xs[a]):
                 hull.pop()
             else:
                 break
