@@ -305,6 +305,7 @@ def per_relocalization_nees(series: list[FloatArray]) -> dict[str, Any]:
         return {"relocalizations": 0}
     lo, hi = chi2.ppf([0.025, 0.975], 3)
     top = np.sort(means)[::-1][: max(1, math.ceil(0.1 * means.size))]
+    total = float(means.sum())  # 0 only for errors of exactly 0 (then no share: null)
     return {
         "relocalizations": int(means.size),
         "mean_nees": {
@@ -315,7 +316,9 @@ def per_relocalization_nees(series: list[FloatArray]) -> dict[str, Any]:
         "chi2_95pct_interval": [round(float(lo), 3), round(float(hi), 2)],
         "below_interval": int(np.sum(means < lo)),
         "above_interval": int(np.sum(means > hi)),
-        "share_of_nees_from_top_10pct": round(float(top.sum() / means.sum()), 3),
+        "share_of_nees_from_top_10pct": (
+            round(float(top.sum()) / total, 3) if total > 0.0 else None
+        ),
     }
 
 
