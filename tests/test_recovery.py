@@ -446,3 +446,24 @@ def test_a_kidnap_runs_nees_is_also_told_apart_for_its_start_and_its_kidnap() ->
     plain = R._NeesLog(None)
     plain.add(out)  # a start run: every relocalization is of one kind, no split
     assert "nees_by_kind" not in plain.summary()
+
+
+def test_a_start_runs_record_names_its_relocalizations_error_sigma_and_standing_nees() -> None:
+    """A start run's ``--per-run`` record (:func:`_first_relocalization`): its first
+    relocalization's error and σ in the map's frame at acceptance (mm, mm, degrees) and its
+    mean NEES while it stands — which runs make a NEES bin's tail, and with what; nothing
+    for a run that never relocalized."""
+    from mowerhw.evaluation import recovery as R
+
+    log = R._NeesLog(None)
+    log.dt = 0.01
+    err = np.tile([0.006, -0.002, math.radians(0.01)], (1000, 1))
+    cov = np.tile(np.diag([0.002, 0.004, math.radians(0.02)]) ** 2, (1000, 1, 1))
+    log.components = [(err, cov)]
+    nees = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+    log.aligned = [nees]
+    got = R._first_relocalization(log, 1)
+    assert got["map_frame_error_mm_mm_deg"] == [6.0, -2.0, 0.01]
+    assert got["map_frame_sigma_mm_mm_deg"] == [2.0, 4.0, 0.02]
+    assert got["map_frame_nees_standing"] == pytest.approx(9.0 + 0.25 + 0.25, abs=0.01)
+    assert R._first_relocalization(log, 0) == {}

@@ -520,11 +520,34 @@ def _starts(
             "searches": out.metrics["localizer"]["searches"],
             "relocalizations": int(out.relocalizations[-1]),
         }
-        runs.append(run)
         nees.add(out)
+        run.update(_first_relocalization(nees, int(out.relocalizations[-1])))
+        runs.append(run)
         if progress is not None:
             progress(i, run)
     return runs, nees
+
+
+def _first_relocalization(nees: _NeesLog, count: int) -> dict[str, Any]:
+    """For a run's per-run record: its first relocalization's error and σ in the map's
+    frame at acceptance (mm, mm, degrees) and its mean NEES over the standing
+    :data:`PHASES_S`' first phase — which runs make a NEES bin's tail, and with what."""
+    if count == 0 or len(nees.components) < count:
+        return {}
+    err, cov = nees.components[-count]
+    if not err.size:
+        return {}
+    units = np.array([1e3, 1e3, math.degrees(1.0)])
+    lo, hi = PHASES_S[0]
+    part = slice(round(lo / nees.dt), round(hi / nees.dt))
+    first = nees.aligned[-count][part]
+    return {
+        "map_frame_error_mm_mm_deg": [round(float(v), 3) for v in err[0] * units],
+        "map_frame_sigma_mm_mm_deg": [
+            round(float(v), 3) for v in np.sqrt(np.diagonal(cov[0])) * units
+        ],
+        "map_frame_nees_standing": round(float(np.mean(first)), 2) if first.size else None,
+    }
 
 
 def _start_scores(runs: Runs) -> dict[str, Any]:
