@@ -344,18 +344,18 @@ def _walk(header: bytes, buf: bytes | bytearray | None, pos: int, end: int) -> L
             if not mask >> bit & 1:
                 continue
             spec = FIELDS[(g, bit)]
-            if spec.variable and buf is None:
-                return None
-            if spec.variable == "satinfo":
-                if end - pos < 1:
+            size = spec.size
+            if spec.variable:
+                if buf is None:  # the size is in the payload
                     return None
-                size = _SATINFO_HEAD + _SATINFO_EACH * buf[pos]  # type: ignore[index]
-            elif spec.variable == "rawmeas":
-                if end - pos < 11:
-                    return None
-                size = _RAWMEAS_HEAD + _RAWMEAS_EACH * buf[pos + 10]  # type: ignore[index]
-            else:
-                size = spec.size
+                if spec.variable == "satinfo":
+                    if end - pos < 1:
+                        return None
+                    size = _SATINFO_HEAD + _SATINFO_EACH * buf[pos]
+                else:  # "rawmeas"
+                    if end - pos < 11:
+                        return None
+                    size = _RAWMEAS_HEAD + _RAWMEAS_EACH * buf[pos + 10]
             offsets[f"{GROUP_NAMES[g]}.{spec.name}"] = (pos - first, pos - first + size)
             pos += size
     head = 1 + len(header)

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mowerhw.common.geometry import wrap_angle
+from mowerhw.common.geometry import cross_rows, wrap_angle
 
 #: a reading's strength may differ from the taught field's by this share, its dip by this
 STRENGTH_TOLERANCE = 0.15
@@ -52,8 +52,7 @@ def field_in_body(mag_t: ArrayLike, accel: ArrayLike | None = None) -> FieldRead
     if float(np.linalg.norm(x_h)) < 0.1:  # the body's x axis points (nearly) up: on its end
         return None
     x_h /= np.linalg.norm(x_h)
-    (ux, uy, uz), (xx, xy, xz) = up.tolist(), x_h.tolist()
-    y_h = np.array([uy * xz - uz * xy, uz * xx - ux * xz, ux * xy - uy * xx])  # up × x_h
+    y_h = cross_rows(up[None, :], x_h[None, :])[0]  # up × x_h: np.cross's values
     alpha = math.atan2(float(m_h @ y_h), float(m_h @ x_h))
     dip = math.asin(max(-1.0, min(1.0, -float(m @ up) / strength)))
     return FieldReading(alpha, strength, dip)
