@@ -42,7 +42,7 @@ LOCAL_S = 3.0
 #: in it), within these bounds — at most what answers are off (measured: 1–3 cm, < 0.3°; a
 #: wider prior let the first association after it pair wrong corners, 2–3 cm of bias at
 #: σ 1 cm), at least what a frame's corners can tell. 2 mm and 0.02° with the answer's
-#: bearing floor at 0.05° (``GlobalRelocalizer.COVARIANCE_MIN_RAD``): the pixel pools' first
+#: bearing floor at 0.05° (``GlobalRelocalizer.BEARING_FLOOR_RAD``): the pixel pools' first
 #: second at 0.8–1.3 of 1 per component (README, stop 54); at 3 mm, 0.03° and 0.1°, 0.4–0.9
 ACCEPT_SIGMA_M = 0.03
 ACCEPT_SIGMA_RAD = math.radians(0.5)

@@ -566,16 +566,17 @@ class GlobalRelocalizer:
         rival_score, rival = max(others, key=lambda r: r[0])
         return best, rival_score / top, rival, sigma
 
-    #: the trust gate (:meth:`_trusted`) and the final fit's Huber weights take the
-    #: residuals' robust σ as at least this (rad): a frame fitted unusually well must not
-    #: gate out or down-weigh its good pairs
-    MIN_RESIDUAL_RAD = math.radians(0.1)
-    #: in the answer's covariance (:meth:`covariance`), a bearing's σ is at least this (rad):
-    #: about what a rendered corner's azimuth is off while mowing at best (0.055° rms,
-    #: README). Lower than the gate's floor above: at 0.1° the answers were wider than their
-    #: errors (pixel pools, stop 53: NEES 1.5–1.9 right after the answer, 0.4–0.8 of 1 per
-    #: component)
-    COVARIANCE_MIN_RAD = math.radians(0.05)
+    #: every bearing counts as at least this far off (rad): the trust gate (:meth:`_trusted`)
+    #: and the final fit's Huber weights take the residuals' robust σ as at least this (a
+    #: frame fitted unusually well must not gate out or down-weigh its good pairs), and so
+    #: does a bearing's σ in the answer's covariance (:meth:`covariance`). About what a
+    #: rendered corner's azimuth is off while mowing at best (0.055° rms, README). One floor
+    #: since stop 70: the gate's was 0.1°, and a standing frame's few features beside their
+    #: corners, 0.1–0.45° off among bearings 0.01–0.03° off, kept their full weight and pulled
+    #: the answer 5–23 mm at σ 2–4 mm (look-alike lawn, each answer fitted again to the true
+    #: landmarks: README, issue 18); the covariance's at 0.1° made the answers wider than their
+    #: errors (stop 53: NEES 1.5–1.9 right after the answer)
+    BEARING_FLOOR_RAD = math.radians(0.05)
     #: the answer's fit (:meth:`_final_fit`): Huber weights at this many robust σ (95 %
     #: efficient on Gaussian errors), a few reweighting rounds
     HUBER_K = 1.345
@@ -588,10 +589,9 @@ class GlobalRelocalizer:
         off (a corner next to the landmark's) do not move it."""
         return float(np.median(norms)) / math.sqrt(2.0 * math.log(2.0))
 
-    def _robust_sigma(self, norms: FloatArray, floor: float | None = None) -> float:
-        """:meth:`_rayleigh_sigma`, at least ``floor`` (default :data:`MIN_RESIDUAL_RAD`)."""
-        low = self.MIN_RESIDUAL_RAD if floor is None else floor
-        return max(low, self._rayleigh_sigma(norms))
+    def _robust_sigma(self, norms: FloatArray) -> float:
+        """:meth:`_rayleigh_sigma`, at least :data:`BEARING_FLOOR_RAD`."""
+        return max(self.BEARING_FLOOR_RAD, self._rayleigh_sigma(norms))
 
     def _residual_norms(
         self, obs: FloatArray, rows: NDArray[np.int64], points: FloatArray, state: FloatArray
@@ -688,7 +688,7 @@ class GlobalRelocalizer:
         too) plus the
         bearings' own noise — the residuals' robust variance per axis beyond the map's mean
         part — and at least what its own residual shows (a pair the weights doubt is as far
-        off as it looks), at least :attr:`COVARIANCE_MIN_RAD` squared. And how much the map's
+        off as it looks), at least :attr:`BEARING_FLOOR_RAD` squared. And how much the map's
         errors move it: the cross-covariance with the inliers' landmark positions (J_L: the
         residual's derivative with respect to the landmark; P_L its map covariance),
         (3, 3·n) in the inliers' order."""
@@ -707,7 +707,7 @@ class GlobalRelocalizer:
             d[k] = 1e-4
             jac_l[:, :, k] = (at(pts + d) - at(pts - d)) / 2e-4
         norms = np.linalg.norm(r0, axis=1)
-        s2 = self._robust_sigma(norms, self.COVARIANCE_MIN_RAD) ** 2
+        s2 = self._robust_sigma(norms) ** 2
         _, p_wb = self._pose(state)
         range2 = np.sum((pts - p_wb) ** 2, axis=1)
         seen_from_here = self._point_var[cols] / np.maximum(range2, 0.25)  # the map's part
@@ -715,7 +715,7 @@ class GlobalRelocalizer:
         # show beyond them (moments: E[s²] = noise² + mean map part), not all of it again
         noise2 = max(0.0, s2 - float(seen_from_here.mean()))
         own = 0.5 * norms**2  # per axis: a residual's two free directions
-        var = np.maximum(np.maximum(noise2 + seen_from_here, own), self.COVARIANCE_MIN_RAD**2)
+        var = np.maximum(np.maximum(noise2 + seen_from_here, own), self.BEARING_FLOOR_RAD**2)
         # the fit's error is −A (n + J_L δL) with A = (Σ wᵢ Jᵢᵀ Jᵢ)⁻¹ [wᵢ Jᵢᵀ], so its
         # covariance is A diag(σᵢ²) Aᵀ (a sandwich) …
         gain = np.linalg.pinv(np.einsum("nri,nrj,n->ij", jac, jac, w))
