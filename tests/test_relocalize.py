@@ -32,6 +32,26 @@ def _view(pts: np.ndarray, p: np.ndarray, yaw: float, rng: np.random.Generator, 
     return b / np.linalg.norm(b, axis=1, keepdims=True)
 
 
+def _ring_yard(seed: int, n: int = 40) -> tuple[np.random.Generator, np.ndarray, GlobalRelocalizer]:
+    """A seeded generator, a ring of ``n`` landmarks drawn from it and their relocalizer."""
+    rng = np.random.default_rng(seed)
+    pts = _ring(rng, n)
+    return rng, pts, GlobalRelocalizer(_map(pts))
+
+
+def _place(rng: np.random.Generator, half: float = 3.0) -> tuple[np.ndarray, float]:
+    """A random place inside the ring of landmarks: position (z 0) and heading."""
+    p = np.r_[rng.uniform(-half, half, 2), 0.0]
+    return p, float(rng.uniform(-math.pi, math.pi))
+
+
+def _yawed(v: np.ndarray, angle: float) -> np.ndarray:
+    """``v`` turned by ``angle`` about the vertical (a feature beside its landmark's corner)."""
+    c, s = math.cos(angle), math.sin(angle)
+    out: np.ndarray = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ v
+    return out
+
+
 def test_the_pose_comes_back_from_one_frame_among_clutter() -> None:
     rng = np.random.default_rng(3)
     pts = _ring(rng)
@@ -69,7 +89,7 @@ def test_a_wrong_prior_gives_no_pose_when_another_place_explains_more() -> None:
     for seed in range(8):
         rng = np.random.default_rng(seed)
         pts = _ring(rng, 120)
-        p, yaw = np.r_[rng.uniform(-3, 3, 2), 0.0], float(rng.uniform(-math.pi, math.pi))
+        p, yaw = _place(rng)
         seen = rng.permutation(120)[:45]
         clutter = rng.normal(0, 8, (15, 3))
         b = np.vstack([_view(pts[seen], p, yaw, rng, 0.002), _view(clutter, p, yaw, rng, 0.0)])
@@ -96,7 +116,7 @@ def test_a_prior_far_from_the_mower_says_nothing_and_the_whole_map_answers() -> 
     (the prior must not pick a twin it is nowhere near)."""
     for seed in range(6):
         rng = np.random.default_rng(seed)
-        p, yaw = np.r_[rng.uniform(-2, 2, 2), 0.0], float(rng.uniform(-math.pi, math.pi))
+        p, yaw = _place(rng, 2.0)
         ang, turn = rng.uniform(0, 2 * math.pi), rng.choice([-1, 1]) * rng.uniform(1.6, 2.4)
         prior = (p[0] + 0.7 * math.cos(ang), p[1] + 0.7 * math.sin(ang), yaw + turn)
         pts = _ring(rng, 40)
@@ -158,13 +178,10 @@ def test_an_answer_says_how_sure_it_is_and_is_about_that_sure() -> None:
     answers' NEES averages the 3 of three degrees of freedom (within its 99 % bounds)."""
     from scipy.stats import chi2
 
-    rng = np.random.default_rng(11)
-    pts = _ring(rng, 40)
-    reloc = GlobalRelocalizer(_map(pts))
+    rng, pts, reloc = _ring_yard(11)
     nees = []
     for _ in range(25):
-        p = np.r_[rng.uniform(-3, 3, 2), 0.0]
-        yaw = float(rng.uniform(-math.pi, math.pi))
+        p, yaw = _place(rng)
         res = reloc.locate(_view(pts, p, yaw, rng, math.radians(0.15) / math.sqrt(2)))
         assert res.ok and res.covariance is not None, res.why
         err = np.r_[res.p_wb[:2] - p[:2], (res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi]
@@ -189,8 +206,7 @@ def test_an_answer_from_sharp_bearings_is_as_sure_as_they_are(
         reloc = GlobalRelocalizer(_map_with(pts, np.eye(3) * 1e-8))
         nees = []
         for _ in range(25):
-            p = np.r_[rng.uniform(-3, 3, 2), 0.0]
-            yaw = float(rng.uniform(-math.pi, math.pi))
+            p, yaw = _place(rng)
             res = reloc.locate(_view(pts, p, yaw, rng, math.radians(0.06)))
             assert res.ok and res.covariance is not None, res.why
             err = np.r_[res.p_wb[:2] - p[:2], (res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi]
@@ -217,20 +233,15 @@ def test_a_feature_beside_its_landmark_neither_pulls_the_answer_nor_hides_from_i
     trusts in full (:meth:`Relocalization.seeds`): not with the features beside."""
     from scipy.stats import chi2
 
-    rng = np.random.default_rng(12)
-    pts = _ring(rng, 40)
-    reloc = GlobalRelocalizer(_map(pts))
+    rng, pts, reloc = _ring_yard(12)
     nees, errors = [], []
     beside_seeded, beside_inliers, clean_seeded, clean_inliers = 0, 0, 0, 0
     for _ in range(30):
-        p = np.r_[rng.uniform(-3, 3, 2), 0.0]
-        yaw = float(rng.uniform(-math.pi, math.pi))
+        p, yaw = _place(rng)
         b = _view(pts, p, yaw, rng, math.radians(0.15) / math.sqrt(2))
         beside = rng.choice(len(pts), 4, replace=False)
         for k in beside:  # turned about the vertical
-            turn = math.radians(rng.uniform(0.5, 0.95)) * rng.choice([-1.0, 1.0])
-            c, s = math.cos(turn), math.sin(turn)
-            b[k] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ b[k]
+            b[k] = _yawed(b[k], math.radians(rng.uniform(0.5, 0.95)) * rng.choice([-1.0, 1.0]))
         res = reloc.locate(b)
         assert res.ok and res.covariance is not None, res.why
         seeded = {r for r, _ in res.seeds()[0]}
@@ -264,18 +275,14 @@ def test_a_few_bearings_tenths_of_a_degree_off_do_not_pull_a_sharp_answer(
     the median is 1.5 mm."""
 
     def median_error_mm() -> float:
-        rng = np.random.default_rng(21)
-        pts = _ring(rng, 40)
-        reloc = GlobalRelocalizer(_map(pts))
+        rng, pts, reloc = _ring_yard(21)
         errors = []
         for _ in range(30):
-            p = np.r_[rng.uniform(-3, 3, 2), 0.0]
-            yaw = float(rng.uniform(-math.pi, math.pi))
+            p, yaw = _place(rng)
             b = _view(pts, p, yaw, rng, math.radians(0.02) / math.sqrt(2))
             for k in rng.choice(len(pts), 4, replace=False):  # turned about the vertical
                 turn = math.radians(rng.uniform(0.12, 0.4)) * rng.choice([-1.0, 1.0])
-                c, s = math.cos(turn), math.sin(turn)
-                b[k] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ b[k]
+                b[k] = _yawed(b[k], turn)
             res = reloc.locate(b)
             assert res.ok, res.why
             errors.append(1e3 * float(np.linalg.norm(res.p_wb[:2] - p[:2])))
@@ -298,20 +305,15 @@ def test_beside_features_that_pull_one_way_do_not_carry_the_answer(consensus: bo
     floor at the gate's 0.1° it was 2.59 σ: where this many beside features pull one way,
     the ones inside the gate make the answer surer than it is, README stop 54). The check
     can fail: without the consensus search it does (5.54 σ, 0.10° off)."""
-    rng = np.random.default_rng(5)
-    pts = _ring(rng, 36)
-    reloc = GlobalRelocalizer(_map(pts))
+    rng, pts, reloc = _ring_yard(5, 36)
     if not consensus:
         reloc._consensus = lambda obs, rows, cols, state, sigma: state  # type: ignore[method-assign]
     worst = 0.0
     for _ in range(6):
-        p = np.r_[rng.uniform(-2, 2, 2), 0.0]
-        yaw = float(rng.uniform(-math.pi, math.pi))
+        p, yaw = _place(rng, 2.0)
         b = _view(pts, p, yaw, rng, math.radians(0.05) / math.sqrt(2))
         for k in rng.choice(len(pts), 14, replace=False):
-            turn = math.radians(rng.uniform(0.25, 0.5))
-            c, s = math.cos(turn), math.sin(turn)
-            b[k] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ b[k]
+            b[k] = _yawed(b[k], math.radians(rng.uniform(0.25, 0.5)))
         res = reloc.locate(b)
         assert res.ok and res.covariance is not None, res.why
         turned = abs((res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi)
@@ -527,9 +529,7 @@ def test_the_fits_closed_form_jacobian_is_the_residuals_derivative() -> None:
     (issue 18, the relocalizer's cost): at random poses it matches the residual's central
     differences, in position and heading, and its residual is the one the answers are
     scored by."""
-    rng = np.random.default_rng(5)
-    pts = _ring(rng, 30)
-    reloc = GlobalRelocalizer(_map(pts))
+    rng, pts, reloc = _ring_yard(5, 30)
     obs = rng.normal(size=(30, 3))
     obs /= np.linalg.norm(obs, axis=1, keepdims=True)
     rows = np.arange(30)
