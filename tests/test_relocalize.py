@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from mowerhw.common.geometry import yaw_rotation
 from mowerhw.map import Landmark, LawnMap
 from mowerhw.mow.relocalize import GlobalRelocalizer
 
@@ -25,9 +26,7 @@ def _ring(rng: np.random.Generator, n: int = 40) -> np.ndarray:
 
 
 def _view(pts: np.ndarray, p: np.ndarray, yaw: float, rng: np.random.Generator, sigma: float):
-    c, s = math.cos(yaw), math.sin(yaw)
-    r_wb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    b = (pts - p) @ r_wb  # body frame
+    b = (pts - p) @ yaw_rotation(yaw)  # body frame
     b = b / np.linalg.norm(b, axis=1, keepdims=True) + rng.normal(0, sigma, b.shape)
     return b / np.linalg.norm(b, axis=1, keepdims=True)
 
@@ -43,13 +42,6 @@ def _place(rng: np.random.Generator, half: float = 3.0) -> tuple[np.ndarray, flo
     """A random place inside the ring of landmarks: position (z 0) and heading."""
     p = np.r_[rng.uniform(-half, half, 2), 0.0]
     return p, float(rng.uniform(-math.pi, math.pi))
-
-
-def _yawed(v: np.ndarray, angle: float) -> np.ndarray:
-    """``v`` turned by ``angle`` about the vertical (a feature beside its landmark's corner)."""
-    c, s = math.cos(angle), math.sin(angle)
-    out: np.ndarray = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ v
-    return out
 
 
 def test_the_pose_comes_back_from_one_frame_among_clutter() -> None:
@@ -241,7 +233,8 @@ def test_a_feature_beside_its_landmark_neither_pulls_the_answer_nor_hides_from_i
         b = _view(pts, p, yaw, rng, math.radians(0.15) / math.sqrt(2))
         beside = rng.choice(len(pts), 4, replace=False)
         for k in beside:  # turned about the vertical
-            b[k] = _yawed(b[k], math.radians(rng.uniform(0.5, 0.95)) * rng.choice([-1.0, 1.0]))
+            turn = math.radians(rng.uniform(0.5, 0.95)) * rng.choice([-1.0, 1.0])
+            b[k] = yaw_rotation(turn) @ b[k]  # a feature beside its landmark's corner
         res = reloc.locate(b)
         assert res.ok and res.covariance is not None, res.why
         seeded = {r for r, _ in res.seeds()[0]}
@@ -282,7 +275,7 @@ def test_a_few_bearings_tenths_of_a_degree_off_do_not_pull_a_sharp_answer(
             b = _view(pts, p, yaw, rng, math.radians(0.02) / math.sqrt(2))
             for k in rng.choice(len(pts), 4, replace=False):  # turned about the vertical
                 turn = math.radians(rng.uniform(0.12, 0.4)) * rng.choice([-1.0, 1.0])
-                b[k] = _yawed(b[k], turn)
+                b[k] = yaw_rotation(turn) @ b[k]
             res = reloc.locate(b)
             assert res.ok, res.why
             errors.append(1e3 * float(np.linalg.norm(res.p_wb[:2] - p[:2])))
@@ -313,7 +306,7 @@ def test_beside_features_that_pull_one_way_do_not_carry_the_answer(consensus: bo
         p, yaw = _place(rng, 2.0)
         b = _view(pts, p, yaw, rng, math.radians(0.05) / math.sqrt(2))
         for k in rng.choice(len(pts), 14, replace=False):
-            b[k] = _yawed(b[k], math.radians(rng.uniform(0.25, 0.5)))
+            b[k] = yaw_rotation(math.radians(rng.uniform(0.25, 0.5))) @ b[k]
         res = reloc.locate(b)
         assert res.ok and res.covariance is not None, res.why
         turned = abs((res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi)
