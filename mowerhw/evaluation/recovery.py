@@ -185,6 +185,20 @@ def _nees(segments: list[tuple[FloatArray, FloatArray]]) -> list[FloatArray]:
 PHASES_S = ((0.0, 2.5), (2.5, 5.0), (5.0, NEES_S))
 
 
+#: (x, y, heading) in m, m, rad → mm, mm, degrees: how the summaries report them
+_MM_MM_DEG = np.array([1e3, 1e3, math.degrees(1.0)])
+
+
+def _mm_mm_deg(v: FloatArray) -> list[float]:
+    """An (x, y, heading) vector in mm, mm and degrees, rounded for the JSON."""
+    return [round(float(x), 3) for x in v * _MM_MM_DEG]
+
+
+def _phase(lo: float, hi: float, dt: float) -> slice:
+    """The samples of a series at ``dt`` from ``lo`` to ``hi`` s after its start."""
+    return slice(round(lo / dt), round(hi / dt))
+
+
 def component_summary(
     segments: list[tuple[FloatArray, FloatArray]], dt: float
 ) -> list[dict[str, Any]]:
@@ -193,9 +207,8 @@ def component_summary(
     and heading, correlations aside), its rms error and its rms σ (mm, mm, degrees). Where a
     bin is over or under, this says which component and when (standing or driving)."""
     rows = []
-    units = np.array([1e3, 1e3, math.degrees(1.0)])
     for lo, hi in PHASES_S:
-        part = slice(round(lo / dt), round(hi / dt))
+        part = _phase(lo, hi, dt)
         inside = [(e[part], cov[part]) for e, cov in segments if e[part].size]
         if not inside:
             continue
@@ -206,12 +219,8 @@ def component_summary(
                 "from_s": lo,
                 "to_s": hi,
                 "z2_x_y_heading": [round(float(v), 2) for v in np.mean(err**2 / var, axis=0)],
-                "rms_error_mm_mm_deg": [
-                    round(float(v), 3) for v in np.sqrt(np.mean(err**2, axis=0)) * units
-                ],
-                "rms_sigma_mm_mm_deg": [
-                    round(float(v), 3) for v in np.sqrt(np.mean(var, axis=0)) * units
-                ],
+                "rms_error_mm_mm_deg": _mm_mm_deg(np.sqrt(np.mean(err**2, axis=0))),
+                "rms_sigma_mm_mm_deg": _mm_mm_deg(np.sqrt(np.mean(var, axis=0))),
             }
         )
     return rows
@@ -537,15 +546,10 @@ def _first_relocalization(nees: _NeesLog, count: int) -> dict[str, Any]:
     err, cov = nees.components[-count]
     if not err.size:
         return {}
-    units = np.array([1e3, 1e3, math.degrees(1.0)])
-    lo, hi = PHASES_S[0]
-    part = slice(round(lo / nees.dt), round(hi / nees.dt))
-    first = nees.aligned[-count][part]
+    first = nees.aligned[-count][_phase(*PHASES_S[0], nees.dt)]
     return {
-        "map_frame_error_mm_mm_deg": [round(float(v), 3) for v in err[0] * units],
-        "map_frame_sigma_mm_mm_deg": [
-            round(float(v), 3) for v in np.sqrt(np.diagonal(cov[0])) * units
-        ],
+        "map_frame_error_mm_mm_deg": _mm_mm_deg(err[0]),
+        "map_frame_sigma_mm_mm_deg": _mm_mm_deg(np.sqrt(np.diagonal(cov[0]))),
         "map_frame_nees_standing": round(float(np.mean(first)), 2) if first.size else None,
     }
 
