@@ -226,6 +226,53 @@ def test_the_map_check_finds_honest_landmark_covariances_honest_and_wide_ones_wi
     assert check(4.0) < lo / 8
 
 
+def test_the_frame_check_finds_an_honest_frame_covariance_honest_and_a_wide_one_wide() -> None:
+    """:func:`map_frame_nees`: maps whose whole frame is off the truth by a draw from their
+    own frame covariance (a shift, a turn and a scale, frame_jacobian's δ) average a NEES of
+    4 and read each part's error back (z² about 1); the same maps saying 4× their σ read 16×
+    lower; a map without the truth or the covariance is left out."""
+    from scipy.stats import chi2
+
+    from mowerhw.common.geometry import frame_jacobian
+    from mowerhw.evaluation.recovery import map_frame_error, map_frame_nees
+
+    rng = np.random.default_rng(4)
+    sigma = np.array([0.003, 0.002, 0.001, 0.0005])
+    corr = np.array(
+        [[1.0, 0.3, 0.2, 0.0], [0.3, 1.0, -0.4, 0.1], [0.2, -0.4, 1.0, 0.0], [0.0, 0.1, 0.0, 1.0]]
+    )
+    cov = corr * np.outer(sigma, sigma)
+    base = _map()
+
+    def maps(declared: float) -> list[LawnMap]:
+        out = []
+        for k in range(200):
+            truth = np.c_[rng.uniform(-12, 12, (40, 2)), rng.uniform(0, 3, 40)]
+            delta = rng.multivariate_normal(np.zeros(4), cov)
+            est = truth + frame_jacobian(truth) @ delta + rng.normal(0, 1e-5, truth.shape)
+            lms = [Landmark(i, est[i], np.eye(3) * 1e-8) for i in range(40)]
+            m = LawnMap(boundary=base.boundary, landmarks=lms, camera=None, teach={})
+            m.teach["sim"] = {"landmark_truth": {str(i): truth[i].tolist() for i in range(40)}}
+            m.frame_covariance = cov * declared**2
+            if k == 0:
+                err = map_frame_error(m)
+                assert err is not None and np.allclose(err, delta, atol=1e-5)
+            out.append(m)
+        return out
+
+    lo, hi = chi2.ppf([0.005, 0.995], 4 * 200) / 200
+    honest = map_frame_nees(maps(1.0))
+    assert honest is not None and honest["maps"] == 200 and honest["dof"] == 4
+    assert lo <= honest["nees_mean"] <= hi
+    assert all(0.75 < z2 < 1.3 for z2 in honest["z2_shift_x_y_turn_scale"])
+    wide = map_frame_nees(maps(4.0))
+    assert wide is not None and wide["nees_mean"] < lo / 8
+    no_truth = LawnMap(boundary=base.boundary, landmarks=base.landmarks, camera=None, teach={})
+    no_truth.frame_covariance = cov
+    assert map_frame_nees([no_truth]) is None
+    assert map_frame_nees([base]) is None  # neither the truth nor the covariance
+
+
 def test_the_per_relocalization_nees_shows_a_heavy_tail_the_bin_means_hide() -> None:
     """:func:`per_relocalization_nees`: 400 relocalizations whose errors are drawn from
     their covariance (each a held error: one χ²₃ draw over its 10 s) have about 2.5 % on

@@ -11,7 +11,9 @@ kidnaps do not show on the accelerometer or the lift switch (only the camera can
 those yards and make ``--starts`` starts and ``--kidnaps`` kidnaps on each (one map draws its
 errors once for all its runs; many maps let the Monte-Carlo draw them too), scores and NEES
 pooled, each map's scores kept; ``--workers N`` runs N maps at a time (``--scheduler`` on a
-Dask cluster), ``--map-dir DIR`` keeps the taught maps for the next run. One run per map is
+Dask cluster), ``--map-dir DIR`` keeps the taught maps for the next run (and the JSON
+then has ``map_frame``: the maps' frame errors against their frame covariance, the part of
+the NEES against the truth that the teach owns). One run per map is
 the Monte-Carlo whose NEES the χ² bounds are for: a map's runs all share its errors.
 
     .venv/bin/python tools/recovery_pixel.py --scenario paper --seed 1 --starts 100 --kidnaps 20
@@ -29,7 +31,13 @@ from typing import Any
 
 from mowerhw.evaluation.campaign import matched_noise, scenario_config, seeds_of
 from mowerhw.evaluation.pixel import PixelMaps, pixel_map, yard_arguments
-from mowerhw.evaluation.recovery import kidnap_runs, map_landmark_nees, runs_over_maps, start_runs
+from mowerhw.evaluation.recovery import (
+    kidnap_runs,
+    map_frame_nees,
+    map_landmark_nees,
+    runs_over_maps,
+    start_runs,
+)
 
 
 def _progress(kind: str) -> Any:
@@ -97,6 +105,8 @@ def main() -> None:
     out["teach_s"] = round(time.perf_counter() - t0, 1)
     # the map's landmark covariances against their truth in the map's frame
     out["map_landmarks"] = map_landmark_nees(lawn_map)
+    # and the map frame's error against its frame covariance (the ground's part)
+    out["map_frame"] = map_frame_nees([lawn_map])
     if args.starts:
         t1 = time.perf_counter()
         out["starts"] = start_runs(
@@ -160,6 +170,9 @@ def _over_maps(args: argparse.Namespace, cfg: Any, noise: dict[str, Any]) -> Non
         scheduler=args.scheduler,
     )
     out = {**out, "map_seeds": seeds, **noise}
+    if args.map_dir:  # every map is kept there now: how honest their frame covariances are
+        maps = PixelMaps(args.scenario, cfg, args.map_dir)
+        out["map_frame"] = map_frame_nees([maps(seed) for seed in seeds])
     if not args.per_run:
         out.get("starts", {}).pop("runs", None)
         out.get("kidnaps", {}).pop("per_run", None)

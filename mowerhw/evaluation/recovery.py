@@ -125,6 +125,51 @@ def map_alignment(lawn_map: LawnMap) -> Alignment | None:
     return scale, r, t, math.atan2(r[1, 0], r[0, 0])
 
 
+def map_frame_error(lawn_map: LawnMap) -> FloatArray | None:
+    """The map frame's error against the ground, ``δ = (t_x, t_y, θ, s)`` of
+    :func:`~mowerhw.common.geometry.frame_jacobian` (the map's points sit at the truth's
+    ``+ A δ``), from the similarity :func:`map_alignment` fits; None without the truth."""
+    align = map_alignment(lawn_map)
+    if align is None:
+        return None
+    scale, _, t, rot = align  # truth ≈ s R m + t: to first order the map is off by −(t, θ, s−1)
+    return -np.array([t[0], t[1], rot, scale - 1.0])
+
+
+def map_frame_nees(maps: Sequence[LawnMap]) -> dict[str, Any] | None:
+    """How honest the maps' :attr:`~mowerhw.map.LawnMap.frame_covariance` is — the part of
+    the localizer's covariance against the ground (``Localizer.ground_covariance``) that the
+    teach owns: each map's frame error (:func:`map_frame_error`) against it, a NEES of 4
+    degrees of freedom (4 on average over honest maps), with each part's error² over its
+    variance (1 if honest) and the rms error and σ (mm, mm, millidegrees, ppm). None when no
+    map has both the truth and the covariance."""
+    errs, covs = [], []
+    for m in maps:
+        err = map_frame_error(m)
+        if err is not None and m.frame_covariance is not None:
+            errs.append(err)
+            covs.append(np.asarray(m.frame_covariance, dtype=np.float64))
+    if not errs:
+        return None
+    err, cov = np.array(errs), np.array(covs)
+    nees = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+    var = np.diagonal(cov, axis1=1, axis2=2)
+    units = np.array([1e3, 1e3, 1e3 * math.degrees(1.0), 1e6])
+
+    def parts(v: FloatArray) -> list[float]:
+        return [round(float(x), 3) for x in v]
+
+    return {
+        "maps": len(errs),
+        "dof": 4,
+        "nees_mean": round(float(nees.mean()), 2),
+        "nees_median": round(float(np.median(nees)), 2),
+        "z2_shift_x_y_turn_scale": parts(np.mean(err**2 / var, axis=0)),
+        "rms_error_mm_mm_mdeg_ppm": parts(np.sqrt(np.mean(err**2, axis=0)) * units),
+        "rms_sigma_mm_mm_mdeg_ppm": parts(np.sqrt(np.mean(var, axis=0)) * units),
+    }
+
+
 def map_landmark_nees(lawn_map: LawnMap) -> dict[str, Any] | None:
     """How honest the map's landmark covariances are where the localizer uses them: each
     landmark's NEES against its true position taken into the map's frame (the 3-D
