@@ -5,7 +5,8 @@
   every mow-phase halt (OUTSIDE at the edge, …) counts too. Latency = arrival of the
   revealing sample (or the staleness deadline) → the ISB stop frame sent, from the daemon;
 * the permit supervisor: lease → frame latency, loop stalls over 20 ms, leases that ran out
-  (spurious ESTIMATOR_LATE halts when the machine is loaded: ``--load N`` CPU hogs);
+  (spurious ESTIMATOR_LATE halts when the machine is loaded: ``--load N`` CPU hogs; those
+  while mowing, from its log: ``supervisor_lease_halts``);
 * CPU share of the daemon's processes at real-time rates (50 Hz Δθ/Δv IMU, 10 Hz speed, 4 Hz
   1540×1540 frames), from /proc;
 * memory: the daemon's RSS every 10 s (a soak: ``--duration 3600``).
@@ -83,6 +84,9 @@ def main() -> None:
         "watchdog": r.get("watchdog"),
         "mock_imu": r.get("mock_imu"),
         "daemon_imu_silent_halts": _imu_silent_halts(mowing_log),
+        # the issue's "spurious halts" while mowing, of each kind: the estimation side's
+        # (false_halt_fraction, "imu silent") and the supervisor's own (a lease ran out)
+        "supervisor_lease_halts": _lease_halts(mowing_log),
         "daemon_imu_gaps": _imu_gaps(mowing_log),
         "load_processes": args.load,
         "position_rmse_m": r["position_rmse_m"],
@@ -115,6 +119,14 @@ def _imu_silent_halts(lines: list[str] | None) -> int:
     if lines is None:
         return -1
     return sum(1 for line in lines if "mowerhw.permit: HALT SENSOR_STALE: imu silent" in line)
+
+
+def _lease_halts(lines: list[str] | None) -> int:
+    """Halts the permit supervisor gave while mowing because the estimation side's lease ran
+    out (the estimator late: under ``--load``, spurious; -1: no log to read)."""
+    if lines is None:
+        return -1
+    return sum(1 for line in lines if "supervisor: HALT ESTIMATOR_LATE: no permit lease" in line)
 
 
 def _imu_gaps(lines: list[str] | None) -> dict[str, int]:
