@@ -98,6 +98,31 @@ def test_gyro_bias_is_calibrated_from_the_standstill():
     assert np.all(err < 2e-4)  # 0.002 rad/s of bias, calibrated to a few 1e-5
 
 
+def test_a_standstill_counts_as_one_view_not_as_many():
+    """The standstill's frames see a still scene: their bearings share their tracking
+    errors, so each landmark's mean bearing is kept as sure as one bearing (σ²), not n
+    frames' worth (σ²/n), which pinned the map's frame to the dock too tightly (README,
+    issue 18, stop 71)."""
+    run = simulate_teach("paper", seed=8)
+    t = Teacher(TeachConfig())
+    frames = 0
+    for kind, p in run.streams.events():
+        if kind == "speed" and p[1] != 0.0:
+            t.speed(*p)
+            break
+        if kind == "imu":
+            t.imu(*p)
+        elif kind == "speed":
+            t.speed(*p)
+        else:
+            t.bearings(p.t, p.ids, p.bearings)
+            frames += 1
+    assert t.phase == "driving" and frames >= 5
+    kept = t._still_obs  # the smoother's standstill rows (the keyframe-0 bearings)
+    assert len(kept) >= 5
+    assert all(var == pytest.approx(t.sigma**2) for _, var in kept.values())
+
+
 def test_bad_inputs_are_counted_not_fatal():
     t = Teacher()
     t.imu(0.0, [0, 0, 0])

@@ -466,12 +466,17 @@ class Teacher:
         if self._still_bearings:
             ids = np.array(sorted(self._still_bearings), dtype=np.int64)
             means = np.array([np.mean(self._still_bearings[i], axis=0) for i in ids.tolist()])
-            counts = np.array([len(self._still_bearings[i]) for i in ids.tolist()], float)
             means /= np.linalg.norm(means, axis=1, keepdims=True)
-            self._add_landmarks(ids, means, self.sigma**2 / counts, t_start)
+            # a standstill is one view of a still scene: its frames' bearings share their
+            # tracking errors (a corner's pixel found the same way in the same image), so
+            # their mean is as sure as one bearing, not n times surer — counted n times
+            # surer it pinned the map's frame to the dock too tightly (README, issue 18,
+            # stop 71: the maps' frame covariance against the truth)
+            var = np.full(ids.size, self.sigma**2)
+            self._add_landmarks(ids, means, var, t_start)
             self._set_consider_anchors(self.obs.rows(ids))
             self._still_obs = {
-                int(i): (m, self.sigma**2 / n) for i, m, n in zip(ids, means, counts, strict=True)
+                int(i): (m, float(v)) for i, m, v in zip(ids, means, var, strict=True)
             }
         self._still_bearings.clear()
         self.t_frame = self.t_imu
