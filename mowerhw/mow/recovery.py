@@ -39,15 +39,16 @@ PAIR_S = 3.0
 #: a search near a prior becomes global after this long without an accepted answer (s)
 LOCAL_S = 3.0
 #: σ of an accepted pose: the answer's own (its fit's covariance, the map's landmark errors
-#: in it), within these bounds — at most what answers are off (measured: 1–3 cm, < 0.3°; a
-#: wider prior let the first association after it pair wrong corners, 2–3 cm of bias at
-#: σ 1 cm), at least what a frame's corners can tell. 2 mm and 0.02° with the answer's
-#: bearing floor at 0.05° (``GlobalRelocalizer.BEARING_FLOOR_RAD``): the pixel pools' first
-#: second at 0.8–1.3 of 1 per component (README, stop 54); at 3 mm, 0.03° and 0.1°, 0.4–0.9
+#: in it), at most what answers are off (measured: 1–3 cm, < 0.3°; a wider prior let the
+#: first association after it pair wrong corners, 2–3 cm of bias at σ 1 cm). The floors
+#: only keep a degenerate covariance invertible: since the answer's bearings count as at
+#: least ``GlobalRelocalizer.BEARING_FLOOR_RAD`` off (stop 70), its own σ matches its error
+#: (the pixel pools' first 2.5 s in the map's frame: z² 0.9–1.0 per component, where floors
+#: of 2 mm and 0.02° held the heading's at 0.4–0.5; README, issue 18, stop 71)
 ACCEPT_SIGMA_M = 0.03
 ACCEPT_SIGMA_RAD = math.radians(0.5)
-ACCEPT_MIN_SIGMA_M = 0.002
-ACCEPT_MIN_SIGMA_RAD = math.radians(0.02)
+ACCEPT_MIN_SIGMA_M = 0.0002
+ACCEPT_MIN_SIGMA_RAD = math.radians(0.002)
 
 
 def accepted_covariance(covariance: FloatArray | None) -> FloatArray:
