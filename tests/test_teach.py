@@ -82,28 +82,9 @@ def test_result_saves_a_loadable_map(outcome, tmp_path):
     )
 
 
-def test_gyro_bias_is_calibrated_from_the_standstill():
-    run = simulate_teach("paper", seed=8)
-    t = Teacher(TeachConfig())
-    for kind, p in run.streams.events():
-        if kind == "speed" and p[1] != 0.0:
-            t.speed(*p)
-            break
-        if kind == "imu":
-            t.imu(*p)
-        elif kind == "speed":
-            t.speed(*p)
-    assert t.phase == "driving"
-    err = np.abs(t.ekf.bg - run.streams.gyro_bias[200])
-    assert np.all(err < 2e-4)  # 0.002 rad/s of bias, calibrated to a few 1e-5
-
-
-def test_a_standstill_counts_as_one_view_not_as_many():
-    """The standstill's frames see a still scene: their bearings share their tracking
-    errors, so each landmark's mean bearing is kept as sure as one bearing (σ²), not n
-    frames' worth (σ²/n), which pinned the map's frame to the dock too tightly (README,
-    issue 18, stop 71)."""
-    run = simulate_teach("paper", seed=8)
+def _through_the_standstill(run, bearings: bool) -> tuple[Teacher, int]:
+    """A teacher fed ``run``'s samples up to the first speed that is not 0 (the standstill
+    over, driving begun); with ``bearings`` the camera's frames too. The frames fed."""
     t = Teacher(TeachConfig())
     frames = 0
     for kind, p in run.streams.events():
@@ -114,9 +95,26 @@ def test_a_standstill_counts_as_one_view_not_as_many():
             t.imu(*p)
         elif kind == "speed":
             t.speed(*p)
-        else:
+        elif bearings:
             t.bearings(p.t, p.ids, p.bearings)
             frames += 1
+    return t, frames
+
+
+def test_gyro_bias_is_calibrated_from_the_standstill():
+    run = simulate_teach("paper", seed=8)
+    t, _ = _through_the_standstill(run, bearings=False)
+    assert t.phase == "driving"
+    err = np.abs(t.ekf.bg - run.streams.gyro_bias[200])
+    assert np.all(err < 2e-4)  # 0.002 rad/s of bias, calibrated to a few 1e-5
+
+
+def test_a_standstill_counts_as_one_view_not_as_many():
+    """The standstill's frames see a still scene: their bearings share their tracking
+    errors, so each landmark's mean bearing is kept as sure as one bearing (σ²), not n
+    frames' worth (σ²/n), which pinned the map's frame to the dock too tightly (README,
+    issue 18, stop 71)."""
+    t, frames = _through_the_standstill(simulate_teach("paper", seed=8), bearings=True)
     assert t.phase == "driving" and frames >= 5
     kept = t._still_obs  # the smoother's standstill rows (the keyframe-0 bearings)
     assert len(kept) >= 5
