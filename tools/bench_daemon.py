@@ -113,20 +113,23 @@ def _lines_until(log_path: Path, until_wall: float) -> list[str] | None:
     return out
 
 
+def _lines_saying(lines: list[str] | None, text: str) -> int:
+    """How many of the log's ``lines`` contain ``text`` (-1: no log to read)."""
+    if lines is None:
+        return -1
+    return sum(1 for line in lines if text in line)
+
+
 def _imu_silent_halts(lines: list[str] | None) -> int:
     """Halts the estimation side gave while mowing because no IMU sample had arrived for its
     limit (-1: no log to read)."""
-    if lines is None:
-        return -1
-    return sum(1 for line in lines if "mowerhw.permit: HALT SENSOR_STALE: imu silent" in line)
+    return _lines_saying(lines, "mowerhw.permit: HALT SENSOR_STALE: imu silent")
 
 
 def _lease_halts(lines: list[str] | None) -> int:
     """Halts the permit supervisor gave while mowing because the estimation side's lease ran
     out (the estimator late: under ``--load``, spurious; -1: no log to read)."""
-    if lines is None:
-        return -1
-    return sum(1 for line in lines if "supervisor: HALT ESTIMATOR_LATE: no permit lease" in line)
+    return _lines_saying(lines, "supervisor: HALT ESTIMATOR_LATE: no permit lease")
 
 
 def _imu_gaps(lines: list[str] | None) -> dict[str, int]:

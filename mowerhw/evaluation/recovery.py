@@ -125,6 +125,12 @@ def map_alignment(lawn_map: LawnMap) -> Alignment | None:
     return scale, r, t, math.atan2(r[1, 0], r[0, 0])
 
 
+def _nees_of(err: FloatArray, cov: FloatArray) -> FloatArray:
+    """Each row's NEES ``eᵀ C⁻¹ e``: errors (N, d) against their covariances (N, d, d)."""
+    out: FloatArray = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+    return out
+
+
 def map_frame_error(lawn_map: LawnMap) -> FloatArray | None:
     """The map frame's error against the ground, ``δ = (t_x, t_y, θ, s)`` of
     :func:`~mowerhw.common.geometry.frame_jacobian` (the map's points sit at the truth's
@@ -152,7 +158,7 @@ def map_frame_nees(maps: Sequence[LawnMap]) -> dict[str, Any] | None:
     if not errs:
         return None
     err, cov = np.array(errs), np.array(covs)
-    nees = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+    nees = _nees_of(err, cov)
     var = np.diagonal(cov, axis1=1, axis2=2)
     units = np.array([1e3, 1e3, 1e3 * math.degrees(1.0), 1e6])
 
@@ -186,7 +192,7 @@ def map_landmark_nees(lawn_map: LawnMap) -> dict[str, Any] | None:
     scale, r, t = _similarity(est, true)
     err = est - (true - t) @ r / scale  # against the truth in the map's frame
     cov = lawn_map.landmark_covariances()[rows]
-    nees = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+    nees = _nees_of(err, cov)
     return {
         "landmarks": int(rows.size),
         "nees_mean": round(float(nees.mean()), 3),
@@ -220,9 +226,7 @@ def _accepted_at(out: MowOutcome) -> NDArray[np.intp]:
 
 def _nees(segments: list[tuple[FloatArray, FloatArray]]) -> list[FloatArray]:
     """The NEES of (x, y, heading) of each segment (:func:`_after_relocalizations`)."""
-    return [
-        np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0]) for e, cov in segments
-    ]
+    return [_nees_of(e, cov) for e, cov in segments]
 
 
 #: the phases of :func:`component_summary` (s after acceptance): a relocalized mower stands
