@@ -290,8 +290,10 @@ def test_a_frame_not_of_the_calibrations_size_is_refused_naming_why(tmp_path: Pa
 def test_the_ticker_runs_with_an_imu_sample_and_on_its_own_when_the_imu_is_silent(
     tmp_path: Path,
 ) -> None:
-    """While IMU samples come, the ticker's work runs in the loop's wake-up for a sample (no
-    wake-up of its own); when the IMU is silent it still runs, at most ``TICK_SLACK_S`` late."""
+    """While IMU samples come, the ticker is woken by a sample's handling (no timer of its
+    own); when the IMU is silent it still runs, at most ``TICK_SLACK_S`` late. The first part
+    is checked by order (which sample woke which tick), not by time, so a loaded machine
+    cannot fail it."""
     from mowerhw.runtime.daemon import TICK_S, TICK_SLACK_S
 
     channel = f"mowerhw-{uuid.uuid4().hex[:8]}"
@@ -299,15 +301,23 @@ def test_the_ticker_runs_with_an_imu_sample_and_on_its_own_when_the_imu_is_silen
     imu = MockVn100(tmp_path / "vn100").start()
     daemon = Daemon(cfg, "idle")
     imu_times: list[float] = []
-    ticks: list[tuple[float, float]] = []  # (when, the newest IMU sample's handling then)
+    # (when, whether an IMU sample's handling woke the ticker since the tick before)
+    ticks: list[tuple[float, bool]] = []
+    woken_by_a_sample = False
     on_imu, sample = daemon._on_imu, daemon.live_view.sample
 
     def counted_imu(s: Any) -> None:
+        nonlocal woken_by_a_sample
         imu_times.append(time.monotonic())
+        was_set = daemon._tick_now is not None and daemon._tick_now.is_set()
         on_imu(s)
+        if daemon._tick_now is not None and daemon._tick_now.is_set() and not was_set:
+            woken_by_a_sample = True
 
     def counted_tick(core: Any, now: float) -> None:
-        ticks.append((time.monotonic(), imu_times[-1] if imu_times else -1.0))
+        nonlocal woken_by_a_sample
+        ticks.append((time.monotonic(), woken_by_a_sample))
+        woken_by_a_sample = False
         sample(core, now)
 
     daemon._on_imu = counted_imu  # type: ignore[method-assign]
@@ -326,10 +336,11 @@ def test_the_ticker_runs_with_an_imu_sample_and_on_its_own_when_the_imu_is_silen
         silent = ticks[n1:]
         daemon.request_stop("test")
         await asyncio.wait_for(task, 20)
-        # with the IMU: about one tick a period, each in the wake-up of a sample's handling
+        # with the IMU: about one tick a period, each woken by a sample's handling
         assert 2.0 / (TICK_S + 0.02) - 1 <= len(with_imu) <= 2.0 / TICK_S + 1, with_imu
-        in_a_samples_wakeup = [t - t_imu < 0.002 for t, t_imu in with_imu]
-        assert sum(in_a_samples_wakeup) >= len(with_imu) - 1, with_imu
+        assert sum(woken for _, woken in with_imu) >= len(with_imu) - 1, with_imu
+        # silent: no sample wakes it
+        assert not any(woken for _, woken in silent), silent
         # silent: the ticker's own timer, every period plus the slack
         gaps = np.diff([t for t, _ in silent])
         assert len(silent) >= 1.0 / (TICK_S + TICK_SLACK_S) - 1, silent
