@@ -273,6 +273,41 @@ def test_the_frame_check_finds_an_honest_frame_covariance_honest_and_a_wide_one_
     assert map_frame_nees([base]) is None  # neither the truth nor the covariance
 
 
+def test_a_landmark_far_off_the_rest_does_not_move_the_maps_frame() -> None:
+    """:func:`map_alignment` fits the frame the consistent landmarks define: a map whose 80
+    landmarks sit 1 mm (rms) off a known similarity reads that similarity back to 0.1 mm,
+    0.01° and 10 ppm, with two landmarks 0.3 m off as without them; least squares over all of
+    them (the old fit) would have moved the frame by mm."""
+    from mowerhw.evaluation.recovery import _similarity, map_alignment, map_frame_error
+
+    rng = np.random.default_rng(72)
+    base = _map()
+    truth = np.c_[rng.uniform(-12, 12, (80, 2)), rng.uniform(0, 3, 80)]
+    turn, scale, shift = 0.002, 1.0005, np.array([0.004, -0.003])
+    c, s = np.cos(turn), np.sin(turn)
+    r = np.array([[c, -s], [s, c]])
+    est = truth.copy()
+    est[:, :2] = scale * truth[:, :2] @ r.T + shift + rng.normal(0, 0.0007, (80, 2))
+
+    def map_of(points: np.ndarray) -> LawnMap:
+        lms = [Landmark(i, points[i], np.eye(3) * 1e-6) for i in range(80)]
+        m = LawnMap(boundary=base.boundary, landmarks=lms, camera=None, teach={})
+        m.teach["sim"] = {"landmark_truth": {str(i): truth[i].tolist() for i in range(80)}}
+        return m
+
+    clean = map_frame_error(map_of(est))
+    far = est.copy()
+    far[[5, 40], :2] += np.array([[0.3, 0.0], [0.0, -0.25]])
+    robust = map_frame_error(map_of(far))
+    assert clean is not None and robust is not None
+    assert np.allclose(robust, clean, atol=[1e-4, 1e-4, 2e-4, 1e-5]), (robust, clean)
+    # the truth ≈ s R m + t: the map is off by the inverse of (shift, turn, scale)
+    align = map_alignment(map_of(far))
+    assert align is not None and abs(align[3] + turn) < 2e-4 and abs(align[0] * scale - 1) < 1e-5
+    _, _, t_all = _similarity(far[:, :2], truth[:, :2])
+    assert np.hypot(*(t_all - align[2])) > 0.003  # what least squares over all would say
+
+
 def test_the_per_relocalization_nees_shows_a_heavy_tail_the_bin_means_hide() -> None:
     """:func:`per_relocalization_nees`: 400 relocalizations whose errors are drawn from
     their covariance (each a held error: one χ²₃ draw over its 10 s) have about 2.5 % on
