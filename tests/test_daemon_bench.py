@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -112,3 +113,44 @@ def test_started_anywhere_with_no_pose_file_it_localizes_and_mows(yard_map, tmp_
     assert res["permit_fraction"] > 0.3, res["halts_by_reason"]
     assert res["position_rmse_m"] < 0.05
     assert res["permitted_samples_off_over_0.15m"] == 0, res["position_max_while_permitted_m"]
+
+
+def test_the_bench_counts_only_the_mowings_halts_from_the_daemon_log(tmp_path) -> None:
+    """``tools/bench_daemon.py`` counts the supervisor's lease halts and the "imu silent"
+    halts in the log lines of the mowing only: the supervisor waiting for its first lease at
+    start-up (before the mow request) and what happens after the mowing are not counted."""
+    import importlib.util
+    import time
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_daemon", Path(__file__).parent.parent / "tools" / "bench_daemon.py"
+    )
+    assert spec is not None and spec.loader is not None
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    t0 = time.mktime(time.strptime("2026-12-07 04:01:30", "%Y-%m-%d %H:%M:%S"))
+
+    def at(s: float) -> str:
+        whole = int(t0 + s)
+        ms = round((t0 + s - whole) * 1e3)
+        return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(whole)) + f",{ms:03d}"
+
+    lease = "WARNING mowerhw.supervisor: supervisor: HALT ESTIMATOR_LATE: no permit lease"
+    silent = "WARNING mowerhw.permit: HALT SENSOR_STALE: imu silent for 0.101 s (limit 0.1 s)"
+    log = tmp_path / "daemon.log"
+    log.write_text(
+        "\n".join(
+            [
+                f"{at(-2.0)} {lease} yet: estimation starting",  # start-up
+                f"{at(5.25)} {lease} for 0.081 s (limit 0.08 s)",  # mowing
+                f"{at(7.5)} {silent}",  # mowing
+                "a traceback line without a stamp",
+                f"{at(12.0)} {lease} for 0.2 s (limit 0.08 s)",  # after the mowing
+            ]
+        )
+    )
+    lines = tool._lines_between(log, t0, t0 + 10.0)
+    assert tool._lease_halts(lines) == 1 and tool._imu_silent_halts(lines) == 1
+    everything = tool._lines_between(log, 0.0, t0 + 60.0)
+    assert tool._lease_halts(everything) == 3
+    assert tool._lease_halts(tool._lines_between(tmp_path / "none.log", 0.0, 1.0)) == -1

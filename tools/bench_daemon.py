@@ -63,7 +63,7 @@ def main() -> None:
         config_path=args.config,
     )
     r = bench.run()
-    mowing_log = _lines_until(bench.daemon_log, bench.mow_end[1])
+    mowing_log = _lines_between(bench.daemon_log, bench.mow_start[1], bench.mow_end[1])
     stops = [f["stop_after_ms"] for f in r.get("faults", []) if f["stop_after_ms"] is not None]
     out = {
         "mow_s": r["mow_s"],
@@ -94,9 +94,11 @@ def main() -> None:
     print(json.dumps(out, indent=1))
 
 
-def _lines_until(log_path: Path, until_wall: float) -> list[str] | None:
-    """The daemon log's lines stamped before ``until_wall`` (time.time(); the log's
-    ``asctime`` is local time to the millisecond); None if the log cannot be read."""
+def _lines_between(log_path: Path, from_wall: float, until_wall: float) -> list[str] | None:
+    """The daemon log's lines stamped from ``from_wall`` to ``until_wall`` (time.time(), to
+    the log's millisecond: its ``asctime`` is local time); None if the log cannot be read.
+    The mowing's lines: not the start-up's (a supervisor waiting for its first lease says
+    so), not the scoring's after it."""
     try:
         lines = log_path.read_text(errors="replace").splitlines()
     except OSError:
@@ -108,7 +110,7 @@ def _lines_until(log_path: Path, until_wall: float) -> list[str] | None:
             stamp += float(line[20:23]) / 1e3
         except ValueError:
             continue
-        if stamp <= until_wall:
+        if from_wall - 1e-3 <= stamp <= until_wall:
             out.append(line)
     return out
 

@@ -168,7 +168,9 @@ class Bench:
         self.restarts = 0
         self.timeline: list[tuple] = []  # (s, state, reason, x, y, heading, detail) at 5 Hz
         self.rss_samples: list[tuple[float, float, float]] = []  # (s into mowing, RSS MB, CPU s)
-        self.mow_end: tuple[float, float] = (math.inf, math.inf)  # (monotonic, wall) times
+        # (monotonic, wall) times the mowing began (the mow request answered) and ended
+        self.mow_start: tuple[float, float] = (math.inf, math.inf)
+        self.mow_end: tuple[float, float] = (math.inf, math.inf)
         self.notify = NotifyListener(self.out / "notify.sock")
         self.web = web  # serve the status page, and measure it (bench.web_check)
         self.web_url = ""
@@ -511,6 +513,7 @@ class Bench:
         cpu0, _ = self._proc_cpu_rss()
         self.cpu_s_total -= cpu0
         t_mow0 = self.t_mow0 = time.monotonic()
+        self.mow_start = (t_mow0, time.time())
         self.mower.start_mow(drive)
         pending = list(self.faults)
         windows: list[tuple[float, float]] = []
