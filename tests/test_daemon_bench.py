@@ -81,9 +81,10 @@ def test_recorded_run_replays_deterministically(yard_map, tmp_path) -> None:
     from mowerhw.recording.replay import Replay
 
     rec = tmp_path / "run.mcap"
-    res = Bench(
+    bench = Bench(
         duration_s=15.0, seed=7, out_dir=tmp_path / "bench", map_path=yard_map, record=rec
-    ).run()
+    )
+    res = bench.run()
     assert res["missed_halts"] == 0
     outs = [
         Replay(rec, "mow", map_path=yard_map, out_dir=tmp_path / f"r{k}", speed=None).run()
@@ -96,9 +97,16 @@ def test_recorded_run_replays_deterministically(yard_map, tmp_path) -> None:
     assert outs[0]["permit_fraction"] > 0.3
     # the camera's frames between the recorded ones (camera.device_fps 10, 4 recorded) are in
     # the live journal: the replay's camera is as alive as the live one was (without them,
-    # 19 SENSOR_STALE halts in 15 s at the bench's 0.25 s limit)
+    # 19 SENSOR_STALE halts in 15 s at the bench's 0.25 s limit). Against the live daemon's
+    # own stale halts, from its log: the bench's 5-Hz look at the permit misses a halt of a
+    # few ms (a loaded CI machine's sensor silent for 0.1 s, which the replay replays)
     stale = outs[0]["halts_by_reason"].get("SENSOR_STALE", 0)
-    assert stale <= res["halts_by_reason"].get("SENSOR_STALE", 0), outs[0]["halts_by_reason"]
+    live_log = bench.daemon_log.read_text(errors="replace")
+    live_stale = live_log.count("mowerhw.permit: HALT SENSOR_STALE")
+    assert stale <= max(live_stale, res["halts_by_reason"].get("SENSOR_STALE", 0)), (
+        outs[0]["halts_by_reason"],
+        live_stale,
+    )
     print(outs[0]["speed_x_real_time"], outs[0]["permit_fraction"])
 
 
