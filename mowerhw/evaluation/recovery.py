@@ -140,9 +140,9 @@ def map_alignment(lawn_map: LawnMap) -> Alignment | None:
     its boundary shares the landmarks' errors — so the localizer is judged against the truth
     expressed in that frame as well. The frame is the one the consistent landmarks define: a
     landmark 0.1–0.3 m off (a track the teach re-identified with the wrong point, or whose
-    recorded truth is another point than the one it mapped) is one the localizer's gate
-    refuses, and fitted with the rest it moved the frame of an 80-landmark map by mm, as much
-    as the frame's own σ (README, issue 18, stop 72)."""
+    recorded truth is another point than the one it mapped) is what the localizer's gate is
+    there to refuse, and fitted with the rest it moved the frame of an 87-landmark map by
+    3 mm, as much as the frame's own σ (README, issue 18, stop 72)."""
     rows, true = _landmark_truth(lawn_map, 2)
     if rows.size < 3:
         return None
