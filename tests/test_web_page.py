@@ -124,10 +124,9 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
     assert not any(s["late"] for s in sensors.values()) and late_cells == 0  # mowing
     assert after["web"]["deaths"] == 1 and after["web"]["starts"] == 2
     assert after["web"]["pid"] != before["web"]["pid"] and after["web"]["alive"]
-    # the page's death and restart hold nothing up: no lease runs out across them — but one,
-    # which a CI machine's own hiccup gave once in four fresh-clone runs (stop 72; a
-    # restart that held the estimation or the supervisor up would run out a lease each
-    # time the page dies, and the kill, restart and the mow around them take seconds)
+    # the page's death and restart hold nothing up: at most one lease runs out across them,
+    # as a CI machine's own hiccup gave once in four fresh-clone runs (stop 72). This is
+    # weaker than it was: a restart that held the estimation up once would pass here too
     assert after["lease_expired"] - before["lease_expired"] <= 1, (before, after)
     assert result["missed_halts"] == 0
     assert result["web"]["browser"]["updates"] > 0
