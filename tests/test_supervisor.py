@@ -688,3 +688,26 @@ def test_a_status_reply_that_is_not_the_supervisors_is_refused_by_name(
     (ConnectionError or ValueError), never a crash or a reply it should not trust."""
     with pytest.raises((ValueError, ConnectionError), match=message):
         parse_reply(raw, tmp_path / "control.sock.supervisor")
+
+
+def test_the_supervisors_loop_busy_past_the_stall_limit_counts_as_a_stall(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A loop held up by its own work — here one decision 50 ms long, while leases keep
+    coming — is a stall, though no wake-up came past its deadline (a message was waiting
+    each time: stop 73 found a 0.3 s hold-up in the page's restart counted as none)."""
+    original = Supervisor._decide
+    held: list[float] = []
+
+    def held_once(self: Supervisor, now: float) -> None:
+        if not held and self.counts["leases"] > 10:
+            held.append(now)
+            time.sleep(0.05)
+        original(self, now)
+
+    monkeypatch.setattr(Supervisor, "_decide", held_once)
+    with _supervised(tmp_path, script=((1.0, "permit"), (0.0, "exit"))) as (sup, _):
+        sup.run()
+    assert held
+    assert sup.counts["loop_stalls_over_20ms"] >= 1
+    assert sup.max_loop_lag_ms >= 50.0

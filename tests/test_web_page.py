@@ -19,6 +19,9 @@ from mowerhw.runtime.control_protocol import request
 
 pytestmark = pytest.mark.slow
 
+#: the page's process is killed this often: what a restart holds up, it holds up each time
+KILLS = 3
+
 #: what the page shows, read in one go
 READ_PAGE = """() => ({
   now: Number(document.body.dataset.now),
@@ -78,17 +81,24 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
         pg.reload()
         pg.wait_for_function("document.body.dataset.connected === 'true'", timeout=10_000)
         pg.wait_for_function(f"Number(document.body.dataset.points) >= {n_before}")
-        # the page's process killed: the supervisor starts it again, the page reconnects,
-        # the estimation side does not notice (no lease runs out)
+        # the page's process killed, KILLS times: the supervisor starts it again each time,
+        # the page reconnects, the estimation side does not notice (no lease runs out) —
+        # after the bench's own requests to the page, which need it up
+        assert bench.page_checked.wait(60.0), "the bench's look at the page"
         before = status()["supervisor"]
-        os.kill(before["web"]["pid"], signal.SIGKILL)
-        pg.wait_for_function("document.body.dataset.connected === 'false'", timeout=10_000)
-        pg.wait_for_function("document.body.dataset.connected === 'true'", timeout=20_000)
-        after = _until(
-            lambda: (status().get("supervisor") or {}).get("web", {}).get("deaths") and status(),
-            5.0,
-            "the page's restart in the supervisor's status",
-        )["supervisor"]
+        after = before
+        for kill in range(1, KILLS + 1):
+            os.kill(after["web"]["pid"], signal.SIGKILL)
+            pg.wait_for_function("document.body.dataset.connected === 'false'", timeout=10_000)
+            pg.wait_for_function("document.body.dataset.connected === 'true'", timeout=20_000)
+            after = _until(
+                lambda k=kill: (
+                    (status().get("supervisor") or {}).get("web", {}).get("deaths") == k
+                    and status()
+                ),
+                5.0,
+                "the page's restart in the supervisor's status",
+            )["supervisor"]
         # the controls: refused without the token, done with it
         pg.click("button[data-cmd=idle]")
         refused = pg.wait_for_function(
@@ -122,12 +132,15 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
     assert set(sensors) == {"imu", "speed", "camera"}
     assert sensors["imu"]["limit_s"] == 0.1 and sensors["speed"]["limit_s"] == 0.3
     assert not any(s["late"] for s in sensors.values()) and late_cells == 0  # mowing
-    assert after["web"]["deaths"] == 1 and after["web"]["starts"] == 2
+    assert after["web"]["deaths"] == KILLS and after["web"]["starts"] == KILLS + 1
     assert after["web"]["pid"] != before["web"]["pid"] and after["web"]["alive"]
-    # the page's death and restart hold nothing up: at most one lease runs out across them,
-    # as a CI machine's own hiccup gave once in four fresh-clone runs (stop 72). This is
-    # weaker than it was: a restart that held the estimation up once would pass here too
+    # the page's deaths and restarts hold nothing up: a restart that holds the estimation
+    # side up does so each time (KILLS leases run out or more), where the machine's own
+    # hiccup (one lease, once in four fresh-clone CI runs at stop 72) is a one-off —
     assert after["lease_expired"] - before["lease_expired"] <= 1, (before, after)
+    # nor the supervisor, which starts the page's process again (spawned, not waited for)
+    stalls = after["loop_stalls_over_20ms"] - before["loop_stalls_over_20ms"]
+    assert stalls <= 1, (before, after)
     assert result["missed_halts"] == 0
-    assert result["web"]["browser"]["updates"] > 0
+    assert result["web"]["browser"]["updates"] > 0, result["web"]["browser"]["errors"]
     assert all(r["status"] in (400, 401, 403, 413) for r in result["web"]["refused_requests"])

@@ -41,6 +41,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -175,6 +176,8 @@ class Bench:
         self.web = web  # serve the status page, and measure it (bench.web_check)
         self.web_url = ""
         self._web: dict[str, Any] = {}
+        #: set once the bench's own look at the page (its watcher, the refused requests) began
+        self.page_checked = threading.Event()
         # a run cut short (its test failed, its thread abandoned) must not leave the daemon
         # running past this process: in its own session it outlives us (one left behind by
         # a failed test was still running when the next session's benches failed)
@@ -666,6 +669,7 @@ class Bench:
             token = (self.out / "web-token").read_text().strip()
             w["requests_at"] = round(time.monotonic() - t_mow0, 2)
             w["refused"] = send_bad_requests(self.web_url, token)
+            self.page_checked.set()
 
         self._actions.append((t_mow0 + 0.5 * self.duration_s, open_page))
 

@@ -27,9 +27,13 @@ def free_tcp_port() -> int:
         return int(s.getsockname()[1])
 
 
+#: a watcher whose connection failed or ended connects again after this long (s)
+RECONNECT_S = 0.5
+
+
 class PageWatcher:
     """A browser's share of the page: a WebSocket client on ``/ws`` in its own thread,
-    counting the updates and the gaps between them."""
+    counting the updates and the gaps between them (a gap across a reconnection too)."""
 
     def __init__(self, url: str) -> None:
         self.url = url.rstrip("/") + "/ws"
@@ -52,30 +56,42 @@ class PageWatcher:
         asyncio.run(self._watch())
 
     async def _watch(self) -> None:
+        """Connect, count, and connect again after ``RECONNECT_S`` when the connection fails
+        or ends (as the page itself does: the page's process may be restarted meanwhile)."""
         import aiohttp
 
-        t_last = None
-        try:
-            async with aiohttp.ClientSession() as session, session.ws_connect(self.url) as ws:
-                while not self._stop.is_set():
-                    try:
-                        msg = await ws.receive(timeout=0.5)
-                    except TimeoutError:
-                        continue
-                    if msg.type != aiohttp.WSMsgType.TEXT:
-                        self.errors.append(f"connection ended ({msg.type.name})")
-                        return
-                    body = json.loads(msg.data)
-                    if body.get("type") != "live":
-                        continue
-                    now = time.monotonic()
-                    if t_last is not None:
-                        self.gaps.append(now - t_last)
-                    t_last = now
-                    self.updates += 1
-                    self.last = body
-        except Exception as exc:  # reported in the bench JSON, not raised
-            self.errors.append(f"{type(exc).__name__}: {exc}")
+        t_last: list[float] = []
+        while not self._stop.is_set():
+            try:
+                async with aiohttp.ClientSession() as session, session.ws_connect(self.url) as ws:
+                    await self._count(ws, t_last)
+            except Exception as exc:  # reported in the bench JSON, not raised
+                self.errors.append(f"{type(exc).__name__}: {exc}")
+            if not self._stop.is_set():
+                await asyncio.sleep(RECONNECT_S)
+
+    async def _count(self, ws: Any, t_last: list[float]) -> None:
+        """Count the live updates on ``ws`` until it ends or the watcher is stopped;
+        ``t_last`` holds the previous update's time across connections."""
+        import aiohttp
+
+        while not self._stop.is_set():
+            try:
+                msg = await ws.receive(timeout=0.5)
+            except TimeoutError:
+                continue
+            if msg.type != aiohttp.WSMsgType.TEXT:
+                self.errors.append(f"connection ended ({msg.type.name})")
+                return
+            body = json.loads(msg.data)
+            if body.get("type") != "live":
+                continue
+            now = time.monotonic()
+            if t_last:
+                self.gaps.append(now - t_last[0])
+            t_last[:] = [now]
+            self.updates += 1
+            self.last = body
 
     def summary(self, seconds: float) -> dict[str, Any]:
         gaps = sorted(self.gaps)
