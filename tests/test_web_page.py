@@ -20,7 +20,7 @@ from mowerhw.runtime.control_protocol import request
 pytestmark = pytest.mark.slow
 
 #: the page's process is killed this often: what a restart holds up, it holds up each time
-KILLS = 3
+KILLS = 2
 
 #: what the page shows, read in one go
 READ_PAGE = """() => ({
@@ -49,7 +49,7 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
     why = browser.missing()
     if why:
         pytest.skip(f"the page's browser test needs {why}")
-    bench = Bench(duration_s=45.0, seed=7, out_dir=tmp_path, map_path=yard_map, web=True)
+    bench = Bench(duration_s=55.0, seed=7, out_dir=tmp_path, map_path=yard_map, web=True)
     imu_period_s = 1.0 / load_config(bench.base_config).imu.rate_hz
     result: dict[str, Any] = {}
     runner = threading.Thread(target=lambda: result.update(bench.run()), daemon=True)
