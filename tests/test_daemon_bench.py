@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
+from _tools import load_tool
 
 from mowerhw.bench import Bench, FaultSpec
 
@@ -127,15 +127,9 @@ def test_the_bench_counts_only_the_mowings_halts_from_the_daemon_log(tmp_path) -
     """``tools/bench_daemon.py`` counts the supervisor's lease halts and the "imu silent"
     halts in the log lines of the mowing only: the supervisor waiting for its first lease at
     start-up (before the mow request) and what happens after the mowing are not counted."""
-    import importlib.util
     import time
 
-    spec = importlib.util.spec_from_file_location(
-        "bench_daemon", Path(__file__).parent.parent / "tools" / "bench_daemon.py"
-    )
-    assert spec is not None and spec.loader is not None
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = load_tool("bench_daemon")
     t0 = time.mktime(time.strptime("2026-12-07 04:01:30", "%Y-%m-%d %H:%M:%S"))
 
     def at(s: float) -> str:
