@@ -41,6 +41,7 @@ class PageWatcher:
         self.errors: list[str] = []
         self.gaps: list[float] = []
         self.last: dict[str, Any] | None = None
+        self._t_last: float | None = None  # the previous update's time, across connections
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="page-watcher", daemon=True)
 
@@ -60,19 +61,17 @@ class PageWatcher:
         or ends (as the page itself does: the page's process may be restarted meanwhile)."""
         import aiohttp
 
-        t_last: list[float] = []
         while not self._stop.is_set():
             try:
                 async with aiohttp.ClientSession() as session, session.ws_connect(self.url) as ws:
-                    await self._count(ws, t_last)
+                    await self._count(ws)
             except Exception as exc:  # reported in the bench JSON, not raised
                 self.errors.append(f"{type(exc).__name__}: {exc}")
             if not self._stop.is_set():
                 await asyncio.sleep(RECONNECT_S)
 
-    async def _count(self, ws: Any, t_last: list[float]) -> None:
-        """Count the live updates on ``ws`` until it ends or the watcher is stopped;
-        ``t_last`` holds the previous update's time across connections."""
+    async def _count(self, ws: Any) -> None:
+        """Count the live updates on ``ws`` until it ends or the watcher is stopped."""
         import aiohttp
 
         while not self._stop.is_set():
@@ -87,9 +86,9 @@ class PageWatcher:
             if body.get("type") != "live":
                 continue
             now = time.monotonic()
-            if t_last:
-                self.gaps.append(now - t_last[0])
-            t_last[:] = [now]
+            if self._t_last is not None:
+                self.gaps.append(now - self._t_last)
+            self._t_last = now
             self.updates += 1
             self.last = body
 
