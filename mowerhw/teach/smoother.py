@@ -209,6 +209,13 @@ class SmootherResult:
     frame_cov: FloatArray | None = None
 
 
+#: how many times :func:`smooth` solves again with the bearings at the long-run σ their
+#: residuals show (:func:`bearing_variance_factor`); it stops sooner once that σ is the one
+#: it weighed them at, within :data:`REWEIGHT_TOLERANCE` (a factor of the variance)
+BEARING_REWEIGHT_ROUNDS = 1
+REWEIGHT_TOLERANCE = 0.1
+
+
 def _huber_weights(norm_res: FloatArray, k: float = 2.5) -> FloatArray:
     return np.where(norm_res <= k, 1.0, k / np.maximum(norm_res, 1e-12))
 
@@ -258,8 +265,15 @@ def _whiten(cov: FloatArray) -> FloatArray:
     return np.linalg.cholesky(np.linalg.inv(cov)).swapaxes(-1, -2)
 
 
-def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
-    """Levenberg–Marquardt over poses, landmarks and gyro biases (see the module doc)."""
+def smooth(
+    problem: SmootherProblem,
+    iterations: int = 15,
+    reweight_rounds: int = BEARING_REWEIGHT_ROUNDS,
+) -> SmootherResult:
+    """Levenberg–Marquardt over poses, landmarks and gyro biases (see the module doc), solved
+    again with the bearings at their measured long-run σ (:func:`bearing_variance_factor`)
+    up to ``reweight_rounds`` times, until the σ they are weighted at is the σ their
+    residuals show."""
     r_wb = problem.r_wb.copy()
     t_wb = problem.t_wb.copy()
     lms = problem.landmarks.copy()
@@ -288,6 +302,9 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
     walk_cov = problem.bias_walk_cov
     walk_w = _whiten(walk_cov) if nseg > 1 and walk_cov is not None else np.zeros((0, 3, 3))
     basis = np.swapaxes(tangent_basis(problem.obs_bearing), 1, 2)  # (M, 2, 3)
+    # the bearings' σ the solve weighs them at: the configured one, then their long-run one
+    variance_scale = 1.0
+    sigma = problem.obs_sigma
     fi, li = problem.obs_frame, problem.obs_landmark
     i0 = np.arange(m_odo)
 
@@ -313,7 +330,7 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
         h = ell / np.linalg.norm(ell, axis=-1, keepdims=True)
         out["ell"], out["h"] = ell, h
         out["b"] = (
-            np.einsum("nij,nj->ni", basis, problem.obs_bearing - h) / problem.obs_sigma[:, None]
+            np.einsum("nij,nj->ni", basis, problem.obs_bearing - h) / sigma[:, None]
         )
         out["prior"] = b_w @ (bias[0] - problem.bias_prior)
         out["walk"] = np.einsum("nij,nj->ni", walk_w, bias[1:] - bias[:-1])
@@ -338,111 +355,127 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
     a = None
     jac = sp.csr_matrix((0, lay.size))
     bearing_rows = slice(0, 0)
-    for it in range(1, iterations + 1):  # noqa: B007
-        rows: list[NDArray[np.int64]] = []
-        cols: list[NDArray[np.int64]] = []
-        vals: list[FloatArray] = []
-        res_all: list[FloatArray] = []
-        row = 0
-        if m_odo:  # odometry blocks, 6 rows each
-            r_th = parts["th"]
-            jinv = right_jacobian_inv(r_th)
-            rk, rk1 = r_wb[i0], r_wb[i0 + 1]
-            blk_k = np.zeros((m_odo, 6, 6))
-            blk_k[:, :3, :3] = -jinv @ np.swapaxes(rk1, 1, 2) @ rk
-            blk_k[:, 3:, :3] = skew(np.einsum("nji,nj->ni", rk, t_wb[i0 + 1] - t_wb[i0]))
-            blk_k[:, 3:, 3:] = -np.swapaxes(rk, 1, 2)
-            blk_k1 = np.zeros((m_odo, 6, 6))
-            blk_k1[:, :3, :3] = jinv
-            blk_k1[:, 3:, 3:] = np.swapaxes(rk, 1, 2)
-            blk_b = np.zeros((m_odo, 6, 3))
-            rot_back = -jinv @ np.swapaxes(rotmat_exp(r_th), 1, 2)
-            blk_b[:, :3] = rot_back @ j_rb
-            blk_b[:, 3:] = -j_pb
-            blk_s = np.zeros((m_odo, 6, 1))
-            blk_s[:, :3, 0] = np.einsum("nij,nj->ni", rot_back, j_rs)
-            blk_s[:, 3:, 0] = -j_ps
-            # Huber on whole factors through IRLS weights (a slipping wheel)
-            ow = np.sqrt(
-                1.0 / (1.0 + (np.linalg.norm(parts["odo"], axis=1) / problem.odometry_huber) ** 2)
-            )[:, None, None]
-            r0 = row + 6 * i0
-            _scatter(rows, cols, vals, r0, lay.pose(i0), ow * (o_w @ blk_k))
-            _scatter(rows, cols, vals, r0, lay.pose(i0 + 1), ow * (o_w @ blk_k1))
-            _scatter(rows, cols, vals, r0, lay.bias(seg), ow * (o_w @ blk_b))
-            _scatter(rows, cols, vals, r0, np.full(m_odo, lay.scale), ow * (o_w @ blk_s))
-            res_all.append((parts["odo"] * ow[:, :, 0]).ravel())
-            row += 6 * m_odo
-        # bearing blocks, 2 rows each, Huber through IRLS weights
-        m = fi.size
-        ell, h = parts["ell"], parts["h"]
-        wts = np.sqrt(_huber_weights(np.linalg.norm(parts["b"], axis=1)))
-        norm = np.linalg.norm(ell, axis=-1)
-        dh = (np.eye(3)[None] - np.einsum("ni,nj->nij", h, h)) / norm[:, None, None]
-        g = -np.einsum("nij,njk->nik", basis, dh) / problem.obs_sigma[:, None, None]
-        g = g * wts[:, None, None]
-        rt = np.swapaxes(r_wb[fi], 1, 2)
-        blk_pose = np.concatenate([g @ skew(ell), -g @ rt], axis=2)
-        r0 = row + 2 * np.arange(m)
-        bearing_rows = slice(row, row + 2 * m)
-        _scatter(rows, cols, vals, r0, lay.pose(fi), blk_pose)
-        _scatter(rows, cols, vals, r0, lay.lm(li), g @ rt)
-        res_all.append((parts["b"] * wts[:, None]).ravel())
-        row += 2 * m
-        # bias prior and random walk
-        _scatter(rows, cols, vals, np.array([row]), lay.bias(np.array([0])), b_w[None])
-        res_all.append(parts["prior"])
-        row += 3
-        if nseg > 1:
-            sidx = np.arange(nseg - 1)
-            r0 = row + 3 * sidx
-            _scatter(rows, cols, vals, r0, lay.bias(sidx), -walk_w)
-            _scatter(rows, cols, vals, r0, lay.bias(sidx + 1), walk_w)
-            res_all.append(parts["walk"].ravel())
-            row += 3 * (nseg - 1)
-        _scatter(rows, cols, vals, np.array([row]), np.array([lay.scale]), np.array([[[scale_w]]]))
-        res_all.append(parts["scale"])
-        row += 1
-        jac = sp.csr_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-            shape=(row, lay.size),
-        )
-        res = np.concatenate(res_all)
-        a = (jac.T @ jac).tocsc()
-        grad = jac.T @ res
-        diag = a.diagonal()
-        improved, rel_drop = False, 0.0
-        for _ in range(8):
-            try:
-                step = -_LandmarkSchur(a, lay, lam * np.maximum(diag, 1e-9)).solve(grad)
-            except (np.linalg.LinAlgError, ValueError):
+    total_iterations = 0
+    for rnd in range(reweight_rounds + 1):
+        for it in range(1, iterations + 1):  # noqa: B007
+            rows: list[NDArray[np.int64]] = []
+            cols: list[NDArray[np.int64]] = []
+            vals: list[FloatArray] = []
+            res_all: list[FloatArray] = []
+            row = 0
+            if m_odo:  # odometry blocks, 6 rows each
+                r_th = parts["th"]
+                jinv = right_jacobian_inv(r_th)
+                rk, rk1 = r_wb[i0], r_wb[i0 + 1]
+                blk_k = np.zeros((m_odo, 6, 6))
+                blk_k[:, :3, :3] = -jinv @ np.swapaxes(rk1, 1, 2) @ rk
+                blk_k[:, 3:, :3] = skew(np.einsum("nji,nj->ni", rk, t_wb[i0 + 1] - t_wb[i0]))
+                blk_k[:, 3:, 3:] = -np.swapaxes(rk, 1, 2)
+                blk_k1 = np.zeros((m_odo, 6, 6))
+                blk_k1[:, :3, :3] = jinv
+                blk_k1[:, 3:, 3:] = np.swapaxes(rk, 1, 2)
+                blk_b = np.zeros((m_odo, 6, 3))
+                rot_back = -jinv @ np.swapaxes(rotmat_exp(r_th), 1, 2)
+                blk_b[:, :3] = rot_back @ j_rb
+                blk_b[:, 3:] = -j_pb
+                blk_s = np.zeros((m_odo, 6, 1))
+                blk_s[:, :3, 0] = np.einsum("nij,nj->ni", rot_back, j_rs)
+                blk_s[:, 3:, 0] = -j_ps
+                # Huber on whole factors through IRLS weights (a slipping wheel)
+                ow = np.sqrt(
+                    1.0 / (1.0 + (np.linalg.norm(parts["odo"], axis=1) / problem.odometry_huber) ** 2)
+                )[:, None, None]
+                r0 = row + 6 * i0
+                _scatter(rows, cols, vals, r0, lay.pose(i0), ow * (o_w @ blk_k))
+                _scatter(rows, cols, vals, r0, lay.pose(i0 + 1), ow * (o_w @ blk_k1))
+                _scatter(rows, cols, vals, r0, lay.bias(seg), ow * (o_w @ blk_b))
+                _scatter(rows, cols, vals, r0, np.full(m_odo, lay.scale), ow * (o_w @ blk_s))
+                res_all.append((parts["odo"] * ow[:, :, 0]).ravel())
+                row += 6 * m_odo
+            # bearing blocks, 2 rows each, Huber through IRLS weights
+            m = fi.size
+            ell, h = parts["ell"], parts["h"]
+            wts = np.sqrt(_huber_weights(np.linalg.norm(parts["b"], axis=1)))
+            norm = np.linalg.norm(ell, axis=-1)
+            dh = (np.eye(3)[None] - np.einsum("ni,nj->nij", h, h)) / norm[:, None, None]
+            g = -np.einsum("nij,njk->nik", basis, dh) / sigma[:, None, None]
+            g = g * wts[:, None, None]
+            rt = np.swapaxes(r_wb[fi], 1, 2)
+            blk_pose = np.concatenate([g @ skew(ell), -g @ rt], axis=2)
+            r0 = row + 2 * np.arange(m)
+            bearing_rows = slice(row, row + 2 * m)
+            _scatter(rows, cols, vals, r0, lay.pose(fi), blk_pose)
+            _scatter(rows, cols, vals, r0, lay.lm(li), g @ rt)
+            res_all.append((parts["b"] * wts[:, None]).ravel())
+            row += 2 * m
+            # bias prior and random walk
+            _scatter(rows, cols, vals, np.array([row]), lay.bias(np.array([0])), b_w[None])
+            res_all.append(parts["prior"])
+            row += 3
+            if nseg > 1:
+                sidx = np.arange(nseg - 1)
+                r0 = row + 3 * sidx
+                _scatter(rows, cols, vals, r0, lay.bias(sidx), -walk_w)
+                _scatter(rows, cols, vals, r0, lay.bias(sidx + 1), walk_w)
+                res_all.append(parts["walk"].ravel())
+                row += 3 * (nseg - 1)
+            _scatter(rows, cols, vals, np.array([row]), np.array([lay.scale]), np.array([[[scale_w]]]))
+            res_all.append(parts["scale"])
+            row += 1
+            jac = sp.csr_matrix(
+                (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                shape=(row, lay.size),
+            )
+            res = np.concatenate(res_all)
+            a = (jac.T @ jac).tocsc()
+            grad = jac.T @ res
+            diag = a.diagonal()
+            improved, rel_drop = False, 0.0
+            for _ in range(8):
+                try:
+                    step = -_LandmarkSchur(a, lay, lam * np.maximum(diag, 1e-9)).solve(grad)
+                except (np.linalg.LinAlgError, ValueError):
+                    lam *= 10
+                    continue
+                if not np.all(np.isfinite(step)):
+                    lam *= 10
+                    continue
+                cand = _apply(step, r_wb, t_wb, lms, bias, scale, lay)
+                cparts = residuals(*cand)
+                ccost = cost_of(cparts)
+                if ccost < cost:
+                    r_wb, t_wb, lms, bias, scale = cand
+                    parts, improved = cparts, True
+                    rel_drop = (cost - ccost) / max(cost, 1e-12)
+                    cost = ccost
+                    lam = max(lam / 3, 1e-9)
+                    break
                 lam *= 10
-                continue
-            if not np.all(np.isfinite(step)):
-                lam *= 10
-                continue
-            cand = _apply(step, r_wb, t_wb, lms, bias, scale, lay)
-            cparts = residuals(*cand)
-            ccost = cost_of(cparts)
-            if ccost < cost:
-                r_wb, t_wb, lms, bias, scale = cand
-                parts, improved = cparts, True
-                rel_drop = (cost - ccost) / max(cost, 1e-12)
-                cost = ccost
-                lam = max(lam / 3, 1e-9)
+            if not improved or rel_drop < 1e-7:
                 break
-            lam *= 10
-        if not improved or rel_drop < 1e-7:
+        total_iterations += it
+        nb = np.linalg.norm(parts["b"], axis=1)
+        inlier = nb <= 2.5
+        factor = bearing_variance_factor(parts["b"][inlier], fi[inlier], li[inlier])
+        if rnd == reweight_rounds or abs(factor - 1.0) <= REWEIGHT_TOLERANCE:
             break
-    nb = np.linalg.norm(parts["b"], axis=1)
-    inlier = nb <= 2.5
-    factor = bearing_variance_factor(parts["b"][inlier], fi[inlier], li[inlier])
+        # weighed at the configured σ, the bearings count for less than they are worth
+        # against the odometry, and the drive's odometry errors (a gyro's turn) stay in the
+        # map, where the covariance, taken at the long-run σ, says they are not
+        variance_scale *= factor
+        sigma = problem.obs_sigma * math.sqrt(variance_scale)
+        parts = residuals(r_wb, t_wb, lms, bias, scale)
+        cost = cost_of(parts)
+        lam = 1e-4
     lm_cov = lm_cov_configured = lm_own = np.zeros((n, 3, 3))
     frame_cov: FloatArray | None = None  # too few landmarks: the marginals hold the frame
     if n and a is not None:
-        lm_cov_configured = _landmark_covariances(a, lay, n)
-        # the information again, the bearings' rows at their long-run variance
+        # the information again, the bearings' rows at their configured σ, then at their
+        # long-run one
         row_scale = np.ones(jac.shape[0])
+        row_scale[bearing_rows] = math.sqrt(variance_scale)
+        configured = sp.diags(row_scale) @ jac
+        lm_cov_configured = _landmark_covariances((configured.T @ configured).tocsc(), lay, n)
         row_scale[bearing_rows] = 1.0 / math.sqrt(factor)
         scaled = sp.diags(row_scale) @ jac
         if n >= 3:
@@ -453,7 +486,7 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
                 lm_own = lm_cov
         else:
             lm_cov = lm_own = _landmark_covariances((scaled.T @ scaled).tocsc(), lay, n)
-    ang_rms = float(np.sqrt(np.mean((nb * problem.obs_sigma) ** 2 / 2))) if nb.size else 0.0
+    ang_rms = float(np.sqrt(np.mean((nb * sigma) ** 2 / 2))) if nb.size else 0.0
     return SmootherResult(
         r_wb,
         t_wb,
@@ -463,10 +496,10 @@ def smooth(problem: SmootherProblem, iterations: int = 15) -> SmootherResult:
         float(scale),
         cost0,
         cost,
-        it,
+        total_iterations,
         int((nb > 5.0).sum()),
         ang_rms,
-        factor,
+        factor * variance_scale,
         lm_cov_configured,
         lm_own,
         frame_cov,
