@@ -329,9 +329,7 @@ def smooth(
         ell = np.einsum("nji,nj->ni", r_wb[fi], lms[li] - t_wb[fi])
         h = ell / np.linalg.norm(ell, axis=-1, keepdims=True)
         out["ell"], out["h"] = ell, h
-        out["b"] = (
-            np.einsum("nij,nj->ni", basis, problem.obs_bearing - h) / sigma[:, None]
-        )
+        out["b"] = np.einsum("nij,nj->ni", basis, problem.obs_bearing - h) / sigma[:, None]
         out["prior"] = b_w @ (bias[0] - problem.bias_prior)
         out["walk"] = np.einsum("nij,nj->ni", walk_w, bias[1:] - bias[:-1])
         out["scale"] = np.array([scale_w * scale])
@@ -383,7 +381,8 @@ def smooth(
                 blk_s[:, 3:, 0] = -j_ps
                 # Huber on whole factors through IRLS weights (a slipping wheel)
                 ow = np.sqrt(
-                    1.0 / (1.0 + (np.linalg.norm(parts["odo"], axis=1) / problem.odometry_huber) ** 2)
+                    1.0
+                    / (1.0 + (np.linalg.norm(parts["odo"], axis=1) / problem.odometry_huber) ** 2)
                 )[:, None, None]
                 r0 = row + 6 * i0
                 _scatter(rows, cols, vals, r0, lay.pose(i0), ow * (o_w @ blk_k))
@@ -419,7 +418,9 @@ def smooth(
                 _scatter(rows, cols, vals, r0, lay.bias(sidx + 1), walk_w)
                 res_all.append(parts["walk"].ravel())
                 row += 3 * (nseg - 1)
-            _scatter(rows, cols, vals, np.array([row]), np.array([lay.scale]), np.array([[[scale_w]]]))
+            _scatter(
+                rows, cols, vals, np.array([row]), np.array([lay.scale]), np.array([[[scale_w]]])
+            )
             res_all.append(parts["scale"])
             row += 1
             jac = sp.csr_matrix(
