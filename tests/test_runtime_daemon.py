@@ -464,7 +464,9 @@ def test_the_lease_is_renewed_by_its_own_deadline_not_only_a_decisions(tmp_path:
         daemon.can = link
         assert link.next_due() == math.inf  # nothing sent yet: the daemon's own timer
         link.send_decision(mowing, pose, time.monotonic())  # a lease
-        sent = link._sent_at
+        # RENEW_S counts from when it was sent, the renewal deadline from when it was tried
+        # (before the pipe write, which took 2.1 ms in one CI run: 47.9 ms counted from sent)
+        sent, tried_first = link._sent_at, link._tried_at
         decided = sent + 0.9 * RENEW_S
         while time.monotonic() < decided:
             await asyncio.sleep(0.001)
@@ -472,8 +474,8 @@ def test_the_lease_is_renewed_by_its_own_deadline_not_only_a_decisions(tmp_path:
         link.send_decision(mowing, pose, decided)  # within RENEW_S: no lease
         assert link.leases_sent == 1
         daemon._arm_decision_timer(decided)
-        renew_by = daemon._decision_due - sent
-        without = decided + DECIDE_MAX_S - sent  # the decision's own timer alone
+        renew_by = daemon._decision_due - tried_first
+        without = decided + DECIDE_MAX_S - tried_first  # the decision's own timer alone
 
         class FullPipe:
             def ready_now(self) -> bool:

@@ -127,8 +127,20 @@ def test_the_page_shows_what_the_daemon_says_while_mowing(yard_map, tmp_path) ->
         # interval: the pose is the newest sample's), plus the page's 1 mm rounding
         assert moved <= 0.6 * (max(lag, 0.0) + imu_period_s) + 0.002, (shown, pose, lag)
         assert shown["mode"] == "mow"
-    same_state = sum(s["state"] == d["state"] for s, d, _ in compared)
-    assert same_state >= len(compared) - 1, [(s["state"], d["state"]) for s, d, _ in compared]
+    # the state differs only across a change the daemon made between the two reads (the page
+    # up to 0.12 s behind; at the edge NEAR_EDGE → OUTSIDE → UNKNOWN can follow one another
+    # within a second: two such in one CI run): the page still shows what the status before
+    # said, or the next page shows what this status said
+    states = [(s["state"], d["state"]) for s, d, _ in compared]
+    unexplained = [
+        k
+        for k, (shown, said) in enumerate(states)
+        if shown != said
+        and not (k > 0 and shown == states[k - 1][1])
+        and not (k + 1 < len(states) and states[k + 1][0] == said)
+    ]
+    same_state = sum(shown == said for shown, said in states)
+    assert not unexplained and same_state >= len(states) // 2, states
     assert "401" in refused and "token" in refused
     assert mode_after == "idle"
     assert set(sensors) == {"imu", "speed", "camera"}
