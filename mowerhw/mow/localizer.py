@@ -399,8 +399,9 @@ class Localizer:
                 self.ekf.set_landmark_cross(rows, answer.landmark_cross)
         if search.near and search.checks_prior:  # a start pose confirmed: as it would be
             self.require_frames(self._frames_needed, "since the prior pose was confirmed")
-        else:
-            self.require_frames(self.AFTER_RELOCALIZATION_FRAMES, "since a global relocalization")
+        else:  # a kidnap, a lock-out, an IMU gap: the frames of a relocalization
+            where = "near the filter's pose" if search.near else "global"
+            self.require_frames(self.AFTER_RELOCALIZATION_FRAMES, f"since a {where} relocalization")
         self._on_probation("local" if search.near else "global")
         return True
 

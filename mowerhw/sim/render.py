@@ -148,6 +148,22 @@ def _mip(img: NDArray, levels: int) -> list[NDArray]:
     return out
 
 
+def _panel_cover(
+    a: NDArray[np.floating], b: NDArray[np.floating], size: float, footprint_texels: float
+) -> NDArray[np.float32]:
+    """How much of each pixel a panel covers: its hit point's distance inside the panel's
+    outline (``a``, ``b`` from the centre along the panel's axes, m) over the pixel's
+    footprint, so the outline's half-covered pixels lie on the outline at every distance.
+    (A coverage mask mip-mapped with the texture drew the outline up to 2^(L−1) texels off
+    at level L — a panel's right and lower edges ~1 cm in, its left and upper edges out,
+    the far levels most: the outline's corners were no fixed 3-D points; issue 18, stop 75.)"""
+    half = np.float32(size / 2)
+    inside = np.minimum(half - np.abs(a), half - np.abs(b))  # m; negative outside
+    width = np.float32(max(footprint_texels, 1.0) * size / PANEL_TEXELS)
+    cover = np.clip(inside / width + np.float32(0.5), 0.0, 1.0).astype(np.float32, copy=False)
+    return cover
+
+
 class OmniRenderer:
     """Renders a :class:`World` through its omni camera (see the module doc)."""
 
@@ -368,17 +384,10 @@ class OmniRenderer:
             my = ((0.5 - b / p.size) * PANEL_TEXELS - 0.5).astype(np.float32) * k
             mx[~ok_pix] = -10.0
             my[~ok_pix] = -10.0
-            val = cv2.remap(
-                tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0
-            )
-            cover = cv2.remap(
-                np.ones_like(tex),
-                mx,
-                my,
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=0.0,
-            )
+            val = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            with np.errstate(invalid="ignore"):
+                cover = _panel_cover(a, b, p.size, foot / texel_m)
+            cover[~(ok_pix & np.isfinite(cover))] = 0.0
             cover *= self.table.valid[v0:v1, u0:u1]
             roi = img[v0:v1, u0:u1]
             roi += cover * (val - roi)
