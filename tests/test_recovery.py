@@ -72,6 +72,39 @@ def test_two_answers_are_accepted_only_when_the_odometry_between_them_agrees() -
     assert search.offer(4.0, _answer(2.0, 3.0, 0.0), odo0) is None
 
 
+def test_a_doubted_place_needs_a_run_of_answers_with_no_doubt_between() -> None:
+    """A frame that saw a rival place or pose breaks the pair across it, and after it the
+    place needs CLEAR_ANSWERS answers in a row (stop 75: a standing look-alike start whose
+    answers flickered with "not pinned down" was accepted 0.25 m off)."""
+    from mowerhw.mow.recovery import CLEAR_ANSWERS
+
+    odo = Pose2D(0.0, 0.0, 0.0)
+    doubt = Relocalization(False, why="not pinned down: …", rival=True)
+    blind = Relocalization(False, why="3 bearings, 30 landmarks")  # cannot tell: no doubt
+    # no doubt: two answers that agree are enough, a frame that cannot tell breaks nothing
+    search = RelocalizationSearch("since the start", 0.0)
+    search.offer(0.0, _answer(2.0, 3.0, 0.0), odo)
+    assert search.offer(0.25, blind, odo) is None
+    assert search.offer(0.5, _answer(2.0, 3.0, 0.0), odo) is not None
+    # an answer, a doubt, an answer: not paired across the doubt
+    search = RelocalizationSearch("since the start", 0.0)
+    search.offer(0.0, _answer(2.0, 3.0, 0.0), odo)
+    search.offer(0.25, doubt, odo)
+    t = 0.5
+    for k in range(1, CLEAR_ANSWERS):  # then answers in a row: not enough until the last
+        assert search.offer(t, _answer(2.0, 3.0, 0.0), odo) is None, k
+        t += 0.25
+    assert "a frame doubted the place" in search.describe()
+    assert search.offer(t, _answer(2.0, 3.0, 0.0), odo) is not None
+    # a doubt inside the run starts it again
+    search = RelocalizationSearch("since the start", 0.0)
+    search.offer(0.0, doubt, odo)
+    answers = [True] * (CLEAR_ANSWERS - 1) + [False] + [True] * (CLEAR_ANSWERS - 1)
+    for k, ok in enumerate(answers):
+        got = search.offer(0.25 * (k + 1), _answer(2.0, 3.0, 0.0) if ok else doubt, odo)
+        assert got is None, k
+
+
 def test_a_localizer_with_no_prior_halts_until_a_checked_relocalization() -> None:
     m = _map()
     loc = Localizer(m)

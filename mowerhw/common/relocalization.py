@@ -21,7 +21,10 @@ class Relocalization:
     ``landmark_cross``: (3, 3·len(inliers)) the cross-covariance of that (x, y, heading)
     with the inlier landmarks' map positions, in the inliers' order — the answer's error
     is largely theirs, and a filter that starts from it must know (None: not computed);
-    ``trusted``: which inliers the fit trusts, in their order (None: not judged, all)."""
+    ``trusted``: which inliers the fit trusts, in their order (None: not judged, all);
+    ``rival``: no answer because another place or pose explains the frame nearly as well
+    (ambiguous, not pinned down, a prior beaten) — a doubt about the place, where other
+    refusals (too few bearings, all on one side) say only that this frame cannot tell."""
 
     ok: bool
     r_wb: FloatArray = field(default_factory=lambda: np.eye(3))
@@ -34,6 +37,7 @@ class Relocalization:
     covariance: FloatArray | None = None
     landmark_cross: FloatArray | None = None
     trusted: NDArray[np.bool_] | None = None
+    rival: bool = False
 
     @property
     def yaw(self) -> float:

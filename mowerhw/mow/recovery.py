@@ -7,7 +7,9 @@ check every re-localization passes before the deck may run.
   by the odometry in between (the filter keeps propagating while it searches: its pose is
   meaningless, its *motion* is not). Two answers that agree within :data:`AGREE_M` and
   :data:`AGREE_RAD` are accepted: a pose that explains enough inliers in more than one frame
-  and agrees with the IMU/odometry motion between them.
+  and agrees with the IMU/odometry motion between them, with no frame between them that saw
+  a rival place or pose (``Relocalization.rival``); once a frame of the search has, the
+  place needs :data:`CLEAR_ANSWERS` such answers in a row.
 * :class:`Probation` — after any re-localization (resume after a restart, refit after a
   lock-out, global), the filter is not trusted until ``frames_needed`` consecutive frames are
   *consistent*: a fix whose bearings' median normalised innovation (NIS, 2 degrees of freedom
@@ -36,6 +38,9 @@ AGREE_RAD = math.radians(2.0)
 AGREE_PER_M = 0.05
 #: an answer older than this is not paired with a new one (s)
 PAIR_S = 3.0
+#: after a frame that saw a rival place or pose, the answers in a row (none doubted, each
+#: agreeing with the one before) a place needs before it is accepted
+CLEAR_ANSWERS = 4
 #: a search near a prior becomes global after this long without an accepted answer (s)
 LOCAL_S = 3.0
 #: σ of an accepted pose: the answer's own (its fit's covariance, the map's landmark errors
@@ -134,6 +139,10 @@ class RelocalizationSearch:
         self.frames = 0
         self.last_why = "no frame searched yet"
         self._last: _Answer | None = None
+        #: a frame of this search saw a rival place or pose (``Relocalization.rival``)
+        self._doubted = False
+        #: answers in a row since the last doubt
+        self._clear = 0
 
     def offer(self, t: float, answer: Relocalization, odometry: Pose2D) -> Pose2D | None:
         """One frame's answer, with the filter's pose at its time; the accepted pose at
@@ -143,8 +152,21 @@ class RelocalizationSearch:
             self.since = t
         if not answer.ok:
             self.last_why = answer.why
+            if answer.rival:
+                # a frame that saw a rival place or pose: a doubt about the place. Answers
+                # that pass such a frame's test only just (noise flickers a borderline
+                # verdict) must not pair across it, and after it the place needs a run of
+                # :data:`CLEAR_ANSWERS` answers with no doubt between them (stop 75: a
+                # look-alike start standing still, 6 answers in 48 frames, the rest "not
+                # pinned down" or "ambiguous": two answers 0.5 s apart across a doubt were
+                # accepted 0.25 m off at σ 2 cm, and — with that pairing refused — two in
+                # a row 4 s later)
+                self._last = None
+                self._doubted = True
+                self._clear = 0
             return None
         self.answers += 1
+        self._clear += 1
         pose = Pose2D(float(answer.p_wb[0]), float(answer.p_wb[1]), answer.yaw)
         prev, self._last = self._last, _Answer(t, pose, odometry)
         if prev is None or not 0.0 < t - prev.t <= PAIR_S:
@@ -158,12 +180,20 @@ class RelocalizationSearch:
                 f"two answers disagree by {d:.2f} m, {math.degrees(turn):.1f}° "
                 f"after the odometry between them"
             )
+            self._clear = 1  # this answer starts the run again
+            return None
+        if self._doubted and self._clear < CLEAR_ANSWERS:
+            self.last_why = (
+                f"answers agree, but a frame doubted the place: {self._clear} of "
+                f"{CLEAR_ANSWERS} answers in a row since"
+            )
             return None
         return pose
 
     def hold(self) -> None:
         """The mower is in the air: no answer from before pairs with one after."""
         self._last = None
+        self._clear = 0
 
     def widen(self, t: float) -> None:
         """A local search that has not confirmed the prior within :data:`LOCAL_S` becomes
@@ -172,6 +202,7 @@ class RelocalizationSearch:
             return
         self.near = self.checks_prior = False
         self._last = None
+        self._clear = 0
         self.why += f"; the pose near the prior was not confirmed in {LOCAL_S:.0f} s"
 
     def describe(self) -> str:

@@ -768,9 +768,9 @@ class GlobalRelocalizer:
         obs = np.asarray(bearings, dtype=np.float64).reshape(-1, 3)
         obs = obs / np.linalg.norm(obs, axis=1, keepdims=True)
 
-        def done(why: str, n: int = 0) -> Relocalization:
+        def done(why: str, n: int = 0, rival: bool = False) -> Relocalization:
             ms = 1e3 * (time.perf_counter() - t0)
-            return Relocalization(False, hypotheses=n, ms=ms, why=why)
+            return Relocalization(False, hypotheses=n, ms=ms, why=why, rival=rival)
 
         if obs.shape[0] < self.min_inliers or self.points.shape[0] < self.min_inliers:
             return done(f"{obs.shape[0]} bearings, {self.points.shape[0]} landmarks")
@@ -844,18 +844,21 @@ class GlobalRelocalizer:
                 return done(
                     f"the prior does not hold: {n_best} inliers near it, {runner} at another place",
                     len(hyps),
+                    rival=True,
                 )
             if self._beaten(n_best, beside):  # a better pose beside the prior's answer
                 return done(
                     f"the prior's answer is not the best pose there: {n_best} inliers, "
                     f"{beside} at a pose beside it",
                     len(hyps),
+                    rival=True,
                 )
         elif runner > self.ambiguity_ratio * n_best and n_best - runner < self.ambiguity_margin:
             return done(
                 f"ambiguous: {n_best} inliers here, {runner} at another place (standing still "
                 "keeps the same view: moving or turning the mower may tell them apart)",
                 len(hyps),
+                rival=True,
             )
         if rival > self.LOCAL_AMBIGUITY_RATIO and rival_pose is not None:
             moved = float(np.hypot(*(rival_pose[:2] - state[:2])))
@@ -864,6 +867,7 @@ class GlobalRelocalizer:
                 f"not pinned down: a pose {moved:.2f} m away and turned {turn:.1f}° fits "
                 f"{rival:.0%} as well",
                 len(hyps),
+                rival=True,
             )
         to_lm = self.points[cols] - p_wb
         az = np.sort(np.arctan2(to_lm[:, 1], to_lm[:, 0]))

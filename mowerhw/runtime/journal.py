@@ -97,6 +97,7 @@ class JournalEncoder:
                 "covariance": None if v.covariance is None else _floats(v.covariance),
                 "landmark_cross": None if v.landmark_cross is None else _floats(v.landmark_cross),
                 "trusted": None if v.trusted is None else [bool(x) for x in v.trusted],
+                "rival": v.rival,
             }
         if isinstance(v, LawnMap):
             if v.checksum in self._maps:
@@ -178,6 +179,7 @@ class JournalDecoder:
             if d.get("landmark_cross") is None
             else np.asarray(d["landmark_cross"], dtype=np.float64).reshape(3, -1),
             None if d.get("trusted") is None else np.asarray(d["trusted"], dtype=bool),
+            bool(d.get("rival", False)),  # journals before stop 75 have none
         )
 
     def lawn_map(self, d: dict[str, Any]) -> LawnMap:
