@@ -15,7 +15,9 @@ pose (x, y, ψ in the simulator's map frame, camera ``h`` above flat ground) is 
   plane (a window, a sign on a fence, a board on a post) centred on the landmark point and
   turned towards the lawn: 2×2 dark and light panes (greys of its own), whose centre is an
   X-corner exactly at the landmark point. Panels are ray-cast per pixel
-  (not approximated by an affine warp), so every corner on a panel is a fixed 3-D point;
+  (not approximated by an affine warp), and a pixel's share of its panel is its hit point's
+  distance inside the outline over its footprint, so every corner on a panel — the outline's
+  too, near or far — is a fixed 3-D point;
 * **optics and sensor** — a little Gaussian blur, then Gaussian pixel noise; black outside
   the annulus.
 
