@@ -44,7 +44,10 @@ def test_mows_with_faults_and_recovers(yard_map, tmp_path) -> None:
         print(kind, f["stop_after_ms"], f["reason"], f["recovered_after_s"])
         if f["deck_was_running"]:  # how fast is measured by tools/bench_daemon.py
             assert f["stop_after_ms"] is not None, f
-            assert reason in f["reason"], f
+            # the fault's own reason, first or while it lasted (one CI run: a camera frame
+            # 2 ms late in the instant of the exception — "camera silent for 0.252 s" was
+            # the first reason asked, 25 ms after the injection)
+            assert any(reason in r for r in [f["reason"], *f["daemon_reasons"]]), f
         else:  # halted already, for what halted it (one CI run: at 16 s a relocalization
             # after the IMU's gap was still checking, NOT_LOCALIZED)
             assert f["reason"], f

@@ -122,6 +122,9 @@ class FaultResult:
     recovered_after_s: float | None = None  # the fault cleared → deck running again
     how: str = ""
     daemon_reason: str = ""
+    #: every halt reason the daemon gave while the fault lasted, first first (two conditions
+    #: may hold at once: a camera frame late in the instant an exception halts)
+    daemon_reasons: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     t0: float | None = None  # bookkeeping while the run goes on (cleared in the result)
     n_events: int | None = None
@@ -861,12 +864,10 @@ class Bench:
             )
 
         def note_reason() -> None:
-            """The daemon's first halt reason while the fault lasts (asked a few times: a
-            map fault is seen after the next map check and the loader's start): the
-            estimation side's, or the permit supervisor's own (tilt, a bump, its CAN
-            address taken) while the estimation side permits."""
-            if res.daemon_reason:
-                return
+            """The daemon's halt reason while the fault lasts (asked a few times: a map
+            fault is seen after the next map check and the loader's start), the first one
+            kept as the fault's: the estimation side's, or the permit supervisor's own
+            (tilt, a bump, its CAN address taken) while the estimation side permits."""
             st = self._status(timeout=1.0)
             if not st:  # the estimation process is silent: its supervisor says why
                 with contextlib.suppress(OSError, ConnectionError, ValueError):
@@ -874,11 +875,16 @@ class Bench:
             if not st:
                 return
             sup = st.get("supervisor") or {}
+            said = ""
             if not st.get("permit") and st.get("reason"):
-                res.daemon_reason = f"{st.get('reason', '')}: {st.get('detail', '')}".strip(": ")
+                said = f"{st.get('reason', '')}: {st.get('detail', '')}".strip(": ")
             elif sup.get("permit") is False and sup.get("reason"):
-                said = f"{sup.get('reason', '')}: {sup.get('detail', '')}".strip(": ")
-                res.daemon_reason = f"supervisor: {said}"
+                own = f"{sup.get('reason', '')}: {sup.get('detail', '')}".strip(": ")
+                said = f"supervisor: {own}"
+            if said:
+                res.daemon_reason = res.daemon_reason or said
+                if said not in res.daemon_reasons:
+                    res.daemon_reasons.append(said)
 
         def cleared() -> None:
             res.t_clear = time.monotonic()
