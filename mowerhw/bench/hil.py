@@ -121,9 +121,8 @@ class FaultResult:
     recovered: bool = False
     recovered_after_s: float | None = None  # the fault cleared → deck running again
     how: str = ""
-    daemon_reason: str = ""
-    #: every halt reason the daemon gave while the fault lasted, first first (two conditions
-    #: may hold at once: a camera frame late in the instant an exception halts)
+    #: every halt reason the daemon gave while the fault lasted, the first the fault's (two
+    #: conditions may hold at once: a camera frame late in the instant an exception halts)
     daemon_reasons: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     t0: float | None = None  # bookkeeping while the run goes on (cleared in the result)
@@ -640,7 +639,7 @@ class Bench:
                 "samples": len(self.rss_samples),
             }
         if self.results:
-            skip = ("t0", "n_events", "t_clear", "daemon_reason")
+            skip = ("t0", "n_events", "t_clear")
             metrics["faults"] = [
                 {k: v for k, v in vars(r).items() if k not in skip} for r in self.results
             ]
@@ -881,10 +880,8 @@ class Bench:
             elif sup.get("permit") is False and sup.get("reason"):
                 own = f"{sup.get('reason', '')}: {sup.get('detail', '')}".strip(": ")
                 said = f"supervisor: {own}"
-            if said:
-                res.daemon_reason = res.daemon_reason or said
-                if said not in res.daemon_reasons:
-                    res.daemon_reasons.append(said)
+            if said and said not in res.daemon_reasons:
+                res.daemon_reasons.append(said)
 
         def cleared() -> None:
             res.t_clear = time.monotonic()
@@ -925,8 +922,8 @@ class Bench:
             if stop is not None and stop.t - res.t0 < 5.0:
                 res.stop_after_ms = round((stop.t - res.t0) * 1e3, 1)
                 res.reason = f"controller: {stop.reason}"
-            if res.daemon_reason:
-                res.reason = f"{res.reason}; daemon: {res.daemon_reason}".strip("; ")
+            if res.daemon_reasons:
+                res.reason = f"{res.reason}; daemon: {res.daemon_reasons[0]}".strip("; ")
             t_clear = res.t_clear if res.t_clear is not None else res.t0 + res.duration_s
             back = next((e for e in events if e.running and e.t >= t_clear), None)
             if back is not None and back.t - t_clear <= RECOVERY_WINDOW_S:
