@@ -187,7 +187,7 @@ def test_an_answer_from_sharp_bearings_is_as_sure_as_they_are(
 ) -> None:
     """Sharp bearings (0.06° of noise per axis, a map that is right): the answer's
     covariance follows the bearings down to their floor,
-    :attr:`GlobalRelocalizer.BEARING_FLOOR_RAD` (0.05°), and its NEES averages 3 within its
+    :attr:`GlobalRelocalizer.BEARING_FLOOR_RAD` (0.025°), and its NEES averages 3 within its
     99 % bounds. With that floor at 0.1° the same answers are clearly under-confident (1.29;
     stop 53's pixel pools: NEES 1.5–1.9 right after an answer)."""
     from scipy.stats import chi2
@@ -210,6 +210,35 @@ def test_an_answer_from_sharp_bearings_is_as_sure_as_they_are(
     assert lo <= honest <= hi, (honest, lo, hi)
     monkeypatch.setattr(GlobalRelocalizer, "BEARING_FLOOR_RAD", math.radians(0.1))
     floored = mean_nees()
+    assert floored < lo and floored < 0.6 * honest, (floored, honest)
+
+
+def test_an_answer_from_a_standing_rendered_frame_is_as_sure_as_its_bearings() -> None:
+    """Bearings as sharp as a standing rendered frame's (0.03° per axis; the residuals' robust
+    σ of the look-alike pools' answers 0.008–0.034°, stop 76): the answer's NEES averages 3
+    within its 99 % bounds. With the floor at 0.05°, as it was set against the old renderer,
+    the same answers are clearly under-confident (about 3 × (0.03 / 0.05)²; the pixel pools'
+    standing z² 0.45–0.83 per component)."""
+    from scipy.stats import chi2
+
+    def mean_nees(floor_deg: float) -> float:
+        rng = np.random.default_rng(17)
+        pts = _ring(rng, 40)
+        reloc = GlobalRelocalizer(_map_with(pts, np.eye(3) * 1e-8))
+        reloc.BEARING_FLOOR_RAD = math.radians(floor_deg)  # this instance only
+        nees = []
+        for _ in range(25):
+            p, yaw = _place(rng)
+            res = reloc.locate(_view(pts, p, yaw, rng, math.radians(0.03)))
+            assert res.ok and res.covariance is not None, res.why
+            err = np.r_[res.p_wb[:2] - p[:2], (res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi]
+            nees.append(float(err @ np.linalg.solve(res.covariance, err)))
+        return float(np.mean(nees))
+
+    lo, hi = chi2.ppf([0.005, 0.995], 3 * 25) / 25
+    honest = mean_nees(math.degrees(GlobalRelocalizer.BEARING_FLOOR_RAD))
+    assert lo <= honest <= hi, (honest, lo, hi)
+    floored = mean_nees(0.05)
     assert floored < lo and floored < 0.6 * honest, (floored, honest)
 
 
@@ -262,7 +291,7 @@ def test_a_few_bearings_tenths_of_a_degree_off_do_not_pull_a_sharp_answer(
     beside the corner 0.12–0.4° off (measured, look-alike lawn: the tail of answers 5–23 mm
     off at σ 2–4 mm had a few such inliers at full weight; fitted to the true landmarks the
     answer was just as far off). The trust gate and Huber weights count each residual as at
-    least the bearings' floor (:attr:`GlobalRelocalizer.BEARING_FLOOR_RAD`, 0.05°), so those
+    least the bearings' floor (:attr:`GlobalRelocalizer.BEARING_FLOOR_RAD`, 0.025°), so those
     few are gated out or weighed down: the answers' median error 0.6 mm. The check can
     fail: with the gate's floor at 0.1°, as before stop 70, the few keep their weight and
     the median is 1.5 mm."""

@@ -569,14 +569,19 @@ class GlobalRelocalizer:
     #: every bearing counts as at least this far off (rad): the trust gate (:meth:`_trusted`)
     #: and the final fit's Huber weights take the residuals' robust σ as at least this (a
     #: frame fitted unusually well must not gate out or down-weigh its good pairs), and so
-    #: does a bearing's σ in the answer's covariance (:meth:`covariance`). About what a
-    #: rendered corner's azimuth is off while mowing at best (0.055° rms, README). One floor
-    #: since stop 70: the gate's was 0.1°, and a standing frame's few features beside their
+    #: does a bearing's σ in the answer's covariance (:meth:`covariance`). One floor since
+    #: stop 70: the gate's was 0.1°, and a standing frame's few features beside their
     #: corners, 0.1–0.45° off among bearings 0.01–0.03° off, kept their full weight and pulled
     #: the answer 5–23 mm at σ 2–4 mm (look-alike lawn, each answer fitted again to the true
     #: landmarks: README, issue 18); the covariance's at 0.1° made the answers wider than their
-    #: errors (stop 53: NEES 1.5–1.9 right after the answer)
-    BEARING_FLOOR_RAD = math.radians(0.05)
+    #: errors (stop 53: NEES 1.5–1.9 right after the answer). 0.05° (stop 70, set against the
+    #: old renderer's 0.055° rms) bound on every standing answer once the renderer drew the
+    #: panels where they are (stop 76: the residuals' robust σ 0.008–0.034°, look-alike
+    #: lawn): the answers were 1.3–1.6× wider than their errors (z² per component 0.45–0.83,
+    #: pixel pools, map's frame). At 0.025° the answers are also closer (the gate and the
+    #: weights sharper: 1.35 → 1.11 mm rms) and their z² 0.66–1.43 over both lawns; 0.015°
+    #: left the paper lawn's over (1.04–1.86) and 0.035° the look-alike's under (0.53–0.66)
+    BEARING_FLOOR_RAD = math.radians(0.025)
     #: the answer's fit (:meth:`_final_fit`): Huber weights at this many robust σ (95 %
     #: efficient on Gaussian errors), a few reweighting rounds
     HUBER_K = 1.345
