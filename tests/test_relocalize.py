@@ -182,34 +182,37 @@ def test_an_answer_says_how_sure_it_is_and_is_about_that_sure() -> None:
     assert lo <= np.mean(nees) <= hi, (np.mean(nees), lo, hi)
 
 
-def test_an_answer_from_sharp_bearings_is_as_sure_as_they_are(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+def _mean_answer_nees(seed: int, noise_deg: float, floor_deg: float | None = None) -> float:
+    """The mean NEES of 25 answers on a ring of 40 landmarks with a right map, bearings with
+    ``noise_deg`` of noise per axis; ``floor_deg``: that relocalizer's bearing floor (None:
+    :attr:`GlobalRelocalizer.BEARING_FLOOR_RAD`)."""
+    rng = np.random.default_rng(seed)
+    pts = _ring(rng, 40)
+    reloc = GlobalRelocalizer(_map_with(pts, np.eye(3) * 1e-8))
+    if floor_deg is not None:
+        reloc.BEARING_FLOOR_RAD = math.radians(floor_deg)  # this instance only
+    nees = []
+    for _ in range(25):
+        p, yaw = _place(rng)
+        res = reloc.locate(_view(pts, p, yaw, rng, math.radians(noise_deg)))
+        assert res.ok and res.covariance is not None, res.why
+        err = np.r_[res.p_wb[:2] - p[:2], (res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi]
+        nees.append(float(err @ np.linalg.solve(res.covariance, err)))
+    return float(np.mean(nees))
+
+
+def test_an_answer_from_sharp_bearings_is_as_sure_as_they_are() -> None:
     """Sharp bearings (0.06° of noise per axis, a map that is right): the answer's
-    covariance follows the bearings down to their floor,
-    :attr:`GlobalRelocalizer.BEARING_FLOOR_RAD` (0.025°), and its NEES averages 3 within its
+    covariance follows the bearings (above their floor,
+    :attr:`GlobalRelocalizer.BEARING_FLOOR_RAD`, 0.025°), and its NEES averages 3 within its
     99 % bounds. With that floor at 0.1° the same answers are clearly under-confident (1.29;
     stop 53's pixel pools: NEES 1.5–1.9 right after an answer)."""
     from scipy.stats import chi2
 
-    def mean_nees() -> float:
-        rng = np.random.default_rng(13)
-        pts = _ring(rng, 40)
-        reloc = GlobalRelocalizer(_map_with(pts, np.eye(3) * 1e-8))
-        nees = []
-        for _ in range(25):
-            p, yaw = _place(rng)
-            res = reloc.locate(_view(pts, p, yaw, rng, math.radians(0.06)))
-            assert res.ok and res.covariance is not None, res.why
-            err = np.r_[res.p_wb[:2] - p[:2], (res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi]
-            nees.append(float(err @ np.linalg.solve(res.covariance, err)))
-        return float(np.mean(nees))
-
     lo, hi = chi2.ppf([0.005, 0.995], 3 * 25) / 25
-    honest = mean_nees()
+    honest = _mean_answer_nees(13, 0.06)
     assert lo <= honest <= hi, (honest, lo, hi)
-    monkeypatch.setattr(GlobalRelocalizer, "BEARING_FLOOR_RAD", math.radians(0.1))
-    floored = mean_nees()
+    floored = _mean_answer_nees(13, 0.06, floor_deg=0.1)
     assert floored < lo and floored < 0.6 * honest, (floored, honest)
 
 
@@ -221,24 +224,10 @@ def test_an_answer_from_a_standing_rendered_frame_is_as_sure_as_its_bearings() -
     standing z² 0.45–0.83 per component)."""
     from scipy.stats import chi2
 
-    def mean_nees(floor_deg: float) -> float:
-        rng = np.random.default_rng(17)
-        pts = _ring(rng, 40)
-        reloc = GlobalRelocalizer(_map_with(pts, np.eye(3) * 1e-8))
-        reloc.BEARING_FLOOR_RAD = math.radians(floor_deg)  # this instance only
-        nees = []
-        for _ in range(25):
-            p, yaw = _place(rng)
-            res = reloc.locate(_view(pts, p, yaw, rng, math.radians(0.03)))
-            assert res.ok and res.covariance is not None, res.why
-            err = np.r_[res.p_wb[:2] - p[:2], (res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi]
-            nees.append(float(err @ np.linalg.solve(res.covariance, err)))
-        return float(np.mean(nees))
-
     lo, hi = chi2.ppf([0.005, 0.995], 3 * 25) / 25
-    honest = mean_nees(math.degrees(GlobalRelocalizer.BEARING_FLOOR_RAD))
+    honest = _mean_answer_nees(17, 0.03)
     assert lo <= honest <= hi, (honest, lo, hi)
-    floored = mean_nees(0.05)
+    floored = _mean_answer_nees(17, 0.03, floor_deg=0.05)
     assert floored < lo and floored < 0.6 * honest, (floored, honest)
 
 
