@@ -577,7 +577,7 @@ class GlobalRelocalizer:
     #: errors (stop 53: NEES 1.5–1.9 right after the answer). 0.05° (stop 70, set against the
     #: old renderer's 0.055° rms) bound on every standing answer once the renderer drew the
     #: panels where they are (stop 76: the residuals' robust σ 0.008–0.034°, look-alike
-    #: lawn): the answers were 1.3–1.6× wider than their errors (z² per component 0.45–0.83,
+    #: lawn): their σ was 1.1–1.5× their errors (z² per component 0.45–0.83,
     #: pixel pools, map's frame). At 0.025° the answers are also closer (the gate and the
     #: weights sharper: 1.35 → 1.11 mm rms) and their z² 0.66–1.43 over both lawns; 0.015°
     #: left the paper lawn's over (1.04–1.86) and 0.035° the look-alike's under (0.53–0.66)
