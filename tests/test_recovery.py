@@ -11,7 +11,7 @@ import pytest
 from mowerhw.common.geometry import yaw_rotation
 from mowerhw.map import Landmark, LawnMap
 from mowerhw.mow import Localizer, Reason
-from mowerhw.mow.recovery import PROBATION_S, Pose2D, RelocalizationSearch
+from mowerhw.mow.recovery import PAIR_S, PROBATION_S, Pose2D, RelocalizationSearch
 from mowerhw.mow.relocalize import Relocalization
 
 
@@ -103,6 +103,16 @@ def test_a_doubted_place_needs_a_run_of_answers_with_no_doubt_between() -> None:
     for k, ok in enumerate(answers):
         got = search.offer(0.25 * (k + 1), _answer(2.0, 3.0, 0.0) if ok else doubt, odo)
         assert got is None, k
+    # an answer too old to pair with the next starts no run either: after a doubt, an
+    # answer, a gap over PAIR_S, then answers in a row: the one before the gap does not count
+    search = RelocalizationSearch("since the start", 0.0)
+    search.offer(0.0, doubt, odo)
+    search.offer(0.25, _answer(2.0, 3.0, 0.0), odo)
+    t = 0.25 + PAIR_S + 0.5
+    for k in range(1, CLEAR_ANSWERS):
+        assert search.offer(t, _answer(2.0, 3.0, 0.0), odo) is None, k
+        t += 0.25
+    assert search.offer(t, _answer(2.0, 3.0, 0.0), odo) is not None
 
 
 def test_a_localizer_with_no_prior_halts_until_a_checked_relocalization() -> None:

@@ -171,6 +171,7 @@ class RelocalizationSearch:
         prev, self._last = self._last, _Answer(t, pose, odometry)
         if prev is None or not 0.0 < t - prev.t <= PAIR_S:
             self.last_why = "one answer: waiting for a second that agrees"
+            self._clear = 1  # paired with nothing: the run starts here
             return None
         motion = prev.odometry.between(odometry)
         predicted = prev.pose.compose(motion)
