@@ -53,7 +53,7 @@ import itertools
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -891,17 +891,7 @@ class Localizer:
             if not st.held and st.t1 > t0:
                 self._propagate(t0, st.t1, st.gyro, st.speed, st.wheels_still)
             self._widen(st.widen)
-            hist[k + 1 + j] = _Step(
-                st.t0,
-                st.t1,
-                st.gyro,
-                st.speed,
-                self.ekf.snapshot(),
-                st.held,
-                st.widen,
-                st.speed_known,
-                st.wheels_still,
-            )
+            hist[k + 1 + j] = replace(st, state=self.ekf.snapshot())
 
     def _frame_update(
         self,
