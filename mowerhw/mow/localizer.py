@@ -437,8 +437,12 @@ class Localizer:
             k = self._step_before(t)
             return self.ekf.snapshot_view() if k is None else self._state_in_history(k, t)
         if t > self.t_imu and t - self.t_imu <= self.stale_s["imu"] and self._w_last is not None:
+            # without the carry the speed past a 0 reading is 0 (it is never extrapolated
+            # through a stop): the wheels stand there, as :meth:`_step_one` decides
             speed, _ = self._speed_at(0.5 * (self.t_imu + t))
-            return self._propagated(self.ekf.snapshot_view(), t - self.t_imu, self._w_last, speed)
+            return self._propagated(
+                self.ekf.snapshot_view(), t - self.t_imu, self._w_last, speed, speed == 0.0
+            )
         return self.ekf.snapshot_view()
 
     def _step_before(self, t: float) -> int | None:
@@ -464,7 +468,7 @@ class Localizer:
         dt: float,
         gyro: FloatArray,
         speed: float,
-        still: bool | None = None,
+        still: bool,
     ) -> EkfState:
         """``state`` (a copy or a view: it is copied, not changed) carried ``dt`` further at
         ``gyro`` and ``speed`` (``still``: :meth:`_advance`); the filter is left as it was."""
@@ -666,20 +670,16 @@ class Localizer:
         while len(self._history) > 2 and self._history[1].t1 < horizon:
             self._history.popleft()
 
-    def _propagate(
-        self, t0: float, t1: float, gyro: FloatArray, speed: float, still: bool | None = None
-    ) -> None:
+    def _propagate(self, t0: float, t1: float, gyro: FloatArray, speed: float, still: bool) -> None:
         self._w_last = gyro.copy()
         self._advance(gyro, speed, t1 - t0, still)
 
-    def _advance(
-        self, gyro: FloatArray, speed: float, dt: float, still: bool | None = None
-    ) -> None:
+    def _advance(self, gyro: FloatArray, speed: float, dt: float, still: bool) -> None:
         """The filter carried ``dt`` at a gyro reading and a ground speed: the body motion
-        they make; ``still``: the wheels stood (default: when the speed reads exactly 0)."""
+        they make; ``still``: the wheels stood (no speed or slip noise, :meth:`_step_one`)."""
         w = self.ekf.corrected_rate(gyro)
         motion = BodyMotion.of(w, camera_velocity(speed, w, self.cfg.speed_contact_m), dt)
-        self.ekf.propagate(motion, wheels_still=speed == 0.0 if still is None else still)
+        self.ekf.propagate(motion, wheels_still=still)
 
     #: an IMU interval longer than the IMU's staleness limit (``imu.stale_after_s``: the
     #: runtime halted for it) is a gap — the IMU was unplugged or silent, the motion in it
