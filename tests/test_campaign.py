@@ -128,11 +128,13 @@ def test_matched_noise_is_the_simulated_sensors_own():
     """For a NEES that tests the filter (its models the truth's): the ground speed's white
     noise and quantum as a density at its rate, sideways slip at the floor, the gyro scale
     prior at its grade's (the simulated VN-100's only its change between runs, 0.1 %, not the
-    shipped 0.5 % floor; with a taught scale that change alone); what
-    a white density cannot stand for is listed; the teach section stays as shipped."""
+    shipped 0.5 % floor; with a taught scale that change alone), the gyro's white noise and
+    rate random walk at its grade's (the simulated gyro's, without the shipped 1.64 margin);
+    what a white density cannot stand for is listed; the teach section stays as shipped."""
     import math
 
     from mowerhw.evaluation.campaign import MATCHED_LATERAL_NOISE, matched_noise, scenario_config
+    from mowerhw.imu.grades import IMU_GRADES
 
     shipped = scenario_config("paper")
     cfg, unmatched = matched_noise(shipped, "paper")
@@ -140,9 +142,15 @@ def test_matched_noise_is_the_simulated_sensors_own():
     assert cfg.mow.lateral_noise == MATCHED_LATERAL_NOISE < shipped.mow.lateral_noise
     assert cfg.mow.gyro_scale_sigma == 0.001 < shipped.mow.gyro_scale_sigma
     assert cfg.mow.gyro_scale_sigma_taught == 0.001
+    vn100 = IMU_GRADES["vn100"]
+    assert cfg.mow.gyro()[:2] == (vn100.noise_density, vn100.rate_random_walk)
+    assert shipped.mow.gyro()[0] == pytest.approx(1.64 * vn100.noise_density)
     assert unmatched == []
     assert cfg.teach == shipped.teach and cfg.mow.bearing_sigma_rad == shipped.mow.bearing_sigma_rad
     slip, unmatched = matched_noise(scenario_config("slope-slip"), "slope-slip")
     assert slip.mow.gyro_scale_sigma == pytest.approx(math.hypot(0.03, 0.003))  # ±3 %, and drift
     assert slip.mow.gyro_scale_sigma_taught == 0.003  # its MPU-6050's change between runs
-    assert len(unmatched) == 3 and any("slip" in u for u in unmatched)
+    mpu = IMU_GRADES["mpu6050"]
+    assert slip.mow.gyro()[0] == mpu.noise_density
+    assert len(unmatched) == 4 and any("slip" in u for u in unmatched)
+    assert any("bias instability" in u for u in unmatched)  # flicker, not a random walk

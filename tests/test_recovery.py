@@ -542,7 +542,7 @@ def test_the_nees_split_by_component_and_phase_names_the_over_sure_part() -> Non
 def test_a_kidnap_runs_nees_is_also_told_apart_for_its_start_and_its_kidnap() -> None:
     """A kidnap run relocalizes at its start (then turns out of the dock) and again after
     the kidnap: the pool's NEES is told apart for the two as well, each relocalization by
-    when it came (before or after the kidnap), each kind's bins its own."""
+    when it came (before or after the kidnap), each kind's bins and components its own."""
     from types import SimpleNamespace
 
     from mowerhw.evaluation import recovery as R
@@ -568,6 +568,15 @@ def test_a_kidnap_runs_nees_is_also_told_apart_for_its_start_and_its_kidnap() ->
     assert kinds[R.AT_THE_START]["nees"]["mean_nees"] == 4.0  # (2 mm / 1 mm)²
     assert kinds[R.AFTER_THE_KIDNAP]["nees"]["mean_nees"] == 0.0
     assert kinds[R.AT_THE_START]["nees_in_map_frame"] is None  # no map to align
+    assert kinds[R.AT_THE_START]["components_in_map_frame"] is None
+    aligned = R._NeesLog(None)
+    aligned.align = (1.0, np.eye(2), np.zeros(2), 0.0)  # the map's frame is the truth's
+    aligned.add(out, 20.0)  # type: ignore[arg-type]
+    parts = aligned.summary()["nees_by_kind"]
+    start = parts[R.AT_THE_START]["components_in_map_frame"][0]
+    kidnap = parts[R.AFTER_THE_KIDNAP]["components_in_map_frame"][0]
+    assert start["z2_x_y_heading"] == [4.0, 0.0, 0.0]  # the x error is the start's alone
+    assert kidnap["z2_x_y_heading"] == [0.0, 0.0, 0.0]
     plain = R._NeesLog(None)
     plain.add(out)  # a start run: every relocalization is of one kind, no split
     assert "nees_by_kind" not in plain.summary()

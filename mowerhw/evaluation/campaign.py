@@ -196,27 +196,40 @@ def matched_noise(config: Any, scenario: str) -> tuple[Any, list[str]]:
     wider than the simulated sensors of the paper and look-alike yards (sideways slip
     ``mow.lateral_noise`` 3 mm/s/√Hz where the simulator draws none; the gyro's scale
     prior at least 0.5 %, :func:`mowerhw.config.gyro_scale_sigma`, where the simulated
-    VN-100 has none), so with them the NEES also measures that margin. Matched: the ground
-    speed's white noise and quantum as a density at its sample rate, sideways slip at
-    :data:`MATCHED_LATERAL_NOISE`, the scale prior at the gyro grade's own (a unit's
-    tolerance and its change between runs; with a taught scale, the change alone). Not
-    matchable by a
-    white density, and listed: a day-to-day speed scale change, wheel-slip events, a slope
-    or bumps (the camera's mast sways sideways). The teach section is left as it is."""
+    VN-100 has none; the gyro's white noise 1.64 times the grade's,
+    :data:`mowerhw.imu.grades.PROCESS_NOISE_MARGIN`, where the simulated gyro gives each
+    interval's mean rate with the grade's white noise exactly), so with them the NEES also
+    measures that margin. Matched: the ground speed's white noise and quantum as a density
+    at its sample rate, sideways slip at :data:`MATCHED_LATERAL_NOISE`, the scale prior at
+    the gyro grade's own (a unit's tolerance and its change between runs; with a taught
+    scale, the change alone), the gyro's white noise and rate random walk at the grade's.
+    Not matchable by a white density, and listed: a bias instability (simulated as flicker
+    noise, a random walk in the filter), a day-to-day speed scale change, wheel-slip events,
+    a slope or bumps (the camera's mast sways sideways). The teach section is left as it
+    is."""
+    from mowerhw.imu.grades import gyro_process_noise
     from mowerhw.sim.scenarios import SCENARIOS
 
     yard = SCENARIOS[scenario]
     sensors = yard.sensors
     speed = sensors.speed
     per_sample = math.sqrt(speed.white**2 + speed.quantum**2 / 12.0)  # m/s, one reading
+    imu = sensors.imu
+    gyro_white, gyro_walk = gyro_process_noise(
+        imu.noise_density, imu.bias_instability, imu.rate_random_walk, margin=1.0
+    )
     mow = replace(
         config.mow,
+        gyro_noise=gyro_white,
+        gyro_bias_walk=gyro_walk,
         speed_noise=per_sample / math.sqrt(sensors.rates.speed_hz),  # m/s/√Hz
         lateral_noise=MATCHED_LATERAL_NOISE,
         gyro_scale_sigma=math.hypot(sensors.imu.scale_factor, sensors.imu.scale_drift),
         gyro_scale_sigma_taught=sensors.imu.scale_drift,
     )
     unmatched = []
+    if imu.bias_instability > 0.0:
+        unmatched.append(f"the gyro's bias instability ({imu.bias_instability:g} rad/s, flicker)")
     if speed.day_sigma > 0.0:
         unmatched.append(f"the speed scale's day-to-day change ({speed.day_sigma:g})")
     if speed.slip_per_min > 0.0:

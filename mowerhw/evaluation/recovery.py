@@ -353,9 +353,11 @@ class _NeesLog:
             mine = [k == kind for k in self.kinds]
             truth = [s for s, m in zip(self.series, mine, strict=True) if m]
             in_map = [s for s, m in zip(self.aligned, mine, strict=True) if m] if aligned else []
+            parts = [c for c, m in zip(self.components, mine, strict=True) if m] if aligned else []
             out[kind] = {
                 "nees": nees_summary(truth, self.dt),
                 "nees_in_map_frame": nees_summary(in_map, self.dt) if in_map else None,
+                "components_in_map_frame": component_summary(parts, self.dt) if parts else None,
             }
         return out
 

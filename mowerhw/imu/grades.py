@@ -86,13 +86,15 @@ BIAS_INSTABILITY_TIME_S = 100.0
 
 
 def gyro_process_noise(
-    noise_density: float, bias_instability: float, rate_random_walk: float
+    noise_density: float,
+    bias_instability: float,
+    rate_random_walk: float,
+    margin: float = PROCESS_NOISE_MARGIN,
 ) -> tuple[float, float]:
     """The estimators' gyro process noise from a gyro's Allan figures: white noise density
-    (rad/s/√Hz, with :data:`PROCESS_NOISE_MARGIN`) and bias random-walk density (rad/s/√s:
-    the rate random walk plus the bias instability spread over
-    :data:`BIAS_INSTABILITY_TIME_S`). For the VN-100 grade: 1e-4 and 2e-6, the figures the
-    estimators were first tuned with."""
-    white = PROCESS_NOISE_MARGIN * noise_density
+    (rad/s/√Hz, times ``margin``) and bias random-walk density (rad/s/√s: the rate random
+    walk plus the bias instability spread over :data:`BIAS_INSTABILITY_TIME_S`). For the
+    VN-100 grade: 1e-4 and 2e-6, the figures the estimators were first tuned with."""
+    white = margin * noise_density
     walk = math.sqrt(rate_random_walk**2 + bias_instability**2 / BIAS_INSTABILITY_TIME_S)
     return white, walk
