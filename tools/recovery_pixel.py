@@ -142,9 +142,12 @@ def main() -> None:
 def _noise(cfg: Any) -> dict[str, float]:
     """The mow filter's process noise in ``cfg`` (for the JSON)."""
     m = cfg.mow
+    gyro_white, gyro_walk, _ = m.gyro()
     return {
         "speed_noise": round(m.speed_noise, 7),
         "lateral_noise": round(m.lateral_noise, 7),
+        "gyro_noise": float(f"{gyro_white:.4g}"),
+        "gyro_bias_walk": float(f"{gyro_walk:.4g}"),
         "gyro_scale_sigma": m.gyro_scale_sigma,
     }
 

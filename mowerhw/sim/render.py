@@ -368,11 +368,13 @@ class OmniRenderer:
             rays = self.table.rays[v0:v1, u0:u1] @ r_mb.T  # map-frame directions
             n = p.normal.astype(np.float32)
             denom = rays @ n
+            # a ray along the panel's plane (edge-on) has no hit: s infinite or NaN there,
+            # and so its (a, b); ``ok_pix`` leaves those pixels out
             with np.errstate(divide="ignore", invalid="ignore"):
                 s = np.float32(n @ (p.center - cam)) / denom
-            hit = (cam.astype(np.float32) + rays * s[..., None]) - p.center.astype(np.float32)
-            a = hit @ p.e1.astype(np.float32)
-            b = hit @ p.e2.astype(np.float32)
+                hit = (cam.astype(np.float32) + rays * s[..., None]) - p.center.astype(np.float32)
+                a = hit @ p.e1.astype(np.float32)
+                b = hit @ p.e2.astype(np.float32)
             ok_pix = np.isfinite(s) & (s > 0)
             mip = self.panel_mip[k]
             texel_m = p.size / PANEL_TEXELS
