@@ -224,8 +224,8 @@ def matched_noise(config: Any, scenario: str) -> tuple[Any, list[str]]:
         gyro_bias_walk=gyro_walk,
         speed_noise=per_sample / math.sqrt(sensors.rates.speed_hz),  # m/s/√Hz
         lateral_noise=MATCHED_LATERAL_NOISE,
-        gyro_scale_sigma=math.hypot(sensors.imu.scale_factor, sensors.imu.scale_drift),
-        gyro_scale_sigma_taught=sensors.imu.scale_drift,
+        gyro_scale_sigma=math.hypot(imu.scale_factor, imu.scale_drift),
+        gyro_scale_sigma_taught=imu.scale_drift,
     )
     unmatched = []
     if imu.bias_instability > 0.0:
