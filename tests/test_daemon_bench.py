@@ -56,13 +56,20 @@ def test_mows_with_faults_and_recovers(yard_map, tmp_path) -> None:
     # deck), names the holder, and claims it again once the other node has left the bus
     f = by_kind["address-conflict"]
     assert f["recovered"], f
-    assert "supervisor: FAULT: CAN source address 0x90 is held by another ECU" in f["reason"], f
+    held = "supervisor: FAULT: CAN source address 0x90 is held by another ECU"
+    if f["deck_was_running"]:
+        assert any(held in r for r in [f["reason"], *f["daemon_reasons"]]), f
+    else:  # halted already, for what halted it (one CI run beside the browser test: the
+        # estimator late at 38 s, the supervisor's settle second after it still running)
+        assert f["reason"], f
     assert res["can_address"]["claims_seen"] == 2  # the start, the address regained
     assert res["can_address"]["frames_before_first_claim"] == 0
     # the map file was restored, never half-written by the daemon
     assert (tmp_path / "lawn.json").read_bytes() == yard_map.read_bytes()
     log = (tmp_path / "daemon.log").read_text()
     assert "HALT MAP_INVALID" in log
+    # the supervisor yielded the address and said to whom, halted or not
+    assert "another ECU claimed source address 0x90" in log
     # the IMU's silence is in the log: as the halt's reason, or — when another stream went
     # stale in the same instant and the halt named it (a frame late from the bench's renderer
     # on a busy machine, seen under the whole suite) — in the note of the IMU's gap
