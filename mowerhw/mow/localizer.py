@@ -150,6 +150,11 @@ class _Step:
     speed_known: bool = True  # False: no fresh ground speed then (driven at 0, widened)
     wheels_still: bool = False  # the wheels stood (no speed or slip noise added over it)
 
+    def drive_at(self, speed: float) -> None:
+        """The step driven again at a ground speed known now: the wheels stood over it
+        when that speed reads exactly 0."""
+        self.speed, self.wheels_still = speed, speed == 0.0
+
 
 def _configs(config: Any) -> tuple[MowConfig, ContainmentConfig, dict[str, float]]:
     if config is None:
@@ -638,7 +643,8 @@ class Localizer:
                 m = BodyMotion.of(w, v, st.t1 - st.t0)
                 dp = dp + quat_to_rotmat(dq) @ m.disp
                 dq = quat_multiply(dq, m.dq)
-                st.speed, st.held, st.wheels_still = speed, False, speed == 0.0
+                st.drive_at(speed)
+                st.held = False
             _move(st.state, dq, dp)
         _move(self.ekf, dq, dp)
 
@@ -844,7 +850,7 @@ class Localizer:
                     w[2] *= 1.0 - before.k
                     step = left_jacobian_times(w * dt, np.array([ds * dt, 0.0, 0.0]))
                     shift = shift + quat_to_rotmat(before.q) @ step
-                    st.speed, st.wheels_still = known, known == 0.0
+                    st.drive_at(known)
             if shift.any():
                 st.state.x = st.state.x + shift
         if shift.any():
