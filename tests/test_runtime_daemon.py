@@ -487,7 +487,7 @@ def test_the_lease_is_renewed_by_its_own_deadline_not_only_a_decisions(
                 return False
 
         link._room = FullPipe()  # type: ignore[assignment]  # a pipe with no room
-        clock[0] = tried = sent + RENEW_S
+        clock[0] = tried = sent + 1.001 * RENEW_S  # (sent + RENEW_S - sent may round below)
         link.send_decision(mowing, pose, tried)
         assert link.leases_deferred == 1
         retry = link.next_due() - tried
