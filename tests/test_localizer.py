@@ -546,6 +546,38 @@ def test_a_bumps_acceleration_spike_is_not_taken_for_the_wheels_speed(lawn_map):
     assert abs(off) < 0.001, off
 
 
+def test_setting_off_from_the_start_standstill_is_followed_before_its_speed_says_so(lawn_map):
+    """The start-up standstill held the pose until a ground speed that is not zero came
+    (every 0.1 s), while the mower already rolled: at pixel level 4.9 mm behind at a σ of
+    1.3 mm (stop 78). The accelerometer ends it now (the along-track specific force off its
+    standstill mean, :mod:`mowerhw.estimation.standstill`), and the steps since are carried
+    on at the speed it gives, as past any speed sample: the live pose keeps up at every IMU
+    sample, and the accelerometer's noise (twice a VN-100's) ends no standstill."""
+    rng = np.random.default_rng(3)
+    mower = _StraightDrive(lawn_map)
+    loc = mower.loc
+    bias = np.array([0.001, -0.002, 0.0027])
+
+    def speed(t: float) -> float:  # stands to 2.53 s, then 1 m/s² up to 0.45 m/s
+        return min(0.45, 1.0 * max(0.0, t - 2.53))
+
+    worst, ended_at = 0.0, None
+    for k in range(301):  # 3 s at 100 Hz; a speed sample every 10th
+        t = 0.01 * k
+        along = mower.drive(speed(t))
+        force = [along + 0.05 + rng.normal(0.0, 0.02), 0.0, 9.80665]  # a 0.05 m/s² bias
+        loc.imu(t, bias + rng.normal(0.0, 6e-4, 3), force)
+        if k % 10 == 0:
+            loc.speed(t, speed(t))
+        if ended_at is None and not loc.calibrating:
+            ended_at = t
+        worst = max(worst, abs(mower.error()))
+    assert ended_at is not None and 2.535 < ended_at < 2.555  # the first reading rolling
+    assert np.abs(loc.ekf.bg - bias).max() < 5e-4  # the standstill's bias, calibrated
+    assert mower.travelled > 0.1
+    assert worst < 3e-4, worst  # before: 2.4 mm behind at 2.59 s, until the sample at 2.6
+
+
 def test_a_turn_on_the_spot_after_the_standstill_is_neither_bias_nor_lost(lawn_map):
     """A turn begins before a gyro reading crosses the standstill's turning line (0.05
     rad/s): its first readings went into the bias (here 6·10⁻⁴ rad/s off) and into steps

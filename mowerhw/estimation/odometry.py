@@ -6,6 +6,8 @@
   interval: on-line, the newest sample extrapolated along the slope of the last two (a
   first-order hold: holding the value alone lags every acceleration by half a speed period,
   ≈ 2 cm per start or stop); after the fact, interpolation.
+* :func:`accel_shaped_speeds` — after the fact, between two samples, the speed the
+  accelerometer's along-track acceleration shows, made to agree with both samples.
 """
 
 from __future__ import annotations
@@ -147,3 +149,42 @@ class SpeedTrack:
             return np.full(np.shape(t), self.latest)
         arr = np.asarray(self.samples)
         return np.interp(t, arr[:, 0], arr[:, 1])
+
+
+def accel_shaped_speeds(
+    a: tuple[float, float],
+    b: tuple[float, float],
+    steps: FloatArray,
+    at: FloatArray,
+    max_miss: float,
+) -> FloatArray | None:
+    """The ground speed at times ``at`` (after ``a``'s time) between two speed samples ``a``
+    and ``b`` (time, m/s) and just past ``b``, from IMU steps ``steps`` (rows ``t0, t1,
+    along``: each interval's along-track acceleration, m/s², in time order): the speed the
+    acceleration integrates to from ``a``, plus its miss at ``b`` spread in proportion to
+    the time since ``a`` (a constant acceleration error, the accelerometer's bias or a
+    slope's share, is taken out exactly), the miss held past ``b``. With no acceleration
+    the straight line between the samples, as :meth:`SpeedTrack.known` interpolates; a
+    set-off between two samples is a bend in it, which the line cut (1 mm ahead for good at
+    every set-off 30 ms after a sample at 1 m/s²). None when the steps do not cover ``a``
+    to ``b`` without a gap, or when the miss is beyond ``max_miss`` (m/s): then the
+    acceleration was not the wheels' (a bump's spike, a skid) and the line is the better
+    guess."""
+    (ta, va), (tb, vb) = a, b
+    if tb <= ta or steps.size == 0:
+        return None
+    t0, t1, along = steps[:, 0], steps[:, 1], steps[:, 2]
+    if t0[0] > ta + 1e-9 or t1[-1] < tb - 1e-9 or np.any(np.abs(t0[1:] - t1[:-1]) > 1e-9):
+        return None
+    start = np.maximum(t0, ta)  # each step's part after ``a``
+    gained = np.concatenate([[0.0], np.cumsum(along * np.maximum(t1 - start, 0.0))])
+
+    def integrated(t: FloatArray) -> FloatArray:
+        j = np.clip(np.searchsorted(t1, t, side="left"), 0, len(t1) - 1)
+        return va + gained[j] + along[j] * np.maximum(t - start[j], 0.0)
+
+    miss = vb - float(integrated(np.array([tb]))[0])
+    if abs(miss) > max_miss:
+        return None
+    t = np.asarray(at, dtype=np.float64)
+    return integrated(t) + miss * np.minimum((t - ta) / (tb - ta), 1.0)

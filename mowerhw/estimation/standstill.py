@@ -1,7 +1,12 @@
 """The start-up standstill: the gyro bias as the mean of the readings while the mower stands
 (the paper calibrates it once, at rest). One rule for both phases: the standstill lasts until
-the ground speed is not zero (the caller says so) or the gyro turns (a reading more than
-:data:`TURNING_RAD_S` from the running mean, once :data:`MIN_SAMPLES` are in). A turn begins
+the ground speed is not zero (the caller says so), the gyro turns (a reading more than
+:data:`TURNING_RAD_S` from the running mean, once :data:`MIN_SAMPLES` are in) or the mower
+sets off (given the accelerometer's along-track specific force: the mean of the last
+:data:`SETOFF_READINGS` more than :data:`SETOFF_MPS2` from the standstill's own mean, which
+holds the accelerometer's bias and gravity's share through the slope — a ground speed comes
+only every 0.1 s, and the pose was held that long while the mower rolled: 4.9 mm behind at a
+σ of 1.3 mm at pixel level, stop 78). A turn begins
 before a reading crosses that line, and a ground speed arrives a sample period after the
 wheels began to roll: the readings of the last :data:`TAIL_S` before the end are left out
 of the bias (measured at pixel level: a turn's first 50 ms left in put the bias 2·10⁻⁴ rad/s
@@ -22,6 +27,12 @@ TURNING_RAD_S = 0.05
 MIN_SAMPLES = 20
 #: the readings this close (s) to the end of the standstill are not in its bias
 TAIL_S = 0.2
+#: along-track specific force (m/s²) this far from the standstill's mean is setting off: a
+#: mower sets off at 0.5-1 m/s²; an accelerometer's noise averaged over an IMU interval is
+#: about 0.01 m/s² (VN-100: 0.14 mg/√Hz), a motor's or blade's vibration mostly averages out
+SETOFF_MPS2 = 0.15
+#: the readings (the newest) whose mean is judged against :data:`SETOFF_MPS2`
+SETOFF_READINGS = 3
 
 
 class StandstillCalibrator:
@@ -33,13 +44,20 @@ class StandstillCalibrator:
         self._sq = np.zeros(3)
         self._tail: deque[tuple[float, FloatArray]] = deque()
         self.still = True
+        self._force_sum = 0.0
+        self._forces = 0
+        self._recent_forces: deque[float] = deque()
 
-    def add(self, t: float, gyro: FloatArray) -> bool:
-        """One reading taken at ``t``; False (and no longer still) when it shows the mower
-        turning."""
+    def add(self, t: float, gyro: FloatArray, force_x: float | None = None) -> bool:
+        """One reading taken at ``t`` (``force_x``: the along-track specific force over it,
+        m/s², when the IMU gives one); False (and no longer still) when it shows the mower
+        turning or setting off."""
         if not self.still:
             return False
         if self.n >= MIN_SAMPLES and np.linalg.norm(gyro - self._sum / self.n) > TURNING_RAD_S:
+            self.still = False
+            return False
+        if force_x is not None and self._sets_off(force_x):
             self.still = False
             return False
         g = np.array(gyro, dtype=np.float64).reshape(3)
@@ -50,6 +68,19 @@ class StandstillCalibrator:
         while self._tail[0][0] < t - TAIL_S:
             self._tail.popleft()
         return True
+
+    def _sets_off(self, force_x: float) -> bool:
+        """The newest :data:`SETOFF_READINGS` forces' mean beyond :data:`SETOFF_MPS2` of the
+        standstill's mean (judged once :data:`MIN_SAMPLES` are in it); a reading joins that
+        mean when it leaves the newest, judged."""
+        recent = self._recent_forces
+        recent.append(float(force_x))
+        if len(recent) > SETOFF_READINGS:
+            self._force_sum += recent.popleft()
+            self._forces += 1
+        if self._forces < MIN_SAMPLES or len(recent) < SETOFF_READINGS:
+            return False
+        return abs(sum(recent) / len(recent) - self._force_sum / self._forces) > SETOFF_MPS2
 
     @property
     def tail_start(self) -> float | None:

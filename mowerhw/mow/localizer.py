@@ -76,6 +76,7 @@ from mowerhw.estimation.compass import Compass
 from mowerhw.estimation.odometry import (
     BodyMotion,
     SpeedTrack,
+    accel_shaped_speeds,
     camera_velocity,
     left_jacobian_times,
 )
@@ -149,6 +150,7 @@ class _Step:
     widen: tuple[float, float] = (0.0, 0.0)  # (xy variance, yaw variance) added after it
     speed_known: bool = True  # False: no fresh ground speed then (driven at 0, widened)
     wheels_still: bool = False  # the wheels stood (no speed or slip noise added over it)
+    along: float | None = None  # the along-track acceleration over it (m/s²), if known
 
     def drive_at(self, speed: float) -> None:
         """The step driven again at a ground speed known now: the wheels stood over it
@@ -537,10 +539,10 @@ class Localizer:
             return
         if t <= self.t_imu:
             return
-        if self.calibrating and not self._standstill.add(float(t), gyro):
-            self._end_calibration()  # it is turning: not a standstill any more
+        if self.calibrating and not self._standstill.add(float(t), gyro, self._force_x):
+            self._end_calibration()  # turning or setting off: not a standstill any more
         if self.calibrating:  # standing still at the start: hold the pose, learn the bias
-            self._remember(self.t_imu, float(t), gyro, 0.0, held=True)
+            self._remember(self.t_imu, float(t), gyro, 0.0, held=True, along=self._along_track())
             self.t_imu = float(t)
             return
         self._step(self.t_imu, float(t), gyro)
@@ -638,7 +640,10 @@ class Localizer:
             st = hist[j]
             if st.held:
                 w = self.ekf.corrected_rate(st.gyro)
-                speed = self._speeds.known(0.5 * (st.t0 + st.t1))
+                # past the newest ground speed (the accelerometer ended the standstill):
+                # carried on from it as a propagated step's is
+                carried = self._carry_speed(st.t0, st.t1, st.along)
+                speed, _ = self._speed_at(0.5 * (st.t0 + st.t1), carried)
                 v = camera_velocity(speed, w, self.cfg.speed_contact_m)
                 m = BodyMotion.of(w, v, st.t1 - st.t0)
                 dp = dp + quat_to_rotmat(dq) @ m.disp
@@ -658,6 +663,7 @@ class Localizer:
         widen: tuple[float, float] = (0.0, 0.0),
         speed_known: bool = True,
         wheels_still: bool = False,
+        along: float | None = None,
     ) -> None:
         self._history.append(
             _Step(
@@ -670,6 +676,7 @@ class Localizer:
                 widen,
                 speed_known,
                 wheels_still,
+                along,
             )
         )
         horizon = t1 - self.cfg.history_s
@@ -725,7 +732,8 @@ class Localizer:
                 self.require_frames(self.AFTER_GAP_FRAMES, self.AFTER_GAP)
 
     def _step_one(self, t0: float, t1: float, gyro: FloatArray, gap: bool = False) -> None:
-        carried = self._carry_speed(t0, t1)
+        along = self._along_track()
+        carried = self._carry_speed(t0, t1, along)
         speed, speed_stale = self._speed_at(0.5 * (t0 + t1), carried)
         pos_var = yaw_var = 0.0
         if speed_stale:
@@ -767,27 +775,34 @@ class Localizer:
             widen=(pos_var, yaw_var),
             speed_known=not speed_stale,
             wheels_still=still,
+            along=along,
         )
         self._check_fault()
 
     #: the along-track acceleration that carries the speed on is taken within ± this (m/s²)
     MAX_ALONG_MPS2 = 3.0
 
-    def _carry_speed(self, t0: float, t1: float) -> float | None:
-        """Carry the newest ground speed on over the step ``t0``–``t1`` (the part after
-        that sample) with the IMU's along-track acceleration: the specific force along the
-        body's x less gravity's share through the filter's attitude, ``f_x − g·R[2,0]``
-        (docs/design.md §3: body x forward, z up; ``R`` world ← body). Returns the carried
-        speed at the step's middle (within ± ``max_speed_mps``), or None without a speed
-        or an acceleration."""
-        v0, t_s, f_x = self._carried_v, self.t_speed, self._force_x
-        if v0 is None or t_s is None or f_x is None:
+    def _along_track(self) -> float | None:
+        """The IMU's along-track acceleration now: the specific force along the body's x
+        less gravity's share through the filter's attitude, ``f_x − g·R[2,0]``
+        (docs/design.md §3: body x forward, z up; ``R`` world ← body), within ±
+        :data:`MAX_ALONG_MPS2`; None without an accelerometer."""
+        f_x = self._force_x
+        if f_x is None:
             return None
         w, x, y, z = self.ekf.q.tolist()
-        along = float(f_x - GRAVITY_MPS2 * 2.0 * (x * z - w * y))
-        # a mower's own drive and brakes stay well inside this; a bump's spike (3 g for 60
-        # ms on the bench) is not the wheels' speed, and the next sample tells what it was
-        along = _within(along, self.MAX_ALONG_MPS2)
+        # a mower's own drive and brakes stay well inside the bound; a bump's spike (3 g for
+        # 60 ms on the bench) is not the wheels' speed, and the next sample tells what it was
+        return _within(float(f_x - GRAVITY_MPS2 * 2.0 * (x * z - w * y)), self.MAX_ALONG_MPS2)
+
+    def _carry_speed(self, t0: float, t1: float, along: float | None) -> float | None:
+        """Carry the newest ground speed on over the step ``t0``–``t1`` (the part after
+        that sample) at the along-track acceleration ``along`` (:meth:`_along_track`).
+        Returns the carried speed at the step's middle (within ± ``max_speed_mps``), or
+        None without a speed or an acceleration."""
+        v0, t_s = self._carried_v, self.t_speed
+        if v0 is None or t_s is None or along is None:
+            return None
         dt = t1 - max(t0, t_s)
         if dt <= 0.0:
             return _within(v0, self.cfg.max_speed_mps)
@@ -826,7 +841,8 @@ class Localizer:
         """A ground-speed sample has come: the IMU intervals after the one before it (at
         ``since``) were driven at a speed extrapolated from older samples — at a start, at 0
         for a whole sample period while the mower already rolled. Now the speed then is
-        known (:meth:`SpeedTrack.known`; steps held for the start-up calibration are
+        known (:meth:`_shaped_speeds`: the accelerometer's between the two samples, or
+        :meth:`SpeedTrack.known`'s line; steps held for the start-up calibration are
         :meth:`_drive_held`'s): the pose, and every stored state after, moves by
         the distance missed. Position is linear in the speed (``v = s x̂ − ω × p``), so an
         interval's share is ``R J_l(ω dt) x̂ δs dt`` (the propagation's own increment,
@@ -837,12 +853,16 @@ class Localizer:
             k -= 1
         if k == 0 or k == len(hist):
             return
+        shaped = self._shaped_speeds(k)
+        if shaped is not None:
+            self._carried_v = float(shaped[-1])  # carried on from the newest step's end
         shift = np.zeros(3)
         for j in range(k, len(hist)):
             st = hist[j]
             if not st.held and st.speed_known:
                 dt = st.t1 - st.t0
-                known = self._speeds.known(0.5 * (st.t0 + st.t1))
+                mid = 0.5 * (st.t0 + st.t1)
+                known = self._speeds.known(mid) if shaped is None else float(shaped[j - k])
                 ds = known - st.speed
                 if ds != 0.0:
                     before = hist[j - 1].state
@@ -855,6 +875,29 @@ class Localizer:
                 st.state.x = st.state.x + shift
         if shift.any():
             self.ekf.x = self.ekf.x + shift
+
+    def _shaped_speeds(self, first: int) -> FloatArray | None:
+        """The ground speed at the middle of each stored step from ``first`` on, and at the
+        newest step's end, between the two newest speed samples (and past the newest) as the
+        steps' along-track accelerations shape it (:func:`accel_shaped_speeds`, their miss
+        within 3 ``accel_sigma_mps2`` over the samples' interval); None without two samples,
+        without an acceleration for every step since the older or steps up to the newer, or
+        with a larger miss (the caller interpolates then)."""
+        samples = self._speeds.samples
+        if len(samples) < 2:
+            return None
+        a, b = samples[-2], samples[-1]
+        hist = self._history
+        k = first
+        while k > 0 and hist[k - 1].t1 > a[0]:  # from the step the older sample falls in
+            k -= 1
+        steps = list(itertools.islice(hist, k, None))
+        if any(st.along is None for st in steps):
+            return None
+        rows = np.array([(st.t0, st.t1, st.along) for st in steps], dtype=np.float64)
+        at = np.append(0.5 * (rows[first - k :, 0] + rows[first - k :, 1]), rows[-1, 1])
+        max_miss = 3.0 * self.cfg.accel_sigma_mps2 * (b[0] - a[0])
+        return accel_shaped_speeds(a, b, rows, at, max_miss)
 
     def _widen(self, widen: tuple[float, float]) -> None:
         """Add uncertainty the motion model does not know about (kept in the history, so a
@@ -889,6 +932,7 @@ class Localizer:
                     widen=st.widen,
                     speed_known=st.speed_known,
                     wheels_still=st.wheels_still,
+                    along=st.along,
                 )
             return
         # re-propagate: the rest of that interval, then every later one, as they were
