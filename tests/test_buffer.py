@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from mowerhw.common.buffer import SensorBuffer, StreamBuffer
 from mowerhw.common.samples import BearingObservation, ImuSample, SpeedSample, Stream
-from mowerhw.estimation.odometry import SpeedTrack
+from mowerhw.estimation.odometry import SpeedTrack, accel_shaped_speeds
 
 
 def imu(t):
@@ -92,6 +92,31 @@ def test_the_speed_model_interpolates_holds_and_never_extrapolates_through_a_sto
     stop.add(0.0, 0.2)
     stop.add(0.1, 0.05)
     assert stop.at(0.2) == 0.0  # the trend points through zero: stopped, not reversing
+
+
+def test_between_two_speed_samples_the_accelerometer_shapes_the_speed():
+    """A set-off 30 ms after a sample at 1 m/s², an accelerometer 0.05 m/s² off: the
+    speed it shapes is the true one between the samples (the bias taken out), the line
+    between them 1.5 cm/s off; with no acceleration the shape is that line; a gap in the
+    steps, or a miss beyond its bound (a bump's spike), gives none."""
+    t0 = np.round(0.01 * np.arange(0, 12), 9)  # 10 ms steps from 0 to 0.12 s
+    t1 = t0 + 0.01
+
+    def true(t: np.ndarray) -> np.ndarray:
+        return np.clip(np.asarray(t) - 0.03, 0.0, None)
+
+    steps = np.c_[t0, t1, (true(t1) - true(t0)) / 0.01 + 0.05]
+    mids = 0.5 * (t0 + t1)[:10]
+    shaped = accel_shaped_speeds((0.0, 0.0), (0.1, 0.07), steps, mids, 0.03)
+    assert shaped is not None and np.abs(shaped - true(mids)).max() < 1e-12
+    line = 0.7 * mids
+    assert np.abs(line - true(mids)).max() > 0.015  # what SpeedTrack.known gives
+    flat = np.c_[t0, t1, np.zeros(12)]
+    got = accel_shaped_speeds((0.0, 0.0), (0.1, 0.07), flat, mids, 0.1)
+    assert got is not None and np.allclose(got, line, atol=1e-12)
+    assert accel_shaped_speeds((0.0, 0.0), (0.1, 0.07), flat, mids, 0.03) is None  # 0.07 off
+    assert accel_shaped_speeds((0.0, 0.0), (0.1, 0.07), steps[[0, 1, 3, 4]], mids, 0.03) is None
+    assert accel_shaped_speeds((0.0, 0.0), (0.1, 0.07), steps[:5], mids, 0.03) is None
 
 
 @given(
