@@ -2,11 +2,11 @@
 (the paper calibrates it once, at rest). One rule for both phases: the standstill lasts until
 the ground speed is not zero (the caller says so), the gyro turns (a reading more than
 :data:`TURNING_RAD_S` from the running mean, once :data:`MIN_SAMPLES` are in) or the mower
-sets off (given the accelerometer's along-track specific force: the mean of the last
-:data:`SETOFF_READINGS` more than :data:`SETOFF_MPS2` from the standstill's own mean, which
-holds the accelerometer's bias and gravity's share through the slope — a ground speed comes
-only every 0.1 s, and the pose was held that long while the mower rolled: 4.9 mm behind at a
-σ of 1.3 mm at pixel level, stop 78). A turn begins
+sets off (given the accelerometer's specific force along the body's x: its departure from
+the standstill's own mean — which holds the accelerometer's bias and gravity's share through
+the slope — integrated over the last :data:`SETOFF_WINDOW_S`, a speed beyond
+:data:`SETOFF_MPS`; a ground speed comes only every 0.1 s, and the pose was held that long
+while the mower rolled: 4.9 mm behind at a σ of 1.3 mm at pixel level, stop 78). A turn begins
 before a reading crosses that line, and a ground speed arrives a sample period after the
 wheels began to roll: the readings of the last :data:`TAIL_S` before the end are left out
 of the bias (measured at pixel level: a turn's first 50 ms left in put the bias 2·10⁻⁴ rad/s
@@ -14,6 +14,7 @@ off — 5σ of what the standstill claimed — and the heading drifted 0.01°/s 
 
 from __future__ import annotations
 
+import itertools
 from collections import deque
 
 import numpy as np
@@ -27,12 +28,14 @@ TURNING_RAD_S = 0.05
 MIN_SAMPLES = 20
 #: the readings this close (s) to the end of the standstill are not in its bias
 TAIL_S = 0.2
-#: along-track specific force (m/s²) this far from the standstill's mean is setting off: a
-#: mower sets off at 0.5-1 m/s²; an accelerometer's noise averaged over an IMU interval is
-#: about 0.01 m/s² (VN-100: 0.14 mg/√Hz), a motor's or blade's vibration mostly averages out
-SETOFF_MPS2 = 0.15
-#: the readings (the newest) whose mean is judged against :data:`SETOFF_MPS2`
-SETOFF_READINGS = 3
+#: the specific force's departure from the standstill's mean is integrated over this long (s)
+SETOFF_WINDOW_S = 0.1
+#: ... and a speed (m/s) beyond this is setting off: a mower setting off at 0.5–1 m/s² gets
+#: there in 15–30 ms. A vibration of amplitude A at f Hz integrates to at most A/(πf) over
+#: any window (0.013 m/s for a 50-Hz blade shaking the IMU at 2 m/s²), an accelerometer's
+#: white noise to 0.4 mm/s (VN-100: 0.14 mg/√Hz over 0.1 s). A standstill ended early by a
+#: jolt costs only the bias's later readings; the ground speed still ends a late one.
+SETOFF_MPS = 0.015
 
 
 class StandstillCalibrator:
@@ -46,7 +49,7 @@ class StandstillCalibrator:
         self.still = True
         self._force_sum = 0.0
         self._forces = 0
-        self._recent_forces: deque[float] = deque()
+        self._recent_forces: deque[tuple[float, float]] = deque()  # (t, force) in the window
 
     def add(self, t: float, gyro: FloatArray, force_x: float | None = None) -> bool:
         """One reading taken at ``t`` (``force_x``: the along-track specific force over it,
@@ -57,7 +60,7 @@ class StandstillCalibrator:
         if self.n >= MIN_SAMPLES and np.linalg.norm(gyro - self._sum / self.n) > TURNING_RAD_S:
             self.still = False
             return False
-        if force_x is not None and self._sets_off(force_x):
+        if force_x is not None and self._sets_off(float(t), force_x):
             self.still = False
             return False
         g = np.array(gyro, dtype=np.float64).reshape(3)
@@ -69,18 +72,20 @@ class StandstillCalibrator:
             self._tail.popleft()
         return True
 
-    def _sets_off(self, force_x: float) -> bool:
-        """The newest :data:`SETOFF_READINGS` forces' mean beyond :data:`SETOFF_MPS2` of the
-        standstill's mean (judged once :data:`MIN_SAMPLES` are in it); a reading joins that
-        mean when it leaves the newest, judged."""
-        recent = self._recent_forces
-        recent.append(float(force_x))
-        if len(recent) > SETOFF_READINGS:
-            self._force_sum += recent.popleft()
+    def _sets_off(self, t: float, force_x: float) -> bool:
+        """The newest :data:`SETOFF_WINDOW_S` of forces, less the standstill's mean, times
+        their intervals: a speed beyond :data:`SETOFF_MPS` (judged once :data:`MIN_SAMPLES`
+        are in that mean; a reading joins it when it leaves the window, judged)."""
+        window = self._recent_forces
+        window.append((t, float(force_x)))
+        while window[0][0] < t - SETOFF_WINDOW_S:
+            self._force_sum += window.popleft()[1]
             self._forces += 1
-        if self._forces < MIN_SAMPLES or len(recent) < SETOFF_READINGS:
+        if self._forces < MIN_SAMPLES or len(window) < 2:
             return False
-        return abs(sum(recent) / len(recent) - self._force_sum / self._forces) > SETOFF_MPS2
+        mean = self._force_sum / self._forces
+        gained = sum((f - mean) * (ti - tp) for (tp, _), (ti, f) in itertools.pairwise(window))
+        return abs(gained) > SETOFF_MPS
 
     @property
     def tail_start(self) -> float | None:
