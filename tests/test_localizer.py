@@ -578,6 +578,35 @@ def test_setting_off_from_the_start_standstill_is_followed_before_its_speed_says
     assert worst < 3e-4, worst  # before: 2.4 mm behind at 2.59 s, until the sample at 2.6
 
 
+def test_a_set_off_between_two_speed_samples_is_driven_again_at_the_accelerometers_shape(
+    lawn_map,
+):
+    """Mid-mow, stopped, then setting off at 1 m/s² 30 ms after a speed sample: when the
+    next sample comes, the steps since the one before are driven again at the speed the
+    accelerometer shapes between the two (:func:`mowerhw.estimation.odometry.accel_shaped_speeds`),
+    not on the line between them, which put the pose 1 mm ahead for good at every such
+    set-off (an accelerometer 0.05 m/s² off: taken out by the samples)."""
+    mower = _StraightDrive(lawn_map)
+    loc = mower.loc
+
+    def speed(t: float) -> float:  # 0.45 m/s from 2 s, stopped by 3.5 s, off again at 3.83
+        if t <= 3.6:
+            return min(0.45, 0.9 * max(0.0, t - 2.0), max(0.0, 0.9 * (3.5 - t)))
+        return min(0.45, 1.0 * max(0.0, t - 3.83))
+
+    worst = 0.0
+    for k in range(451):  # 4.5 s at 100 Hz; a speed sample every 10th
+        t = 0.01 * k
+        along = mower.drive(speed(t))
+        loc.imu(t, [0.0, 0.0, 0.0], [along + 0.05, 0.0, 9.80665])
+        if k % 10 == 0:
+            loc.speed(t, speed(t))
+            if t > 3.85:
+                worst = max(worst, abs(mower.error()))
+    assert mower.travelled > 0.6
+    assert worst < 2e-4, worst  # on the line: 1.05 mm from the sample at 3.9 on
+
+
 @pytest.mark.parametrize("hz", [50.0, 100.0])
 def test_a_blades_vibration_ends_no_standstill_a_gentle_set_off_does(hz):
     """A blade shaking the IMU at ``hz`` with 2 m/s² (each 100-Hz reading the mean over its
