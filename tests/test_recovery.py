@@ -577,9 +577,46 @@ def test_a_kidnap_runs_nees_is_also_told_apart_for_its_start_and_its_kidnap() ->
     kidnap = parts[R.AFTER_THE_KIDNAP]["components_in_map_frame"][0]
     assert start["z2_x_y_heading"] == [4.0, 0.0, 0.0]  # the x error is the start's alone
     assert kidnap["z2_x_y_heading"] == [0.0, 0.0, 0.0]
+    assert parts[R.AT_THE_START]["components_in_map_frame_along_track"][0][
+        "z2_along_sideways_heading"
+    ] == [4.0, 0.0, 0.0]  # heading 0: along-track is x
     plain = R._NeesLog(None)
     plain.add(out)  # a start run: every relocalization is of one kind, no split
     assert "nees_by_kind" not in plain.summary()
+
+
+def test_the_nees_split_along_the_track_and_sideways_follows_the_true_heading() -> None:
+    """The mower's own axes: an error along world x while the mower heads along world y
+    (90°) is sideways (to its right, −), one along world y is along-track; the covariance
+    turns with it (x's σ 1 mm, y's 3 mm → along-track 3 mm, sideways 1 mm)."""
+    from types import SimpleNamespace
+
+    from mowerhw.evaluation import recovery as R
+
+    n, dt = 1000, 0.01
+    relocs = np.zeros(n, np.int64)
+    relocs[10:] = 1
+    est = np.zeros((n, 7))
+    est[:, 3], est[:, 6] = math.cos(math.pi / 4), math.sin(math.pi / 4)  # heading 90°
+    true_xy = np.zeros((n, 2))
+    true_xy[:500, 0] = -0.002  # the estimate 2 mm along +x of the truth: 2 σ of x
+    true_xy[500:, 1] = -0.006  # then 6 mm along +y: 2 σ of y
+    cov = np.tile(np.diag([1e-6, 9e-6, 1e-6]), (n, 1, 1))
+    out = SimpleNamespace(
+        t=np.arange(n) * dt, relocalizations=relocs, est=est, true_xy=true_xy,
+        true_yaw=np.full(n, math.pi / 2), cov_xy_yaw=cov, cov_xy_yaw_ground=cov,
+    )  # fmt: skip
+    log = R._NeesLog(None)
+    log.align = (1.0, np.eye(2), np.zeros(2), 0.0)
+    log.add(out)  # type: ignore[arg-type]
+    ((err, turned),) = log.along_track
+    assert err[0] == pytest.approx([0.0, -0.002, 0.0], abs=1e-12)
+    assert err[-1] == pytest.approx([0.006, 0.0, 0.0], abs=1e-12)
+    assert turned[0] == pytest.approx(np.diag([9e-6, 1e-6, 1e-6]), abs=1e-15)
+    rows = log.summary()["components_in_map_frame_along_track"]
+    assert rows[0]["z2_along_sideways_heading"] == [0.0, 4.0, 0.0]  # 0–2.5 s: x's error
+    assert rows[2]["z2_along_sideways_heading"] == [4.0, 0.0, 0.0]  # 5–10 s: y's error
+    assert rows[2]["rms_sigma_mm_mm_deg"][:2] == [3.0, 1.0]
 
 
 def test_a_start_runs_record_names_its_relocalizations_error_sigma_and_standing_nees() -> None:

@@ -244,6 +244,32 @@ def _after_relocalizations(
     return [(err[seg], covs[seg]) for seg in segs]
 
 
+def _along_track(
+    out: MowOutcome, segments: list[tuple[FloatArray, FloatArray]]
+) -> list[tuple[FloatArray, FloatArray]]:
+    """``segments`` (:func:`_after_relocalizations`, one per accepted relocalization of
+    ``out``) turned into the mower's own axes at each sample: the position error and its
+    covariance along the true heading and sideways of it (heading unchanged). The ground
+    speed's noise is along-track and a sideways slip's across: this split says which of the
+    two a bin's misfit is."""
+    dt = float(out.t[1] - out.t[0])
+    n = round(NEES_S / dt)
+    turned = []
+    for k, (err, cov) in zip(_accepted_at(out).tolist(), segments, strict=True):
+        yaw = out.true_yaw[k : min(k + n, out.t.size)]
+        c, s = np.cos(yaw), np.sin(yaw)
+        rot = np.zeros((yaw.size, 3, 3))  # world → body: rows (heading, its left, up-turn)
+        rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, s, -s, c
+        rot[:, 2, 2] = 1.0
+        turned.append(
+            (
+                np.einsum("nij,nj->ni", rot, err),
+                np.einsum("nij,njk,nlk->nil", rot, cov, rot),
+            )
+        )
+    return turned
+
+
 def _accepted_at(out: MowOutcome) -> NDArray[np.intp]:
     """The samples at which a relocalization was accepted, in order."""
     return np.flatnonzero(np.diff(out.relocalizations) > 0) + 1
@@ -274,12 +300,14 @@ def _phase(lo: float, hi: float, dt: float) -> slice:
 
 
 def component_summary(
-    segments: list[tuple[FloatArray, FloatArray]], dt: float
+    segments: list[tuple[FloatArray, FloatArray]], dt: float, axes: str = "x_y_heading"
 ) -> list[dict[str, Any]]:
     """Each component's share of the NEES, phase by phase (:data:`PHASES_S`): the mean of
     its error² over its own variance (1 for an honest filter; the NEES of 3 split into x, y
     and heading, correlations aside), its rms error and its rms σ (mm, mm, degrees). Where a
-    bin is over or under, this says which component and when (standing or driving)."""
+    bin is over or under, this says which component and when (standing or driving).
+    ``axes``: what the three components are, for the keys (``along_sideways_heading``:
+    :func:`_along_track`'s)."""
     rows = []
     for lo, hi in PHASES_S:
         part = _phase(lo, hi, dt)
@@ -292,7 +320,7 @@ def component_summary(
             {
                 "from_s": lo,
                 "to_s": hi,
-                "z2_x_y_heading": [round(float(v), 2) for v in np.mean(err**2 / var, axis=0)],
+                f"z2_{axes}": [round(float(v), 2) for v in np.mean(err**2 / var, axis=0)],
                 "rms_error_mm_mm_deg": _mm_mm_deg(np.sqrt(np.mean(err**2, axis=0))),
                 "rms_sigma_mm_mm_deg": _mm_mm_deg(np.sqrt(np.mean(var, axis=0))),
             }
@@ -316,6 +344,8 @@ class _NeesLog:
         self.aligned: list[FloatArray] = []
         #: per relocalization, in the map's frame: errors and covariances (component_summary)
         self.components: list[tuple[FloatArray, FloatArray]] = []
+        #: the same in the mower's axes (:func:`_along_track`)
+        self.along_track: list[tuple[FloatArray, FloatArray]] = []
         self.kinds: list[str] = []  # per relocalization, what it followed
         self.dt = 0.01
 
@@ -323,6 +353,7 @@ class _NeesLog:
         self.series += other.series
         self.aligned += other.aligned
         self.components += other.components
+        self.along_track += other.along_track
         self.kinds += other.kinds
         self.dt = other.dt
 
@@ -340,6 +371,7 @@ class _NeesLog:
             in_map_frame = _after_relocalizations(out, self.align)
             self.aligned += _nees(in_map_frame)
             self.components += in_map_frame
+            self.along_track += _along_track(out, in_map_frame)
 
     def by_kind(self) -> dict[str, Any] | None:
         """The NEES bins of each kind apart (kidnap runs: the start's and the kidnap's), or
@@ -354,10 +386,14 @@ class _NeesLog:
             truth = [s for s, m in zip(self.series, mine, strict=True) if m]
             in_map = [s for s, m in zip(self.aligned, mine, strict=True) if m] if aligned else []
             parts = [c for c, m in zip(self.components, mine, strict=True) if m] if aligned else []
+            axes = [c for c, m in zip(self.along_track, mine, strict=True) if m] if aligned else []
             out[kind] = {
                 "nees": nees_summary(truth, self.dt),
                 "nees_in_map_frame": nees_summary(in_map, self.dt) if in_map else None,
                 "components_in_map_frame": component_summary(parts, self.dt) if parts else None,
+                "components_in_map_frame_along_track": (
+                    component_summary(axes, self.dt, "along_sideways_heading") if axes else None
+                ),
             }
         return out
 
@@ -374,6 +410,11 @@ class _NeesLog:
             ),
             "components_in_map_frame": (
                 component_summary(self.components, self.dt) if self.components else None
+            ),
+            "components_in_map_frame_along_track": (
+                component_summary(self.along_track, self.dt, "along_sideways_heading")
+                if self.along_track
+                else None
             ),
         }
 
