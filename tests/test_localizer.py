@@ -814,6 +814,58 @@ def test_a_frames_worth_is_exact_for_an_error_shared_along_the_track():
     assert Localizer.shared_from_last(math.inf, math.inf) == 0.0  # unknown motion
 
 
+def test_a_frames_worth_counts_what_the_driving_pose_forgot_since_the_frame_before():
+    """A driving mower's pose walks on between frames (the motion model widens it): the
+    stand-in's ``x`` does too, by ``forgotten`` lone frames' variance, and each frame adds
+    exactly what it tells of the pose now given every frame before — checked against the
+    batch solution over all the poses (x_i − x_{i−1} of variance r_i, frames' errors
+    ``c + n`` with the AR(1) common part). A walk makes a driving frame worth more (0.30 of
+    a lone frame at ρ 0.7 without, about 0.54 with a fifth of a lone frame's variance),
+    never more than a lone frame, and a standing mower's pose that does not walk is as
+    before."""
+    from mowerhw.mow.spot import SharedFrameError
+
+    f, n = 0.5, 30
+    rng = np.random.default_rng(5)
+    rhos = np.where(rng.random(n) < 0.3, 1.0, rng.uniform(0.3, 0.95, n))
+    walks = np.where(rhos < 1.0, rng.uniform(0.0, 0.4, n), 0.0)
+    cov = (1.0 - f) * np.eye(n)  # the frames' errors c + n
+    for i in range(n):
+        for j in range(n):
+            a, b = min(i, j), max(i, j)
+            cov[i, j] += f * np.prod(rhos[a + 1 : b + 1])
+
+    def variance_of_last(k: int, frames: int) -> float:
+        """Poses x_0..x_k, the first ``frames`` frames (x_0 free): var of x_k."""
+        diff = np.zeros((k, k + 1))
+        diff[np.arange(k), np.arange(k)], diff[np.arange(k), np.arange(1, k + 1)] = -1.0, 1.0
+        prec = diff.T @ np.diag(1.0 / walks[1 : k + 1]) @ diff if k else np.zeros((1, 1))
+        pick = np.eye(k + 1)[:frames]
+        prec = prec + pick.T @ np.linalg.solve(cov[:frames, :frames], pick)
+        return float(np.linalg.inv(prec)[k, k])
+
+    walks[1:] = np.maximum(walks[1:], 1e-9)  # a standing step: (next to) no walk
+    spot = SharedFrameError(f)
+    for k in range(n):
+        spot.move_on(float(rhos[k]), float(walks[k]))
+        gained = spot.frame() ** -2
+        before = 0.0 if k == 0 else 1.0 / variance_of_last(k, k)
+        exact = 1.0 / variance_of_last(k, k + 1) - before
+        assert gained == pytest.approx(min(exact, 1.0), rel=1e-5, abs=1e-9)  # ill-posed batch
+
+    def driving_worth(forgotten: float) -> float:
+        spot = SharedFrameError(f)
+        for _ in range(300):
+            spot.move_on(0.7, forgotten)
+            worth = spot.frame() ** -2
+        return worth
+
+    assert driving_worth(0.0) == pytest.approx(0.30, abs=1e-3)
+    assert driving_worth(0.2) == pytest.approx(0.538, abs=1e-3)
+    assert driving_worth(1e6) == pytest.approx(1.0, abs=1e-5)  # the pose forgotten: a lone frame
+    assert driving_worth(1e6) <= 1.0
+
+
 def test_against_the_ground_the_pose_carries_the_map_frames_error(lawn_map):
     """Containment works against the map (its edge shares the map's frame); against the
     ground the pose is as uncertain as that plus the frame's own error where the mower is,
