@@ -866,6 +866,33 @@ def test_a_frames_worth_counts_what_the_driving_pose_forgot_since_the_frame_befo
     assert driving_worth(1e6) <= 1.0
 
 
+def test_the_pose_forgets_what_the_motion_model_widened_it_by_not_while_standing(
+    lawn_map, monkeypatch
+):
+    """What a frame's shared error walks by (``Localizer._forgotten``): next to nothing
+    while the mower stands at the dock (no speed noise, a gyro's few µrad), a few hundredths
+    of a lone frame's variance between two frames while it drives at 0.45 m/s (the ground
+    speed's noise widening the pose along the track)."""
+    world = make_world("paper", 6)
+    plant = MowerPlant(world, 1)
+    loc = Localizer(lawn_map)
+    seen: list[tuple[float, float]] = []
+    forgotten = Localizer._forgotten
+
+    def spy(self: Localizer) -> float:
+        value = forgotten(self)
+        seen.append((self.t_imu, value))
+        return value
+
+    monkeypatch.setattr(Localizer, "_forgotten", spy)
+    drive(loc, plant, [(0, 0, 2.0), (0.45, 0, 4.0)])
+    standing = [v for t, v in seen if 0.5 < t < 2.0]
+    driving = [v for t, v in seen if t > 3.0]
+    assert standing and driving
+    assert max(standing) < 1e-3
+    assert 0.003 < float(np.median(driving)) < 0.3
+
+
 def test_against_the_ground_the_pose_carries_the_map_frames_error(lawn_map):
     """Containment works against the map (its edge shares the map's frame); against the
     ground the pose is as uncertain as that plus the frame's own error where the mower is,
