@@ -85,19 +85,12 @@ class _Linearised:
     stamp_sigma: float
 
 
-#: the pose's (x, y, yaw) error-state indices
-POSE_XY_YAW = np.array([0, 1, YAW])
-
-
 @dataclass
 class UpdateOutcome:
     accepted: NDArray[np.bool_]
     nis: FloatArray
     used: int = 0
     rejected: int = 0
-    #: (3, 3) what the bearings updated with tell of (x, y, yaw) per unit bearing variance,
-    #: ``Σ H_xᵀ H_x`` over them (the map's errors and shared terms aside); None: no update
-    pose_information: FloatArray | None = None
 
 
 @dataclass
@@ -363,8 +356,7 @@ class WorldPoseEKF:
             return UpdateOutcome(ok, nis, 0, n)
         frame = _Linearised(rows, res, hx, hl, sigma, shared, stamp_sigma)
         ok, (dx, K, S, Hx, pll_hl) = self._fit(frame, ok, nis, own_sigma)
-        hp = hx[ok][:, :, POSE_XY_YAW].reshape(-1, 3)
-        out = UpdateOutcome(ok, nis, int(ok.sum()), int((~ok).sum()), hp.T @ hp)
+        out = UpdateOutcome(ok, nis, int(ok.sum()), int((~ok).sum()))
         self.P = self.P - K @ S @ K.T
         self.P = 0.5 * (self.P + self.P.T)
         if self.pxl.shape[1]:

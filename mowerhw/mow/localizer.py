@@ -90,13 +90,7 @@ from mowerhw.mow.containment import (
     LawnGeometry,
     Reason,
 )
-from mowerhw.mow.ekf import (
-    POSE_XY_YAW,
-    EkfState,
-    LocalizerNoise,
-    WorldPoseEKF,
-    largest_sigma_xy,
-)
+from mowerhw.mow.ekf import EkfState, LocalizerNoise, WorldPoseEKF, largest_sigma_xy
 from mowerhw.mow.recovery import (
     Pose2D,
     Probation,
@@ -231,10 +225,6 @@ class Localizer:
         self._carried_v: float | None = None
         self._t_last_frame: float | None = None  # time of the last frame's update
         self._shared_error = SharedFrameError(self.SPOT_SHARED)  # the frames' common error
-        #: (x, y, yaw) covariance right after the last frame's update, and what a lone frame
-        #: like it tells of the pose (its information): how much the pose forgot since
-        self._pose_after_frame: FloatArray | None = None
-        self._lone_frame_information: FloatArray | None = None
         self._standstill = StandstillCalibrator()
         self._resets = 0
         self._injected = 0
@@ -976,9 +966,6 @@ class Localizer:
             stamp_sigma=c.frame_stamp_sigma_s,
             own_sigma=c.bearing_sigma_rad,
         )
-        if out.pose_information is not None:
-            self._lone_frame_information = out.pose_information / c.bearing_sigma_rad**2
-            self._pose_after_frame = self._pose_xy_yaw()
         self.last_rejected = self.ids[rows[~out.accepted]]
         self.counters.bearings_used += out.used
         self.counters.bearings_rejected += out.rejected
@@ -1070,24 +1057,8 @@ class Localizer:
         with the frame)."""
         t_from, self._t_last_frame = self._t_last_frame, t
         moved, turned = self._motion_between(t_from, t)
-        self._shared_error.move_on(self.shared_from_last(moved, turned), self._forgotten())
+        self._shared_error.move_on(self.shared_from_last(moved, turned))
         return self.cfg.bearing_sigma_rad * self._shared_error.frame()
-
-    def _pose_xy_yaw(self) -> FloatArray:
-        """The filter's (x, y, yaw) covariance now."""
-        cov: FloatArray = self.ekf.P[np.ix_(POSE_XY_YAW, POSE_XY_YAW)]
-        return cov
-
-    def _forgotten(self) -> float:
-        """How much the pose was widened since the last frame's update, in a lone frame's
-        units (:meth:`SharedFrameError.move_on`): the widening ``ΔP`` of (x, y, yaw) over
-        what a lone frame like the last tells of them (``I``, its information), the mean
-        of ``ΔP I``'s eigenvalues, ``tr(ΔP I) / 3``. 0 standing (the motion model adds next
-        to nothing), before the first update, or for a late frame older than the last."""
-        if self._pose_after_frame is None or self._lone_frame_information is None:
-            return 0.0
-        widened = self._pose_xy_yaw() - self._pose_after_frame
-        return max(float(np.trace(widened @ self._lone_frame_information)) / 3.0, 0.0)
 
     def _answer_frame_shared(self, moved: float, turned: float) -> None:
         """An accepted answer is the first frame from its spot (:meth:`_bearing_sigma`): the
@@ -1099,7 +1070,6 @@ class Localizer:
         self._shared_error.frame()
         self._shared_error.move_on(self.shared_from_last(moved, turned))
         self._t_last_frame = self.t_imu
-        self._pose_after_frame = self._pose_xy_yaw()  # the filter restarts here
 
     @classmethod
     def shared_from_last(cls, moved: float, turned: float) -> float:

@@ -15,15 +15,6 @@ The rule this replaces (stop 63) carried a count ``k ← 1 + ρ k``, exact stand
 the mower moves: after ten standing frames the first frame 0.125 m on (ρ 0.53) added 0.04 of
 a lone frame's information where the model gives 0.31, so a relocalized mower driving off
 was under-confident for seconds (NEES bins under their bound, README issue 18).
-
-A driving mower's pose is not the stand-in's fixed ``x``: the motion model widens it between
-frames, so it forgets part of what earlier frames told — and with it part of what their
-common error would cost the next frame. ``x`` walks on by what the pose was widened since
-the last frame, counted in a lone frame's units (:meth:`SharedFrameError.move_on`). Without
-that walk a driving frame at ρ 0.7 was worth 0.30 of a lone frame where, with the pose
-widened by a fifth of a lone frame's variance, the model gives 0.54; a scalar run of the
-filter with that widening and those errors then read its error at 0.81 of its variance
-(under-confident), at 1.05 with the walk (README, issue 18, stop 80).
 """
 
 from __future__ import annotations
@@ -46,18 +37,13 @@ class SharedFrameError:
         #: covariance of the errors of (x's estimate, c's estimate); None before any frame
         self._p: FloatArray | None = None
 
-    def move_on(self, rho: float, forgotten: float = 0.0) -> None:
+    def move_on(self, rho: float) -> None:
         """Between two frames the common error keeps ``rho`` of itself (1: the same spot,
-        0: a fresh one): ``c ← ρ c + √(1 − ρ²) w`` (the AR(1)'s prediction step); and the
-        pose walked on by ``forgotten`` (a variance, in a lone frame's units: what the
-        motion model added to the pose since the last frame, over what a lone frame tells
-        of it): ``x ← x + v``. A driving mower's pose forgets the frames before in part, so
-        what their common error would have cost the next frame is forgotten with them."""
+        0: a fresh one): ``c ← ρ c + √(1 − ρ²) w`` (the AR(1)'s prediction step)."""
         if self._p is None:
             return
         r = min(max(rho, 0.0), 1.0)
         p = self._p
-        p[0, 0] += max(forgotten, 0.0)
         p[0, 1] *= r
         p[1, 0] *= r
         p[1, 1] = r * r * p[1, 1] + (1.0 - r * r) * self.share
@@ -75,5 +61,4 @@ class SharedFrameError:
         s = ph[0] + ph[1] + (1.0 - f)
         self._p = p - np.outer(ph, ph) / s
         gained = 1.0 / self._p[0, 0] - before
-        # never surer than a lone frame (a pose forgotten while the common part was known)
-        return 1.0 / math.sqrt(min(max(gained, 1e-12), 1.0))
+        return 1.0 / math.sqrt(max(gained, 1e-12))
