@@ -238,10 +238,13 @@ def _after_relocalizations(
     (``align``) against the truth in the map's frame with the covariance against the map."""
     err = _pose_errors(out, align)
     covs = out.cov_xy_yaw if align is not None else out.cov_xy_yaw_ground
-    dt = float(out.t[1] - out.t[0])
-    n = round(NEES_S / dt)
-    segs = [slice(k, min(k + n, out.t.size)) for k in _accepted_at(out)]
-    return [(err[seg], covs[seg]) for seg in segs]
+    return [(err[seg], covs[seg]) for seg in _relocalization_spans(out)]
+
+
+def _relocalization_spans(out: MowOutcome) -> list[slice]:
+    """The samples over :data:`NEES_S` after each accepted relocalization, in order."""
+    n = round(NEES_S / float(out.t[1] - out.t[0]))
+    return [slice(k, min(k + n, out.t.size)) for k in _accepted_at(out)]
 
 
 def _along_track(
@@ -252,11 +255,9 @@ def _along_track(
     covariance along the true heading and sideways of it (heading unchanged). The ground
     speed's noise is along-track and a sideways slip's across: this split says which of the
     two a bin's misfit is."""
-    dt = float(out.t[1] - out.t[0])
-    n = round(NEES_S / dt)
     turned = []
-    for k, (err, cov) in zip(_accepted_at(out).tolist(), segments, strict=True):
-        yaw = out.true_yaw[k : min(k + n, out.t.size)]
+    for span, (err, cov) in zip(_relocalization_spans(out), segments, strict=True):
+        yaw = out.true_yaw[span]
         c, s = np.cos(yaw), np.sin(yaw)
         rot = np.zeros((yaw.size, 3, 3))  # world → body: rows (heading, its left, up-turn)
         rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = c, s, -s, c
