@@ -188,7 +188,8 @@ def scenario_config(scenario: str) -> Any:
 #: simulator draws no sideways slip (the mower drives along its heading), this is a floor —
 #: 0.05 mm of σ over a frame's 0.25 s. 5e-4 before (0.25 mm, a sixth of the driving pose's
 #: sideways σ) left the pools' sideways z² at 0.61–0.81 while driving; 1e-4 reads 0.81–1.06
-#: (README, issue 18, stop 80)
+#: in the starts and the look-alike kidnaps, and shows the paper kidnaps over-sure sideways
+#: (1.24–1.64) (README, issue 18, stop 80)
 MATCHED_LATERAL_NOISE = 1e-4
 
 
